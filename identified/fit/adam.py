@@ -1,0 +1,78 @@
+"""The paper's training of the linear regression: a single linear layer, Adam, 30 epochs.
+
+Paper, "Integration Module and Method Implementation": the regression is a single-layer network
+without activation, trained for 30 epochs with Adam, learning rate 0.1 halved every 3 epochs,
+parameters initialised to 1.  Here the layer's weights are the same physical parameters as in
+the closed-form solve, under the same scale anchor, on the same equations; this solver exists to
+compare against the closed form (accuracy and time, ``benchmarks/bench_fit.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+import numpy as np
+import scipy.linalg as sla
+import torch
+
+from identified.fit.layout import ParameterLayout
+from identified.fit.regression import Anchor, Solution
+
+__all__ = ["adam_solve"]
+
+
+def adam_solve(
+    rows: Callable[[], Iterable[torch.Tensor]],
+    layout: ParameterLayout,
+    anchor: Anchor,
+    fixed: dict[int, float],
+    epochs: int = 30,
+    lr: float = 0.1,
+    batch_steps: int = 256,
+    seed: int = 0,
+    on_chunk: Callable[[int], None] | None = None,
+) -> Solution:
+    """Minimise the mean squared equation error with Adam; ``rows()`` yields (N, R, 6, n_full) chunks."""
+    G = layout.tie
+    C = [anchor.coeff @ G]
+    d = [anchor.value]
+    for idx, val in fixed.items():
+        e = np.zeros(layout.n_full)
+        e[idx] = 1.0
+        C.append(e @ G)
+        d.append(val)
+    C_arr, d_arr = np.array(C), np.array(d)
+    phi_p = np.linalg.lstsq(C_arr, d_arr, rcond=None)[0]
+    Nul = sla.null_space(C_arr)
+    z0 = Nul.T @ (np.ones(G.shape[1]) - phi_p)  # parameters start at 1, as in the paper
+    Gt = torch.as_tensor(G)
+    Nt = torch.as_tensor(Nul)
+    phi_pt = torch.as_tensor(phi_p)
+    z = torch.nn.Parameter(torch.as_tensor(z0))
+    opt = torch.optim.Adam([z], lr=lr)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=3, gamma=0.5)
+    gen = torch.Generator().manual_seed(seed)
+    row_scale: torch.Tensor | None = None
+    total_rows = 0
+    for epoch in range(epochs):
+        for A in rows():
+            if row_scale is None:  # equilibrate force and torque rows once, from the first chunk
+                row_scale = 1.0 / A.norm(dim=-1).square().mean(dim=(0, 1)).sqrt().clamp_min(1e-300)
+            A = A * row_scale[:, None]
+            perm = torch.randperm(A.shape[0], generator=gen)
+            for start in range(0, A.shape[0], batch_steps):
+                batch = A[perm[start : start + batch_steps]]
+                theta = Gt @ (phi_pt + Nt @ z)
+                loss = (batch @ theta).square().mean()
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+            if epoch == 0:
+                total_rows += A.shape[0] * A.shape[1] * A.shape[2]
+                if on_chunk is not None:
+                    on_chunk(A.shape[0])
+        sched.step()
+    with torch.no_grad():
+        theta = (Gt @ (phi_pt + Nt @ z)).numpy()
+    return Solution(theta=theta, cov=None, residual_rms=[float("nan")] * (2 * layout.n_rods),
+                    condition=float("nan"), rows=total_rows, free=Nul.shape[1])

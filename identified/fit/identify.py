@@ -1,0 +1,236 @@
+"""Identify a spring-rod model from recorded rod states: the ``tensegrity fit`` pipeline.
+
+``identify(dataset, topology)`` builds the regression features
+(:mod:`identified.fit.features`), reduces them to triangular factors, fixes the global scale by
+an anchor and solves (:mod:`identified.fit.regression`), optionally trains the same linear model
+with the paper's Adam schedule (:mod:`identified.fit.adam`) or refines it through multi-step
+rollouts (:mod:`identified.fit.refine`), and returns an :class:`~identified.model.IdentifiedModel`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from identified.dataset import Dataset, DatasetError
+from identified.fit.features import Chunk, block_columns, equation_rows
+from identified.fit.layout import ParameterLayout
+from identified.fit.regression import Anchor, Solution, accumulate, solve
+from identified.model import IdentifiedModel
+from identified.topology import Topology
+
+__all__ = ["ScaleSpec", "identify", "iter_chunks", "check_compatible", "resolve_anchor"]
+
+SOLVERS = ("lstsq", "adam")
+
+
+@dataclass(frozen=True)
+class ScaleSpec:
+    """What fixes the global scale: known rod masses, a known total mass, or known pushes."""
+
+    masses: tuple[tuple[str, float], ...] = ()
+    total_mass: float | None = None
+    pushes_in_newton: bool = True
+
+
+def check_compatible(dataset: Dataset, topology: Topology) -> None:
+    """Raise DatasetError when the data do not belong to this model (names, counts, motion)."""
+    if dataset.rod_names != topology.rod_names:
+        raise DatasetError(
+            f"dataset rods {list(dataset.rod_names)} do not match the model's rods {list(topology.rod_names)}"
+        )
+    if dataset.tendon_names != topology.spring_names:
+        raise DatasetError(
+            f"dataset has {len(dataset.tendon_names)} tendons {list(dataset.tendon_names)[:4]}..., "
+            f"the model has {topology.n_springs} {list(topology.spring_names)[:4]}...: they do not match"
+        )
+    moving = max(np.abs(np.diff(dataset.pos, axis=1)).max(), np.abs(np.diff(dataset.vel, axis=1)).max(),
+                 np.abs(np.diff(dataset.angvel, axis=1)).max())
+    if moving <= 1e-12:
+        raise DatasetError("the dataset holds no motion: every rod stays still, nothing can be identified")
+
+
+def iter_chunks(
+    dataset: Dataset, chunk_steps: int = 4096, dtype: torch.dtype = torch.float64, device: str = "cpu"
+) -> Iterator[Chunk]:
+    """Slabs of at most ``chunk_steps`` steps, flattened over (episode, time)."""
+    E, T = dataset.n_episodes, dataset.n_steps
+    per = max(1, chunk_steps // T)  # whole episodes per chunk when they are short
+    if per > 1 or T <= chunk_steps:
+        spans = [(slice(e, min(e + per, E)), slice(0, T)) for e in range(0, E, per)]
+    else:
+        spans = [(slice(e, e + 1), slice(t, min(t + chunk_steps, T))) for e in range(E) for t in range(0, T, chunk_steps)]
+
+    def cut(arr: np.ndarray, ep: slice, ts: slice, shift: int = 0) -> torch.Tensor:
+        x = arr[ep, ts.start + shift : ts.stop + shift]
+        return torch.as_tensor(x.reshape(-1, *x.shape[2:]), dtype=dtype, device=device)
+
+    for ep, ts in spans:
+        yield Chunk(
+            pos=cut(dataset.pos, ep, ts),
+            quat=cut(dataset.quat, ep, ts),
+            vel=cut(dataset.vel, ep, ts),
+            angvel=cut(dataset.angvel, ep, ts),
+            quat_next=cut(dataset.quat, ep, ts, 1),
+            vel_next=cut(dataset.vel, ep, ts, 1),
+            angvel_next=cut(dataset.angvel, ep, ts, 1),
+            rest=cut(dataset.rest_length, ep, ts),
+            push_force=cut(dataset.push_force, ep, ts),
+            push_point=cut(dataset.push_point, ep, ts),
+        )
+
+
+def resolve_anchor(
+    layout: ParameterLayout, scale: ScaleSpec, has_pushes: bool
+) -> tuple[Anchor, dict[int, float], dict]:
+    """The anchor that fixes the scale, entries pinned by it, and how the JSON describes it."""
+    fixed: dict[int, float] = {}
+    names = list(layout.rod_names)
+    for name, kg in scale.masses:
+        if name not in names:
+            raise ValueError(f"--mass names rod '{name}', which is not in the model (rods: {', '.join(names)})")
+        if not kg > 0:
+            raise ValueError(f"--mass {name}={kg}: a mass must be positive")
+    if scale.total_mass is not None and not scale.total_mass > 0:
+        raise ValueError(f"--total-mass {scale.total_mass}: a mass must be positive")
+    if not has_pushes:
+        fixed[layout.h] = 1.0  # no pushes in the data: h does not enter, keep the nominal 1
+    if scale.masses:
+        (first, kg), rest = scale.masses[0], scale.masses[1:]
+        e = np.zeros(layout.n_full)
+        e[layout.m(names.index(first))] = 1.0
+        for name, kg2 in rest:
+            fixed[layout.m(names.index(name))] = kg2
+        desc = {"anchor": "mass", "description": f"absolute: mass of {first} known ({kg} kg)"}
+        return Anchor(e, kg, desc["description"]), fixed, desc
+    if scale.total_mass is not None:
+        e = np.zeros(layout.n_full)
+        e[[layout.m(i) for i in range(layout.n_rods)]] = 1.0
+        desc = {"anchor": "total_mass", "description": f"absolute: total rod mass known ({scale.total_mass} kg)"}
+        return Anchor(e, scale.total_mass, desc["description"]), fixed, desc
+    if has_pushes and scale.pushes_in_newton:
+        e = np.zeros(layout.n_full)
+        e[layout.h] = 1.0
+        fixed.pop(layout.h, None)
+        desc = {"anchor": "push", "description": "absolute: recorded pushes are in newtons (h = 1)"}
+        return Anchor(e, 1.0, desc["description"]), fixed, desc
+    e = np.zeros(layout.n_full)
+    e[[layout.m(i) for i in range(layout.n_rods)]] = 1.0 / layout.n_rods
+    desc = {
+        "anchor": "normalised",
+        "description": "normalised: states fix only ratios; values are scaled so that the mean rod mass is 1 kg "
+        "(multiply every mass, inertia, stiffness and damping by the true mean rod mass)",
+        "mean_rod_mass": 1.0,
+    }
+    return Anchor(e, 1.0, desc["description"]), fixed, desc
+
+
+def identify(
+    dataset: Dataset,
+    topology: Topology,
+    regressors: str = "multiple",
+    scale: ScaleSpec = ScaleSpec(),
+    solver: str = "lstsq",
+    chunk_steps: int = 4096,
+    progress: bool = False,
+    device: str = "cpu",
+) -> IdentifiedModel:
+    """Fit K, c per spring, M, I per rod and the control scale h from rod states alone."""
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
+    check_compatible(dataset, topology)
+    t0 = time.perf_counter()
+    layout = ParameterLayout.for_topology(topology, regressors)
+    has_pushes = bool(np.any(dataset.push_force != 0))
+    anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
+    gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
+
+    def rows() -> Iterator[torch.Tensor]:
+        for ch in iter_chunks(dataset, chunk_steps, device=device):
+            yield equation_rows(topology, layout, ch, dataset.dt, gravity)
+
+    bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
+    if solver == "lstsq":
+        factors = accumulate(rows(), block_columns(topology, layout), layout.n_full,
+                             on_chunk=(bar.update if bar else None))
+        sol = solve(factors, layout, anchor, fixed)
+    else:
+        from identified.fit.adam import adam_solve
+
+        sol = adam_solve(rows, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
+    if bar:
+        bar.close()
+    elapsed = time.perf_counter() - t0
+    return _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+
+
+def _to_model(
+    topology: Topology,
+    layout: ParameterLayout,
+    sol: Solution,
+    dataset: Dataset,
+    scale_desc: dict,
+    has_pushes: bool,
+    regressors: str,
+    solver: str,
+    elapsed: float,
+) -> IdentifiedModel:
+    S, R = topology.n_springs, topology.n_rods
+    th = sol.theta
+    se = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None)) if sol.cov is not None else None
+    k_idx, c_idx = np.arange(S), S + np.arange(S)
+    m_idx = np.array([layout.m(i) for i in range(R)])
+    i_idx = np.array([[layout.inertia(i, a) for a in range(3)] for i in range(R)])
+    stderr: dict[str, np.ndarray] = {}
+    if se is not None:
+        stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": se[i_idx]}
+        if has_pushes:
+            stderr["control_scale"] = np.array(se[layout.h])
+    metrics = {
+        "solver": solver,
+        "regressors": regressors,
+        "fit_seconds": round(elapsed, 4),
+        "data": {
+            "episodes": dataset.n_episodes,
+            "steps_per_episode": dataset.n_steps,
+            "steps": dataset.n_episodes * dataset.n_steps,
+            "equations": sol.rows,
+            "free_parameters": sol.free,
+            "noise": dataset.noise.tolist(),
+        },
+        "equation_residual_rms": {"translation": _finite(np.mean(sol.residual_rms[0::2])),
+                                  "rotation": _finite(np.mean(sol.residual_rms[1::2]))},
+        "condition_number": _finite(sol.condition),
+    }
+    if not has_pushes:
+        scale_desc = dict(scale_desc, control_scale="not identified: no pushes in the data (kept at 1)")
+    return IdentifiedModel(
+        topology=topology,
+        stiffness=th[k_idx],
+        damping=th[c_idx],
+        rest_length=dataset.rest_length.mean(axis=(0, 1)),
+        mass=th[m_idx],
+        inertia=th[i_idx],
+        control_scale=float(th[layout.h]),
+        dt=dataset.dt,
+        gravity=dataset.gravity.copy(),
+        stderr=stderr,
+        scale=scale_desc,
+        metrics=metrics,
+    )
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _progress(enabled: bool, total: int, desc: str):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", leave=False)

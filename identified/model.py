@@ -1,0 +1,221 @@
+"""The identified model: physical parameters a person reads, stored as JSON.
+
+Keys (DESIGN.md): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, damping,
+rest_length), ``control_scale`` (h), ``effects`` (name and parameters of every added effect),
+``metrics`` (fit error, data used).  Besides these, ``topology`` stores the geometry the engine
+needs (rod attachment points, which sites each spring joins), so that the twin stands on its own,
+``dt`` and ``gravity`` the conditions of the data, and ``scale`` how the global scale was fixed.
+Every value carries its standard error where the fit gives one (``*_stderr``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from identified.dataset import atomic_write
+from identified.topology import Rod, Spring, Topology
+
+__all__ = ["IdentifiedModel", "ModelFileError", "load_model", "save_model"]
+
+FORMAT = "tensegrity-identified/1"
+
+
+class ModelFileError(ValueError):
+    """The identified-model file is missing, malformed or inconsistent."""
+
+
+@dataclass
+class IdentifiedModel:
+    """Identified parameters and the topology they belong to."""
+
+    topology: Topology
+    stiffness: np.ndarray  # (S,) N/m
+    damping: np.ndarray  # (S,) N s/m
+    rest_length: np.ndarray  # (S,) nominal rest length (mean recorded), m
+    mass: np.ndarray  # (R,) kg
+    inertia: np.ndarray  # (R, 3) kg m^2, rod frame diagonal
+    control_scale: float = 1.0
+    dt: float = 1e-3
+    gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    stderr: dict[str, np.ndarray] = field(default_factory=dict)  # same keys/shapes as the values
+    scale: dict[str, Any] = field(default_factory=dict)
+    effects: list[dict[str, Any]] = field(default_factory=list)
+    metrics: dict[str, Any] = field(default_factory=dict)
+    source_model: str | None = None
+
+    def summary(self) -> str:
+        """The model in words: one line per rod and spring, with standard errors."""
+        se = self.stderr
+        lines = []
+        for i, r in enumerate(self.topology.rods):
+            m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i)
+            inert = ", ".join(f"{x:.4g}" for x in self.inertia[i])
+            lines.append(f"{r.name}: M = {m}; I = ({inert}) kg m^2")
+        for j, s in enumerate(self.topology.springs):
+            k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j)
+            c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j)
+            kind = "cable" if s.pull_only else "spring"
+            lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; rest {self.rest_length[j]:.4g} m")
+        lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
+        if self.scale:
+            lines.append(f"scale: {self.scale.get('description', '')}")
+        for e in self.effects:
+            lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+        return "\n".join(lines)
+
+    # ------------------------------------------------------------------ JSON
+    def to_json(self) -> dict[str, Any]:
+        se = self.stderr
+
+        def err(key: str, idx) -> float | list | None:
+            if key not in se:
+                return None
+            v = np.asarray(se[key])[idx] if idx is not None else np.asarray(se[key])
+            return v.tolist()
+
+        topo = self.topology
+        return {
+            "format": FORMAT,
+            "rods": [
+                {
+                    "name": r.name,
+                    "mass": float(self.mass[i]),
+                    "mass_stderr": err("mass", i),
+                    "inertia": self.inertia[i].tolist(),
+                    "inertia_stderr": err("inertia", i),
+                }
+                for i, r in enumerate(topo.rods)
+            ],
+            "springs": [
+                {
+                    "name": s.name,
+                    "stiffness": float(self.stiffness[j]),
+                    "stiffness_stderr": err("stiffness", j),
+                    "damping": float(self.damping[j]),
+                    "damping_stderr": err("damping", j),
+                    "rest_length": float(self.rest_length[j]),
+                    "pull_only": bool(s.pull_only),
+                    "actuated": bool(s.actuated),
+                }
+                for j, s in enumerate(topo.springs)
+            ],
+            "control_scale": {"value": float(self.control_scale), "stderr": err("control_scale", None)},
+            "effects": self.effects,
+            "metrics": self.metrics,
+            "scale": self.scale,
+            "dt": float(self.dt),
+            "gravity": np.asarray(self.gravity, dtype=float).tolist(),
+            "source_model": self.source_model,
+            "topology": {
+                "rods": [
+                    {"name": r.name, "sites": list(r.sites), "site_offsets": r.site_offsets.tolist()}
+                    for r in topo.rods
+                ],
+                "springs": [
+                    {"name": s.name, "sites": list(s.sites), "rods": list(s.rods), "offsets": s.offsets.tolist()}
+                    for s in topo.springs
+                ],
+            },
+        }
+
+    @classmethod
+    def from_json(cls, obj: dict[str, Any]) -> "IdentifiedModel":
+        try:
+            if obj.get("format") != FORMAT:
+                raise ModelFileError(f"not an identified model (format '{obj.get('format')}', expected '{FORMAT}')")
+            t = obj["topology"]
+            springs_json = {s["name"]: s for s in obj["springs"]}
+            rods = tuple(
+                Rod(name=r["name"], sites=tuple(r["sites"]), site_offsets=np.array(r["site_offsets"], dtype=float))
+                for r in t["rods"]
+            )
+            springs = tuple(
+                Spring(
+                    name=s["name"],
+                    sites=(s["sites"][0], s["sites"][1]),
+                    rods=(int(s["rods"][0]), int(s["rods"][1])),
+                    offsets=np.array(s["offsets"], dtype=float),
+                    pull_only=bool(springs_json[s["name"]]["pull_only"]),
+                    actuated=bool(springs_json[s["name"]]["actuated"]),
+                )
+                for s in t["springs"]
+            )
+            topo = Topology(rods=rods, springs=springs)
+            sp = [springs_json[s.name] for s in springs]
+            stderr: dict[str, np.ndarray] = {}
+            for key, src, n in (("stiffness", sp, "stiffness_stderr"), ("damping", sp, "damping_stderr"),
+                                ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr")):
+                vals = [x.get(n) for x in src]
+                if all(v is not None for v in vals):
+                    stderr[key] = np.array(vals, dtype=float)
+            cs = obj.get("control_scale", {"value": 1.0})
+            if cs.get("stderr") is not None:
+                stderr["control_scale"] = np.array(cs["stderr"], dtype=float)
+            model = cls(
+                topology=topo,
+                stiffness=np.array([s["stiffness"] for s in sp], dtype=float),
+                damping=np.array([s["damping"] for s in sp], dtype=float),
+                rest_length=np.array([s["rest_length"] for s in sp], dtype=float),
+                mass=np.array([r["mass"] for r in obj["rods"]], dtype=float),
+                inertia=np.array([r["inertia"] for r in obj["rods"]], dtype=float).reshape(-1, 3),
+                control_scale=float(cs["value"]),
+                dt=float(obj["dt"]),
+                gravity=np.array(obj["gravity"], dtype=float),
+                stderr=stderr,
+                scale=dict(obj.get("scale", {})),
+                effects=list(obj.get("effects", [])),
+                metrics=dict(obj.get("metrics", {})),
+                source_model=obj.get("source_model"),
+            )
+        except ModelFileError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ModelFileError(f"malformed identified model: {type(exc).__name__}: {exc}") from None
+        model.validate()
+        return model
+
+    def validate(self) -> None:
+        """Check shapes and finiteness; raise ModelFileError naming the problem."""
+        S, R = self.topology.n_springs, self.topology.n_rods
+        for key, shape in (("stiffness", (S,)), ("damping", (S,)), ("rest_length", (S,)),
+                           ("mass", (R,)), ("inertia", (R, 3))):
+            arr = getattr(self, key)
+            if arr.shape != shape:
+                raise ModelFileError(f"'{key}' has shape {arr.shape}, expected {shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ModelFileError(f"'{key}' holds a non-finite value")
+        if np.any(self.mass <= 0) or np.any(self.inertia[:, :2] <= 0):
+            raise ModelFileError("rod masses and transverse inertias must be positive")
+
+
+def _pm(se: np.ndarray | None, idx) -> str:
+    if se is None:
+        return ""
+    v = np.asarray(se)[idx] if idx is not None else np.asarray(se)
+    return f" ± {float(v):.2g}"
+
+
+def save_model(path: str | os.PathLike, model: IdentifiedModel) -> None:
+    """Write the model as JSON atomically."""
+    text = json.dumps(model.to_json(), indent=2, allow_nan=False)
+    atomic_write(path, lambda fh: fh.write(text + "\n"))
+
+
+def load_model(path: str | os.PathLike) -> IdentifiedModel:
+    """Read and validate an identified-model JSON file."""
+    p = os.fspath(path)
+    try:
+        with open(p, encoding="utf-8") as fh:
+            obj = json.load(fh)
+    except FileNotFoundError:
+        raise ModelFileError(f"identified model '{p}' does not exist") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelFileError(f"'{p}' is not a readable JSON model: {exc}") from None
+    if not isinstance(obj, dict):
+        raise ModelFileError(f"'{p}' is not an identified model (top level is not an object)")
+    return IdentifiedModel.from_json(obj)

@@ -1,0 +1,261 @@
+"""The ``tensegrity`` command: model, collect, fit, predict, summary.
+
+Every sub-command explains itself with ``--help``, shows a progress bar on long work, writes its
+output atomically, and on bad input prints one line ``tensegrity: error: ...`` to stderr and exits
+with status 2 (no traceback; set ``TENSEGRITY_DEBUG=1`` to see one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+__all__ = ["main", "build_parser"]
+
+
+class CommandError(Exception):
+    """An expected failure with a one-line message for the user."""
+
+
+# ---------------------------------------------------------------------- sub-commands
+def cmd_model(args: argparse.Namespace) -> None:
+    from tensegrity_gym.models import write_model
+
+    _check_writable(args.out)
+    write_model(args.out, args.system, preset=args.preset, seed=args.seed, integrator=args.integrator)
+    print(f"wrote {args.system}/{args.preset} model to {args.out}")
+
+
+def cmd_collect(args: argparse.Namespace) -> None:
+    from identified.dataset import save_dataset
+    from tensegrity_gym.collect import CollectConfig, collect
+
+    _check_readable(args.model)
+    _check_writable(args.out)
+    cfg = CollectConfig(
+        episodes=args.episodes, steps=args.steps, seed=args.seed, push_every=args.push_every,
+        push_magnitude=args.push_magnitude, push_duration=args.push_duration,
+        noise_pos=args.noise_pos, noise_vel=args.noise_vel, noise_quat=args.noise_quat,
+        noise_angvel=args.noise_angvel, integrator=args.integrator,
+    )
+    data = collect(args.model, cfg, progress=not args.quiet)
+    save_dataset(args.out, data)
+    print(f"wrote {data.n_episodes} episodes x {data.n_steps} steps ({data.n_rods} rods, "
+          f"{data.n_tendons} tendons) to {args.out}")
+
+
+def cmd_summary(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+
+    d = load_dataset(args.data)
+    speed = np.linalg.norm(d.vel, axis=-1)
+    spin = np.linalg.norm(d.angvel, axis=-1)
+    info = {
+        "episodes": d.n_episodes,
+        "steps_per_episode": d.n_steps,
+        "dt": d.dt,
+        "duration_s": d.n_steps * d.dt,
+        "rods": list(d.rod_names),
+        "tendons": d.n_tendons,
+        "actuated": list(d.actuated_names),
+        "gravity": d.gravity.tolist(),
+        "speed_mean": float(speed.mean()),
+        "speed_max": float(speed.max()),
+        "angvel_mean": float(spin.mean()),
+        "rest_length_range": [float(d.rest_length.min()), float(d.rest_length.max())],
+        "pushes": int(np.count_nonzero(np.any(d.push_force != 0, axis=-1))),
+        "noise": d.noise.tolist(),
+    }
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return
+    print(f"{args.data}: {d.n_episodes} episodes x {d.n_steps} steps of {d.dt * 1e3:g} ms "
+          f"({info['duration_s']:.3g} s each), {d.n_rods} rods, {d.n_tendons} tendons, "
+          f"{len(d.actuated_names)} actuated")
+    print(f"  rod speed mean {info['speed_mean']:.3g} m/s (max {info['speed_max']:.3g}), "
+          f"angular speed mean {info['angvel_mean']:.3g} rad/s")
+    print(f"  rest lengths {info['rest_length_range'][0]:.4g}..{info['rest_length_range'][1]:.4g} m, "
+          f"push-steps {info['pushes']}, sensor noise {d.noise.tolist()}")
+
+
+def cmd_fit(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+    from identified.fit.identify import ScaleSpec, identify
+    from identified.model import save_model
+    from identified.topology import Topology
+
+    _check_writable(args.out)
+    data = load_dataset(args.data)
+    topo = Topology.from_mjcf(args.model)
+    masses = tuple(_parse_mass(m) for m in (args.mass or []))
+    scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
+    model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
+                     progress=not args.quiet)
+    model.source_model = os.path.abspath(args.model)
+    if args.refine:
+        from identified.fit.refine import refine
+
+        model = refine(model, data, progress=not args.quiet)
+    from identified.predict import attach_metrics
+
+    attach_metrics(model, data)
+    save_model(args.out, model)
+    if not args.quiet:
+        print(model.summary())
+    print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s)")
+
+
+def cmd_predict(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+    from identified.model import load_model
+    from identified.predict import rollout_errors, write_error_plot
+
+    model = load_model(args.identified)
+    data = load_dataset(args.data)
+    errs = rollout_errors(model, data, horizon=args.horizon)
+    if args.plot:
+        _check_writable(args.plot)
+        write_error_plot(args.plot, errs)
+    out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in errs.items() if k != "per_step"}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"free-run error over {errs['horizon']} steps: position mean {errs['pos_mean']:.3g} m "
+              f"(final {errs['pos_final']:.3g} m), quaternion mean {errs['quat_mean']:.3g} "
+              f"(final {errs['quat_final']:.3g})")
+
+
+# ---------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="tensegrity",
+        description="Identify a spring-rod (tensegrity) robot from rollouts and train on its twin.",
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    m = sub.add_parser("model", help="write an MJCF model of a preset system",
+                       description="Write an MJCF model of the simple spring-rod system or the icosahedron.")
+    m.add_argument("system", help="simple or ico")
+    m.add_argument("--preset", default=None,
+                   help="simple: paper; ico: paper-uniform, paper-nonuniform, robot (default: paper / robot)")
+    m.add_argument("--seed", type=int, default=None, help="seed for randomised presets (paper-nonuniform)")
+    m.add_argument("--integrator", default="euler", help="MuJoCo integrator: euler (default), rk4, implicitfast")
+    m.add_argument("--out", required=True, help="output .xml path")
+    m.set_defaults(func=cmd_model)
+
+    c = sub.add_parser("collect", help="roll the plant with exciting inputs and record a dataset",
+                       description="Roll the MuJoCo plant with random initial states, smooth random cable "
+                       "commands and optional pushes; record rod states, commands, rest lengths and pushes.")
+    c.add_argument("--model", required=True, help="MJCF file following the tensegrity conventions")
+    c.add_argument("--episodes", type=int, default=10, help="number of trajectories (default 10)")
+    c.add_argument("--steps", type=int, default=2000, help="physics steps per trajectory (default 2000)")
+    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    c.add_argument("--push-every", type=int, default=None, metavar="K", help="push a random rod every K steps")
+    c.add_argument("--push-magnitude", type=float, default=50.0, help="push force in N (default 50)")
+    c.add_argument("--push-duration", type=int, default=10, help="steps a push is held (default 10)")
+    c.add_argument("--noise-pos", type=float, default=0.0, metavar="SIGMA", help="position noise std, m")
+    c.add_argument("--noise-vel", type=float, default=0.0, metavar="SIGMA", help="velocity noise std, m/s")
+    c.add_argument("--noise-quat", type=float, default=0.0, metavar="SIGMA", help="orientation noise std, rad")
+    c.add_argument("--noise-angvel", type=float, default=0.0, metavar="SIGMA",
+                   help="angular velocity noise std, rad/s")
+    c.add_argument("--integrator", default=None, help="override the model's MuJoCo integrator")
+    c.add_argument("--out", required=True, help="output .npz path")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=cmd_collect)
+
+    s = sub.add_parser("summary", help="summarise a dataset", description="Validate a dataset and summarise it.")
+    s.add_argument("data", help="dataset .npz")
+    s.add_argument("--json", action="store_true", help="machine-readable output")
+    s.set_defaults(func=cmd_summary)
+
+    f = sub.add_parser("fit", help="identify K, c, M, I (and h) from a dataset",
+                       description="Identify spring stiffness and damping, rod mass and inertia and the "
+                       "control-force scale from rod states alone, by linear least squares on 1D-reduced features.")
+    f.add_argument("data", help="dataset .npz")
+    f.add_argument("--model", required=True, help="MJCF file: only topology and geometry are read")
+    f.add_argument("--out", required=True, help="output identified-model .json")
+    f.add_argument("--regressors", choices=("single", "multiple"), default="multiple",
+                   help="one shared K, c, M, I (single) or one per spring and rod (multiple, default)")
+    f.add_argument("--solver", choices=("lstsq", "adam"), default="lstsq",
+                   help="closed-form least squares (default) or the paper's Adam training")
+    f.add_argument("--mass", action="append", metavar="NAME=KG", help="a known rod mass (fixes the scale)")
+    f.add_argument("--total-mass", type=float, default=None, metavar="KG", help="known total rod mass")
+    f.add_argument("--pushes-unscaled", action="store_true",
+                   help="do not trust the recorded push magnitudes as newtons (fit h freely)")
+    f.add_argument("--refine", action="store_true", help="refine by multi-step simulation error")
+    f.add_argument("--effects", choices=("none", "auto"), default="none", help="effect search (later issue)")
+    f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    f.set_defaults(func=cmd_fit)
+
+    pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
+                        description="Roll the identified model from each recorded initial state with the "
+                        "recorded rest lengths and pushes; report position and quaternion error per step.")
+    pr.add_argument("data", help="dataset .npz")
+    pr.add_argument("--identified", required=True, help="identified-model .json")
+    pr.add_argument("--horizon", type=int, default=None, help="steps to roll (default: the whole episode)")
+    pr.add_argument("--plot", default=None, help="write an error-vs-step PNG here")
+    pr.add_argument("--json", action="store_true", help="machine-readable output")
+    pr.set_defaults(func=cmd_predict)
+    return p
+
+
+# ---------------------------------------------------------------------- helpers
+def _parse_mass(text: str) -> tuple[str, float]:
+    name, sep, kg = text.partition("=")
+    if not sep:
+        raise CommandError(f"--mass expects NAME=KG, got '{text}'")
+    try:
+        return name.strip(), float(kg)
+    except ValueError:
+        raise CommandError(f"--mass {text}: '{kg}' is not a number") from None
+
+
+def _check_readable(path: str) -> None:
+    if not os.path.isfile(path):
+        raise CommandError(f"'{path}' does not exist or is not a file")
+
+
+def _check_writable(path: str) -> None:
+    folder = os.path.dirname(os.path.abspath(path)) or "."
+    if not os.path.isdir(folder):
+        raise CommandError(f"cannot write '{path}': folder '{folder}' does not exist")
+    if not os.access(folder, os.W_OK):
+        raise CommandError(f"cannot write '{path}': folder '{folder}' is not writable")
+    if os.path.isdir(path):
+        raise CommandError(f"cannot write '{path}': it is a folder")
+
+
+def _expected_errors() -> tuple[type[BaseException], ...]:
+    from identified.dataset import DatasetError
+    from identified.model import ModelFileError
+    from identified.topology import TopologyError
+
+    return (CommandError, DatasetError, TopologyError, ModelFileError, ValueError, OSError, RuntimeError)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``tensegrity`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func: Callable[[argparse.Namespace], None] = args.func
+    try:
+        func(args)
+    except KeyboardInterrupt:
+        print("tensegrity: interrupted (nothing half-written was kept)", file=sys.stderr)
+        return 130
+    except _expected_errors() as exc:
+        if os.environ.get("TENSEGRITY_DEBUG"):
+            raise
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"tensegrity: error: {msg}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""Data collection: roll the MuJoCo plant with exciting inputs and record a dataset.
+
+Exciting inputs, as in the paper's experiments:
+
+* random initial states around the model's nominal pose (position, orientation, linear and angular
+  velocity perturbations of every rod);
+* smooth random commands to the actuated cables: a target rest length that glides between random
+  way points inside the motor's range (the motor's speed limit smooths it further);
+* random pushes (the paper's control force ``f_u``) every ``push_every`` steps: a force of random
+  direction and known magnitude on a random rod at a random point along its axis, held for
+  ``push_duration`` steps.
+
+Sensor noise (``noise_pos`` etc.) is added to what is recorded, never to the simulation.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from identified.dataset import Dataset
+from tensegrity_gym.plant import MujocoPlant, RodStates
+
+__all__ = ["CollectConfig", "collect", "perturb_states", "quat_multiply", "axis_angle_quat"]
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """How the plant is excited and what noise is added to the record."""
+
+    episodes: int = 10
+    steps: int = 2000
+    seed: int = 0
+    push_every: int | None = None  # steps between pushes; None: no pushes
+    push_magnitude: float = 50.0  # N
+    push_duration: int = 10  # physics steps a push is held
+    command_period: float = 0.5  # s between random cable way points
+    init_pos_std: float = 0.03  # m
+    init_rot_std: float = 0.05  # rad
+    init_vel_std: float = 0.3  # m/s
+    init_angvel_std: float = 1.0  # rad/s
+    noise_pos: float = 0.0  # m
+    noise_vel: float = 0.0  # m/s
+    noise_quat: float = 0.0  # rad (random rotation of this std, kept unit)
+    noise_angvel: float = 0.0  # rad/s
+    integrator: str | None = None
+
+    def validate(self) -> None:
+        if self.episodes < 1 or self.steps < 1:
+            raise ValueError(f"episodes and steps must be >= 1 (got {self.episodes}, {self.steps})")
+        if self.push_every is not None and self.push_every < 1:
+            raise ValueError(f"--push-every must be >= 1 step, got {self.push_every}")
+        for name in ("push_magnitude", "noise_pos", "noise_vel", "noise_quat", "noise_angvel",
+                     "init_pos_std", "init_rot_std", "init_vel_std", "init_angvel_std"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name.replace('_', '-')} must be a finite number >= 0, got {v}")
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of w-x-y-z quaternions, broadcast over leading dims."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [aw * bw - ax * bx - ay * by - az * bz,
+         aw * bx + ax * bw + ay * bz - az * by,
+         aw * by - ax * bz + ay * bw + az * bx,
+         aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
+    """Quaternion of a rotation vector (..., 3)."""
+    ang = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    axis = np.divide(rotvec, ang, out=np.zeros_like(rotvec), where=ang > 0)
+    return np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * axis], axis=-1)
+
+
+def perturb_states(s: RodStates, rng: np.random.Generator, pos_std: float, rot_std: float,
+                   vel_std: float, angvel_std: float) -> RodStates:
+    """Random initial state: every rod moved, turned and set moving independently."""
+    R = s.pos.shape[0]
+    q = quat_multiply(axis_angle_quat(rng.normal(0, rot_std, (R, 3))), s.quat)
+    return RodStates(
+        pos=s.pos + rng.normal(0, pos_std, (R, 3)),
+        quat=q / np.linalg.norm(q, axis=-1, keepdims=True),
+        vel=s.vel + rng.normal(0, vel_std, (R, 3)),
+        angvel=s.angvel + rng.normal(0, angvel_std, (R, 3)),
+    )
+
+
+def _command_schedule(rng: np.random.Generator, steps: int, dt: float, period: float,
+                      lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(steps, A) smooth targets: cosine-blended random way points in [lo, hi]."""
+    A = lo.size
+    if A == 0:
+        return np.zeros((steps, 0))
+    every = max(1, int(round(period / dt)))
+    n_way = steps // every + 2
+    way = lo + (hi - lo) * rng.uniform(0, 1, (n_way, A))
+    t = np.arange(steps)
+    k, frac = t // every, (t % every) / every
+    blend = 0.5 - 0.5 * np.cos(np.pi * frac)
+    return way[k] * (1 - blend[:, None]) + way[k + 1] * blend[:, None]
+
+
+def _pushes(rng: np.random.Generator, cfg: CollectConfig, steps: int, n_rods: int,
+            half_lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    force = np.zeros((steps, n_rods, 3))
+    point = np.zeros((steps, n_rods, 3))
+    if cfg.push_every is None:
+        return force, point
+    for start in range(cfg.push_every, steps, cfg.push_every):
+        rod = rng.integers(n_rods)
+        d = rng.normal(size=3)
+        f = cfg.push_magnitude * d / np.linalg.norm(d)
+        z = rng.uniform(-1, 1) * half_lengths[rod]
+        stop = min(start + cfg.push_duration, steps)
+        force[start:stop, rod] = f
+        point[start:stop, rod] = (0.0, 0.0, z)
+    return force, point
+
+
+def _add_noise(rng: np.random.Generator, cfg: CollectConfig, pos, quat, vel, angvel):
+    if cfg.noise_pos:
+        pos = pos + rng.normal(0, cfg.noise_pos, pos.shape)
+    if cfg.noise_vel:
+        vel = vel + rng.normal(0, cfg.noise_vel, vel.shape)
+    if cfg.noise_angvel:
+        angvel = angvel + rng.normal(0, cfg.noise_angvel, angvel.shape)
+    if cfg.noise_quat:
+        quat = quat_multiply(axis_angle_quat(rng.normal(0, cfg.noise_quat, quat.shape[:-1] + (3,))), quat)
+        quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    return pos, quat, vel, angvel
+
+
+def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False) -> Dataset:
+    """Roll the plant ``cfg.episodes`` times for ``cfg.steps`` physics steps and record it."""
+    cfg.validate()
+    plant = MujocoPlant(model, integrator=cfg.integrator)
+    rng = np.random.default_rng(cfg.seed)
+    E, T, R, S = cfg.episodes, cfg.steps, len(plant.rod_names), len(plant.tendon_names)
+    A = len(plant.actuated_names)
+    pos = np.empty((E, T + 1, R, 3))
+    quat = np.empty((E, T + 1, R, 4))
+    vel = np.empty((E, T + 1, R, 3))
+    angvel = np.empty((E, T + 1, R, 3))
+    command = np.empty((E, T, A))
+    rest = np.empty((E, T, S))
+    push_force = np.zeros((E, T, R, 3))
+    push_point = np.zeros((E, T, R, 3))
+    lo, hi = plant.rest_bounds() if A else (np.zeros(0), np.zeros(0))
+    half = 0.5 * plant.rod_lengths()
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=E * T, desc="collect", unit="step", mininterval=0.5)
+    for e in range(E):
+        plant.reset()
+        plant.set_states(perturb_states(plant.states(), rng, cfg.init_pos_std, cfg.init_rot_std,
+                                        cfg.init_vel_std, cfg.init_angvel_std))
+        command[e] = _command_schedule(rng, T, plant.dt, cfg.command_period, lo, hi)
+        push_force[e], push_point[e] = _pushes(rng, cfg, T, R, half)
+        for t in range(T):
+            s = plant.states()
+            pos[e, t], quat[e, t], vel[e, t], angvel[e, t] = s.pos, s.quat, s.vel, s.angvel
+            if A:
+                plant.set_targets(command[e, t])
+            pushing = push_force[e, t].any()
+            plant.step(push_force[e, t] if pushing else None, push_point[e, t] if pushing else None)
+            rest[e, t] = plant.rest_lengths()  # the rest lengths used during step t
+        s = plant.states()
+        pos[e, T], quat[e, T], vel[e, T], angvel[e, T] = s.pos, s.quat, s.vel, s.angvel
+        if not np.all(np.isfinite(pos[e])):
+            raise RuntimeError(f"the plant diverged in episode {e}; lower the excitation or the time step")
+        if bar is not None:
+            bar.update(T)
+    if bar is not None:
+        bar.close()
+    pos, quat, vel, angvel = _add_noise(rng, cfg, pos, quat, vel, angvel)
+    return Dataset(
+        dt=plant.dt,
+        gravity=np.array(plant.model.opt.gravity, dtype=float),
+        rod_names=tuple(plant.rod_names),
+        tendon_names=tuple(plant.tendon_names),
+        actuated_names=tuple(plant.actuated_names),
+        pos=pos, quat=quat, vel=vel, angvel=angvel,
+        command=command, rest_length=rest, push_force=push_force, push_point=push_point,
+        noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
+        seed=int(cfg.seed),
+    ).validate()

@@ -15,6 +15,7 @@ import numpy as np
 import scipy.linalg as sla
 import torch
 
+from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
 from identified.fit.regression import Anchor, Solution
 
@@ -23,6 +24,7 @@ __all__ = ["adam_solve"]
 
 def adam_solve(
     rows: Callable[[], Iterable[torch.Tensor]],
+    columns: RodColumns,
     layout: ParameterLayout,
     anchor: Anchor,
     fixed: dict[int, float],
@@ -32,7 +34,7 @@ def adam_solve(
     seed: int = 0,
     on_chunk: Callable[[int], None] | None = None,
 ) -> Solution:
-    """Minimise the mean squared equation error with Adam; ``rows()`` yields (N, R, 6, n_full) chunks."""
+    """Minimise the mean squared equation error with Adam; ``rows()`` yields compact (N, R, 6, L) chunks."""
     G = layout.tie
     C = [anchor.coeff @ G]
     d = [anchor.value]
@@ -52,18 +54,23 @@ def adam_solve(
     opt = torch.optim.Adam([z], lr=lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=3, gamma=0.5)
     gen = torch.Generator().manual_seed(seed)
+    gather = torch.as_tensor(np.where(columns.full >= 0, columns.full, layout.n_full))  # padding -> a zero
+
+    def local(theta: torch.Tensor) -> torch.Tensor:
+        return torch.cat([theta, theta.new_zeros(1)])[gather]  # (R, L)
+
     row_scale: torch.Tensor | None = None
     total_rows = 0
     for epoch in range(epochs):
         for A in rows():
             if row_scale is None:  # equilibrate force and torque rows once, from the first chunk
                 row_scale = 1.0 / A.norm(dim=-1).square().mean(dim=(0, 1)).sqrt().clamp_min(1e-300)
-            A = A * row_scale[:, None]
+            A = A * row_scale[:, None]  # (6,) -> broadcast over (N, R, 6, L)
             perm = torch.randperm(A.shape[0], generator=gen)
             for start in range(0, A.shape[0], batch_steps):
                 batch = A[perm[start : start + batch_steps]]
                 theta = Gt @ (phi_pt + Nt @ z)
-                loss = (batch @ theta).square().mean()
+                loss = torch.einsum("nrkl,rl->nrk", batch, local(theta)).square().mean()
                 opt.zero_grad()
                 loss.backward()
                 opt.step()

@@ -28,7 +28,7 @@ from identified.fit.layout import ParameterLayout
 from identified.rotation import quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["Chunk", "equation_rows", "block_columns"]
+__all__ = ["Chunk", "RodColumns", "equation_rows"]
 
 
 @dataclass
@@ -51,37 +51,61 @@ class Chunk:
     push_point: torch.Tensor
 
 
-def block_columns(topology: Topology, layout: ParameterLayout) -> list[np.ndarray]:
-    """Columns of the full parameter vector that each equation block can touch.
+@dataclass(frozen=True)
+class RodColumns:
+    """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``.
 
-    Blocks are ordered ``[trans rod0, rot rod0, trans rod1, rot rod1, ...]``; restricting each
-    block's QR to its own columns keeps the work proportional to the graph's degree.
+    ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs) map
+    to full index -1 and stay zero.  Building the equations in this compact form keeps the work
+    proportional to the graph's degree, not to the total number of parameters.
     """
-    cols = []
-    for i in range(topology.n_rods):
-        js = np.array(topology.springs_of_rod(i), dtype=np.int64)
-        springs = np.concatenate([layout.k(js), layout.c(js)])
-        cols.append(np.sort(np.concatenate([springs, [layout.m(i), layout.h]])))
-        rot = [layout.inertia(i, a) for a in range(3)]
-        cols.append(np.sort(np.concatenate([springs, rot, [layout.h]])))
-    return cols
+
+    full: np.ndarray  # (R, 2D + 5) full-vector index of each local column, -1 for padding
+    slot: np.ndarray  # (S, 2) local slot of spring j on the rod at each of its ends (-1 for anchors)
+    degree: int
+
+    @classmethod
+    def build(cls, topology: Topology, layout: ParameterLayout) -> "RodColumns":
+        R, S = topology.n_rods, topology.n_springs
+        per_rod = [topology.springs_of_rod(i) for i in range(R)]
+        D = max(len(x) for x in per_rod)
+        full = -np.ones((R, 2 * D + 5), dtype=np.int64)
+        slot = -np.ones((S, 2), dtype=np.int64)
+        for i, js in enumerate(per_rod):
+            for k, j in enumerate(js):
+                full[i, k], full[i, D + k] = layout.k(j), layout.c(j)
+                for e in range(2):
+                    if topology.springs[j].rods[e] == i:
+                        slot[j, e] = k
+            full[i, 2 * D] = layout.m(i)
+            full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
+            full[i, 2 * D + 4] = layout.h
+        return cls(full=full, slot=slot, degree=D)
+
+    def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
+        """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
+        D = self.degree
+        springs = [k for k in range(2 * D) if self.full[rod, k] >= 0]
+        own = [2 * D + 1, 2 * D + 2, 2 * D + 3] if rotation else [2 * D]
+        return np.array(springs + own + [2 * D + 4], dtype=np.int64)
 
 
 def equation_rows(
     topology: Topology,
-    layout: ParameterLayout,
+    columns: RodColumns,
     chunk: Chunk,
     dt: float,
     gravity: torch.Tensor,
 ) -> torch.Tensor:
-    """The regression matrix of a chunk: (N, R, 6, n_full); rows 0-2 translation, 3-5 rotation.
+    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5).
 
-    The equations are homogeneous (``A theta = 0``): the scale is fixed later by an anchor.
+    Rows 0-2 are translation (world frame), rows 3-5 rotation (rod frame).  The equations are
+    homogeneous (``A theta = 0``): the scale is fixed later by an anchor.
     """
     N, R = chunk.pos.shape[:2]
-    S = topology.n_springs
+    D = columns.degree
     dtype, device = chunk.pos.dtype, chunk.pos.device
-    A = torch.zeros(N, R, layout.n_full, 6, dtype=dtype, device=device)  # rows last for indexing
+    A = torch.zeros(N, R, 6, 2 * D + 5, dtype=dtype, device=device)
 
     rot = quat_to_matrix(chunk.quat)  # (N, R, 3, 3)
     ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
@@ -91,40 +115,39 @@ def equation_rows(
     stretch = torch.where(pull, stretch.clamp_min(0.0), stretch)
 
     end_rods = topology.endpoint_rods
-    js = np.arange(S)
     for e, sign in ((0, 1.0), (1, -1.0)):
-        on_rod = end_rods[:, e] >= 0
-        if not on_rod.any():
+        on_rod = np.flatnonzero(end_rods[:, e] >= 0)
+        if on_rod.size == 0:
             continue
-        j = torch.as_tensor(js[on_rod], device=device)
+        j = torch.as_tensor(on_rod, device=device)
         ri = torch.as_tensor(end_rods[on_rod, e], device=device)
+        sk = torch.as_tensor(columns.slot[on_rod, e], device=device)
         u = sign * unit[:, j]  # (N, s, 3) direction of the force on this end per unit tension
         lever = ends.lever[:, j, e]  # (N, s, 3) world lever arm from the rod's COM
         rot_i = rot[:, ri]  # (N, s, 3, 3)
         fk = -stretch[:, j, None] * u
         fc = -rate[:, j, None] * u
-        A[:, ri, layout.k(j), 0:3] = fk
-        A[:, ri, layout.c(j), 0:3] = fc
-        A[:, ri, layout.k(j), 3:6] = _to_body(rot_i, torch.cross(lever, fk, dim=-1))
-        A[:, ri, layout.c(j), 3:6] = _to_body(rot_i, torch.cross(lever, fc, dim=-1))
+        # (advanced indices around a slice put the spring axis first: values are (s, N, 3))
+        A[:, ri, 0:3, sk] = fk.transpose(0, 1)
+        A[:, ri, 0:3, D + sk] = fc.transpose(0, 1)
+        A[:, ri, 3:6, sk] = _to_body(rot_i, torch.cross(lever, fk, dim=-1)).transpose(0, 1)
+        A[:, ri, 3:6, D + sk] = _to_body(rot_i, torch.cross(lever, fc, dim=-1)).transpose(0, 1)
 
     # mass: M (a - g)
-    acc = (chunk.vel_next - chunk.vel) / dt
-    rods = torch.arange(R, device=device)
-    A[:, rods, layout.m(rods), 0:3] = acc - gravity
+    A[:, :, 0:3, 2 * D] = (chunk.vel_next - chunk.vel) / dt - gravity
     # inertia: I a_b + w_b x (I w_b), linear in (Ixx, Iyy, Izz)
     w = _to_body(rot, chunk.angvel)
     w_next = _to_body(quat_to_matrix(chunk.quat_next), chunk.angvel_next)
     alpha = (w_next - w) / dt
     wx, wy, wz = w.unbind(-1)
-    A[:, rods, layout.inertia(rods, 0), 3:6] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], -1)
-    A[:, rods, layout.inertia(rods, 1), 3:6] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], -1)
-    A[:, rods, layout.inertia(rods, 2), 3:6] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], -1)
+    A[:, :, 3:6, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], -1)
+    A[:, :, 3:6, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], -1)
+    A[:, :, 3:6, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], -1)
     # control force scalar h: - h f_u, torque - R^T (R r_u x h f_u)
     lever_u = torch.einsum("nrab,nrb->nra", rot, chunk.push_point)
-    A[:, :, layout.h, 0:3] = -chunk.push_force
-    A[:, :, layout.h, 3:6] = -_to_body(rot, torch.cross(lever_u, chunk.push_force, dim=-1))
-    return A.transpose(-1, -2)
+    A[:, :, 0:3, 2 * D + 4] = -chunk.push_force
+    A[:, :, 3:6, 2 * D + 4] = -_to_body(rot, torch.cross(lever_u, chunk.push_force, dim=-1))
+    return A
 
 
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

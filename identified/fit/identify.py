@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from identified.dataset import Dataset, DatasetError
-from identified.fit.features import Chunk, block_columns, equation_rows
+from identified.fit.features import Chunk, RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.regression import Anchor, Solution, accumulate, solve
 from identified.model import IdentifiedModel
@@ -149,19 +149,21 @@ def identify(
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
+    columns = RodColumns.build(topology, layout)
+
     def rows() -> Iterator[torch.Tensor]:
         for ch in iter_chunks(dataset, chunk_steps, device=device):
-            yield equation_rows(topology, layout, ch, dataset.dt, gravity)
+            yield equation_rows(topology, columns, ch, dataset.dt, gravity)
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
     if solver == "lstsq":
-        factors = accumulate(rows(), block_columns(topology, layout), layout.n_full,
+        factors = accumulate(rows(), columns, layout.n_full,
                              on_chunk=(bar.update if bar else None))
         sol = solve(factors, layout, anchor, fixed)
     else:
         from identified.fit.adam import adam_solve
 
-        sol = adam_solve(rows, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
+        sol = adam_solve(rows, columns, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0

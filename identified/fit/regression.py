@@ -22,6 +22,7 @@ import numpy as np
 import scipy.linalg as sla
 import torch
 
+from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
 
 __all__ = ["BlockFactors", "Anchor", "Solution", "IdentifiabilityError", "accumulate", "solve"]
@@ -69,29 +70,35 @@ class Solution:
 
 def accumulate(
     chunks: Iterable[torch.Tensor],
-    block_cols: list[np.ndarray],
+    columns: RodColumns,
     n_full: int,
     on_chunk: Callable[[int], None] | None = None,
 ) -> BlockFactors:
-    """Stream chunks of equation rows (N, R, 6, n_full) into per-block triangular factors."""
-    sub = [np.zeros((0, len(c))) for c in block_cols]
-    rows = [0] * len(block_cols)
+    """Stream chunks of compact equation rows (N, R, 6, 2D + 5) into per-block triangular factors.
+
+    Blocks are ``[translation rod0, rotation rod0, translation rod1, ...]``.
+    """
+    R = columns.full.shape[0]
+    local = [columns.block_columns(i, rotation=bool(k)) for i in range(R) for k in range(2)]
+    sub = [np.zeros((0, len(c))) for c in local]
+    rows = [0] * len(local)
     for A in chunks:
-        N, R = A.shape[:2]
-        for i in range(R):
-            for k in range(2):
-                b = 2 * i + k
-                cols = torch.as_tensor(block_cols[b], device=A.device)
-                blk = A[:, i, 3 * k : 3 * k + 3][..., cols].reshape(-1, len(block_cols[b]))
-                stacked = np.vstack([sub[b], blk.detach().cpu().numpy()])
-                sub[b] = _square(np.linalg.qr(stacked, mode="r"), len(block_cols[b]))
-                rows[b] += blk.shape[0]
+        An = A.detach().cpu().numpy()
+        N = An.shape[0]
+        for b, cols in enumerate(local):
+            i, k = divmod(b, 2)
+            blk = np.take(An[:, i, 3 * k : 3 * k + 3], cols, axis=-1).reshape(-1, len(cols))
+            stacked = np.concatenate([sub[b], blk])
+            r = sla.qr(stacked, mode="r", overwrite_a=True, check_finite=False)[0]
+            sub[b] = _square(r[: len(cols)], len(cols))
+            rows[b] += blk.shape[0]
         if on_chunk is not None:
             on_chunk(N)
     full = []
-    for b, cols in enumerate(block_cols):
+    for b, cols in enumerate(local):
+        i = b // 2
         F = np.zeros((n_full, n_full))
-        F[np.ix_(np.arange(len(cols)), cols)] = sub[b]
+        F[np.ix_(np.arange(len(cols)), columns.full[i, cols])] = sub[b]
         full.append(F)
     return BlockFactors(R=full, rows=rows)
 

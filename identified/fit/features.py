@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from identified.engine.forces import endpoint_kinematics, spring_geometry
+from identified.engine.forces import endpoint_kinematics, spring_geometry, spring_stretch
 from identified.fit.layout import ParameterLayout
 from identified.rotation import quat_to_matrix
 from identified.topology import Topology
@@ -108,11 +108,9 @@ def equation_rows(
     A = torch.zeros(N, R, 6, 2 * D + 5, dtype=dtype, device=device)
 
     rot = quat_to_matrix(chunk.quat)  # (N, R, 3, 3)
-    ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
+    ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel, rot=rot)
     length, rate, unit = spring_geometry(ends)
-    stretch = length - chunk.rest
-    pull = torch.as_tensor(topology.pull_only, device=device)
-    stretch = torch.where(pull, stretch.clamp_min(0.0), stretch)
+    stretch = spring_stretch(length, chunk.rest, torch.as_tensor(topology.pull_only, device=device))
 
     end_rods = topology.endpoint_rods
     for e, sign in ((0, 1.0), (1, -1.0)):

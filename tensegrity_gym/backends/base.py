@@ -1,0 +1,197 @@
+"""The physics backend protocol: what the env may ask of a plant or of a twin.
+
+A backend is a spring-rod system that takes cable commands (and optional pushes) and gives back
+rod states and the cables' actual rest lengths. Nothing else flows from a backend to the env: the
+env (:mod:`tensegrity_gym.envs.tensegrity_ico_v0`) computes observation, reward and termination
+from :class:`~tensegrity_gym.plant.RodStates` and rest lengths alone, so that the MuJoCo plant and
+the identified twin cannot drift apart (as Brax puts one env API over several pipelines).
+
+Static metadata a backend exposes (fixed for its lifetime):
+
+* ``rod_names`` (R,), ``tendon_names`` (S,), ``actuated_names`` (A,) — actuated in command order;
+* ``dt`` — one physics step, s;
+* ``motor`` — the :class:`~tensegrity_gym.cables.MotorSpec` (speed, rest_min, rest_max per
+  actuated cable), the one motor model both backends share.
+
+Dynamic interface: :meth:`Backend.reset`, :meth:`Backend.step`, :meth:`Backend.states`,
+:meth:`Backend.rest_lengths`, plus :meth:`Backend.nominal_states` and
+:meth:`Backend.nominal_rest_lengths` (the standing pose the env perturbs at reset). Two backends
+of one robot must return the same nominal pose (the plant's MJCF keyframe ``nominal``) for the
+env's reset distribution to be the same on both.
+
+Divergence: a backend never raises when its physics blows up; it returns non-finite rod states
+(NaN) until the next :meth:`Backend.reset`, and the env ends the episode.
+
+Adding a backend (the identified twin): subclass :class:`Backend` in a module of this package and
+add ``name: "module:Class"`` to :data:`tensegrity_gym.backends.BACKENDS`; then
+``gym.make("TensegrityIco-v0", backend=name, model=...)`` builds it as ``Class(model, **backend_kwargs)``.
+
+Drawing: a backend that is not MuJoCo (the twin) still renders through MuJoCo, by putting its rod
+states into a MuJoCo model that is used purely for drawing. It only has to return that model's
+MJCF from :meth:`Backend.drawing_model`; :meth:`Backend.render` and :meth:`Backend.show` do the
+rest. The MuJoCo backend overrides both to draw its own simulation directly.
+"""
+
+from __future__ import annotations
+
+import abc
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from tensegrity_gym.cables import MotorSpec
+from tensegrity_gym.plant import RodStates
+
+if TYPE_CHECKING:
+    from tensegrity_gym.plant import MujocoPlant
+
+__all__ = ["Backend", "MotorSpec", "RodStates"]
+
+
+class Backend(abc.ABC):
+    """A spring-rod system seen through cable commands, rod states and rest lengths.
+
+    Subclasses set ``rod_names``, ``tendon_names``, ``actuated_names``, ``motor`` in their
+    constructor and implement the abstract methods. Shapes: R rods, S tendons (springs and
+    cables), A actuated cables. All arrays are numpy float64; angular velocity is in the world
+    frame; quaternions are w-x-y-z.
+
+    A backend is constructed as ``Factory(model, **kwargs)`` where ``model`` is the file it needs
+    (an MJCF for MuJoCo, an identified-model JSON for the twin) or ``None`` for its default; see
+    :func:`tensegrity_gym.backends.make_backend`.
+    """
+
+    #: short name used in ``gym.make(..., backend=name)``
+    name: str = "base"
+    rod_names: tuple[str, ...]
+    tendon_names: tuple[str, ...]
+    actuated_names: tuple[str, ...]
+    motor: MotorSpec
+
+    # ------------------------------------------------------------------ metadata
+    @property
+    @abc.abstractmethod
+    def dt(self) -> float:
+        """One physics step, s."""
+
+    @property
+    def n_rods(self) -> int:
+        return len(self.rod_names)
+
+    @property
+    def actuated_index(self) -> np.ndarray:
+        """(A,) int: position of every actuated cable in ``tendon_names``."""
+        idx = {n: i for i, n in enumerate(self.tendon_names)}
+        return np.array([idx[n] for n in self.actuated_names], dtype=int)
+
+    # ------------------------------------------------------------------ the standing pose
+    @abc.abstractmethod
+    def nominal_states(self) -> RodStates:
+        """The settled standing pose (zero velocities) the env starts from, before reset noise."""
+
+    @abc.abstractmethod
+    def nominal_rest_lengths(self) -> np.ndarray:
+        """(S,) rest lengths at the nominal pose (the neutral cable setting), m."""
+
+    # ------------------------------------------------------------------ dynamics
+    @abc.abstractmethod
+    def reset(self, states: RodStates, rest_lengths: np.ndarray) -> None:
+        """Put the system at ``states`` with rest lengths ``rest_lengths`` (S,), time zero.
+
+        Motor targets are set to the actuated rest lengths (the motors hold still), any
+        internal solver state (warm starts, applied forces) is cleared: after ``reset`` the
+        future depends only on the arguments and the commands that follow.
+        """
+
+    @abc.abstractmethod
+    def step(self, target_rest: np.ndarray, n_substeps: int, push_force: np.ndarray | None = None,
+             push_point: np.ndarray | None = None) -> None:
+        """Advance the physics by ``n_substeps`` steps of ``dt`` (one control period).
+
+        Args:
+            target_rest: (A,) motor targets, m (clipped into ``[motor.rest_min, motor.rest_max]``);
+                the motors move the rest lengths toward them at ``motor.speed`` at every substep.
+            n_substeps: number of physics steps, >= 1.
+            push_force: optional (R, 3) world-frame force on each rod, N, held for all substeps.
+            push_point: optional (R, 3) point of application in each rod's body frame, m.
+        """
+
+    @abc.abstractmethod
+    def states(self) -> RodStates:
+        """Current rod states (copies the caller may keep)."""
+
+    @abc.abstractmethod
+    def rest_lengths(self) -> np.ndarray:
+        """(S,) current actual rest lengths of every tendon, m (copy)."""
+
+    # ------------------------------------------------------------------ drawing
+    def drawing_model(self) -> str | os.PathLike | None:
+        """MJCF (text or path) of a MuJoCo model with the same rod and site names, used only to
+        draw this backend's rod states; ``None``: this backend cannot draw."""
+        return None
+
+    _drawing: MujocoPlant | None = None
+    _viewer: object | None = None
+
+    def _drawing_plant(self) -> MujocoPlant:
+        if self._drawing is None:
+            from tensegrity_gym.plant import MujocoPlant
+
+            src = self.drawing_model()
+            if src is None:
+                raise NotImplementedError(f"the {self.name!r} backend has no drawing model; it cannot render")
+            self._drawing = MujocoPlant(src)
+            missing = set(self.rod_names) - set(self._drawing.rod_names)
+            if missing:
+                raise ValueError(f"the drawing model lacks the rods {sorted(missing)}")
+        plant = self._drawing
+        if plant.rod_names == self.rod_names:
+            plant.set_states(self.states())
+        else:  # same rods, another order
+            s, order = self.states(), [self.rod_names.index(n) for n in plant.rod_names]
+            plant.set_states(RodStates(s.pos[order], s.quat[order], s.vel[order], s.angvel[order]))
+        return plant
+
+    def render(self, width: int = 480, height: int = 480, camera: str | int | None = None) -> np.ndarray:
+        """(height, width, 3) uint8 image of the current rod states.
+
+        ``camera=None`` follows the structure (a free camera looking at the mean rod position);
+        a name or index selects a camera of the drawing model.
+        """
+        return self._drawing_plant().render(width=width, height=height, camera=camera)
+
+    def show(self) -> None:
+        """Draw the current rod states in an interactive ``mujoco.viewer`` window (opened on first
+        call). Raises RuntimeError with a clear message where no display is available."""
+        plant = self._drawing_plant()
+        self._viewer = _sync_viewer(self._viewer, plant)
+
+    def close(self) -> None:
+        """Free renderers and windows."""
+        if self._viewer is not None:
+            self._viewer.close()  # type: ignore[attr-defined]
+            self._viewer = None
+        if self._drawing is not None:
+            self._drawing.close()
+            self._drawing = None
+
+
+def _sync_viewer(viewer: object | None, plant: MujocoPlant) -> object:
+    """Open (once) a passive ``mujoco.viewer`` on the plant's model and data and sync it."""
+    if viewer is None:
+        import sys
+
+        headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+        if sys.platform.startswith("linux") and headless:
+            raise RuntimeError("render_mode='human' needs a display (DISPLAY is not set); "
+                               "use render_mode='rgb_array' on a headless machine")
+        try:
+            import mujoco.viewer
+
+            viewer = mujoco.viewer.launch_passive(plant.model, plant.data)
+        except Exception as exc:  # noqa: BLE001 - GLFW and the viewer raise assorted types
+            raise RuntimeError(f"render_mode='human' could not open mujoco.viewer ({type(exc).__name__}: "
+                               f"{exc}); use render_mode='rgb_array'") from None
+    viewer.sync()  # type: ignore[attr-defined]
+    return viewer

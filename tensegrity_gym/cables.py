@@ -27,15 +27,15 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "ACTUATED_KEY",
+    "REST_MAX_KEY",
+    "REST_MIN_KEY",
+    "ROBOT_ROLL_SEQUENCE",
+    "SPEED_KEY",
     "MotorSpec",
     "motor_step",
     "read_motor_spec",
     "scripted_roll_targets",
-    "ROBOT_ROLL_SEQUENCE",
-    "ACTUATED_KEY",
-    "SPEED_KEY",
-    "REST_MIN_KEY",
-    "REST_MAX_KEY",
 ]
 
 ACTUATED_KEY = "tensegrity_actuated"
@@ -84,7 +84,8 @@ class MotorSpec:
             hi = np.full(A, hi[0])
         if lo.shape != (A,) or hi.shape != (A,):
             raise ValueError(
-                f"motor bounds need one value per actuated cable ({A}); got {lo.size} minima and {hi.size} maxima"
+                f"motor bounds need one value per actuated cable ({A}); "
+                f"got {lo.size} minima and {hi.size} maxima"
             )
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
             raise ValueError("motor bounds must be finite with rest_min <= rest_max for every actuated cable")
@@ -148,7 +149,9 @@ def _assemble(names: list[str], numeric: dict[str, np.ndarray]) -> MotorSpec:
         return MotorSpec((), 0.0, np.zeros(0), np.zeros(0))
     missing = [k for k in (SPEED_KEY, REST_MIN_KEY, REST_MAX_KEY) if k not in numeric]
     if missing:
-        raise ValueError(f"the model lists actuated cables but has no <numeric name=\"{missing[0]}\"> in <custom>")
+        raise ValueError(
+            f"the model lists actuated cables but has no <numeric name=\"{missing[0]}\"> in <custom>"
+        )
     speed = numeric[SPEED_KEY]
     if speed.size != 1:
         raise ValueError(f"{SPEED_KEY} must hold one number (m/s), got {speed.size}")
@@ -178,7 +181,8 @@ def read_motor_spec(source: str | os.PathLike | Any) -> MotorSpec:
 #: every edge of the supporting face and keeping the one that moves the robot furthest along +x):
 #: roll 1 ``cable2`` (rod0_end0-rod4_end0), then ``cable4`` (rod0_end1-rod3_end0), ``cable22``
 #: (rod3_end1-rod5_end0), ``cable15`` (rod1_end1-rod5_end1). Centre-of-mass displacement after each
-#: roll from the nominal pose (x, y) ~ (0.53, -0.03), (0.95, 0.32), (1.47, 0.29), (1.88, 0.64) m.
+#: roll from the nominal pose (x, y) ~ (0.84, -0.18), (1.52, 0.35), (2.36, 0.17), (3.04, 0.70) m
+#: (zig-zag: consecutive closed faces of the icosahedron alternate their orientation).
 ROBOT_ROLL_SEQUENCE: tuple[str, ...] = ("cable2", "cable4", "cable22", "cable15")
 
 
@@ -188,7 +192,7 @@ def scripted_roll_targets(
     dt: float,
     rolls: int = 1,
     contract_time: float = 2.0,
-    release_time: float = 2.0,
+    release_time: float = 2.5,
     sequence: tuple[str, ...] = ROBOT_ROLL_SEQUENCE,
 ) -> np.ndarray:
     """(T, A) open-loop motor targets that roll the ``ico/robot`` preset from its nominal pose.
@@ -198,9 +202,10 @@ def scripted_roll_targets(
     rest length (the motor needs (neutral - rest_min) / speed = 1.5 s to get there). Shortening that
     edge pulls two ground contacts toward each other and folds the structure over the third side;
     the centre of mass leaves the support triangle and the robot tips onto the neighbouring closed
-    face, about 0.5 m further on (roll 1 goes along +x). Then all targets return to neutral for
-    ``release_time`` seconds and the robot settles in its nominal shape on the new face.
-    ``T = rolls * round((contract_time + release_time) / dt)``.
+    face, its centre of mass about 0.85 m further on (roll 1 goes along +x, 0.84 m in x, -0.18 m
+    in y). Then all targets return to neutral for ``release_time`` seconds (1.5 s of motor travel,
+    then settling) and the robot stands in its nominal shape on the new face.
+    ``T = rolls * (round(contract_time / dt) + round(release_time / dt))``.
 
     Args:
         spec: the robot's motor spec (names give the cable order of the targets).
@@ -218,7 +223,7 @@ def scripted_roll_targets(
     missing = [c for c in sequence[:rolls] if c not in index]
     if missing:
         raise ValueError(f"cable '{missing[0]}' of the roll sequence is not actuated in this model")
-    n_c, n_r = int(round(contract_time / dt)), int(round(release_time / dt))
+    n_c, n_r = round(contract_time / dt), round(release_time / dt)
     out = np.tile(neutral, (rolls * (n_c + n_r), 1))
     for k, name in enumerate(sequence[:rolls]):
         j = index[name]

@@ -95,7 +95,8 @@ def test_ico_uniform_values() -> None:
     assert pp["actuated"] == [] and pp["seed"] is None
     I = rod_inertia(10.0, 1.04, 0.05)
     assert pp["rods"][0]["inertia"] == pytest.approx(list(I))
-    assert I[0] == pytest.approx(10 * (1.04**2 / 12 + 0.05**2 / 4)) and I[2] == pytest.approx(10 * 0.05**2 / 2)
+    assert I[0] == pytest.approx(10 * (1.04**2 / 12 + 0.05**2 / 4))
+    assert I[2] == pytest.approx(10 * 0.05**2 / 2)
 
 
 # ---------------------------------------------------------------------- simple system
@@ -109,7 +110,8 @@ def test_simple_paper_values_and_rest_pose() -> None:
     assert np.allclose(m.tendon_stiffness, 100) and np.allclose(m.tendon_damping, 10)
     assert np.allclose(m.tendon_lengthspring, [[1.0, 1.0], [1.414, 1.414]])
     # the rod is 2 m long and both springs start at their rest lengths (an equilibrium)
-    assert np.linalg.norm(_site_world(m, d, "rod0_end1") - _site_world(m, d, "rod0_end0")) == pytest.approx(2.0)
+    rod = _site_world(m, d, "rod0_end1") - _site_world(m, d, "rod0_end0")
+    assert np.linalg.norm(rod) == pytest.approx(2.0)
     assert np.allclose(d.ten_length, [1.0, 1.414], atol=1e-12)
     assert set(pp["anchors"]) == {"anchor0", "anchor1"}
     for s in pp["springs"]:
@@ -221,7 +223,8 @@ def test_overrides_rescale() -> None:
         assert s1["damping"] == pytest.approx(3 * s0["damping"])
         assert s1["rest_length"] == s0["rest_length"]
     assert o["gravity"] == [0, 0, 0]
-    m = mujoco.MjModel.from_xml_string(build_model("ico", "paper-uniform", overrides={"stiffness_scale": 2.0}))
+    m = mujoco.MjModel.from_xml_string(
+        build_model("ico", "paper-uniform", overrides={"stiffness_scale": 2.0}))
     assert np.allclose(m.tendon_stiffness, 200.0)
     with pytest.raises(ValueError, match="valid overrides are"):
         build_model("simple", overrides={"stifness_scale": 2.0})

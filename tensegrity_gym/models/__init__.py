@@ -18,15 +18,15 @@ from tensegrity_gym.models.builder import (
 from tensegrity_gym.models.presets import DEFAULT_PRESET, OVERRIDE_KEYS, SYSTEMS
 
 __all__ = [
+    "DEFAULT_PRESET",
+    "INTEGRATORS",
+    "OVERRIDE_KEYS",
+    "SYSTEMS",
     "build_model",
-    "write_model",
+    "closed_faces",
+    "ico_cable_pairs",
+    "ico_rod_geometry",
     "preset_parameters",
     "rod_inertia",
-    "ico_rod_geometry",
-    "ico_cable_pairs",
-    "closed_faces",
-    "INTEGRATORS",
-    "SYSTEMS",
-    "DEFAULT_PRESET",
-    "OVERRIDE_KEYS",
+    "write_model",
 ]

@@ -30,14 +30,14 @@ import numpy as np
 from tensegrity_gym.models import presets as P
 
 __all__ = [
+    "INTEGRATORS",
     "build_model",
-    "write_model",
+    "closed_faces",
+    "ico_cable_pairs",
+    "ico_rod_geometry",
     "preset_parameters",
     "rod_inertia",
-    "ico_rod_geometry",
-    "ico_cable_pairs",
-    "closed_faces",
-    "INTEGRATORS",
+    "write_model",
 ]
 
 #: builder keyword -> MJCF ``<option integrator=...>``
@@ -195,6 +195,8 @@ class _Spec:
     timestep: float = 0.001
     ground: bool = False
     friction: float = 0.9
+    torsional_friction: float = 0.02
+    rolling_friction: float = 0.002
     actuated: list[str] = field(default_factory=list)
     motor_speed: float = 0.0
     rest_min: list[float] = field(default_factory=list)
@@ -296,9 +298,11 @@ def _make_spec(
             c = c * f[6 + len(pairs) :]
         else:
             seed = None
-        rods = [rod(f"rod{i}", masses[i], L, p.rod_radius, centres[i], _axis_frame(axes[i])) for i in range(6)]
+        rods = [rod(f"rod{i}", masses[i], L, p.rod_radius, centres[i], _axis_frame(axes[i]))
+                for i in range(6)]
         tendons = [
-            _Tendon(f"spring{j}", (f"rod{i}_end{e}", f"rod{k}_end{g}"), K[j] * ks, c[j] * cs, p.rest_length * rs, False)
+            _Tendon(f"spring{j}", (f"rod{i}_end{e}", f"rod{k}_end{g}"), K[j] * ks, c[j] * cs,
+                    p.rest_length * rs, False)
             for j, (i, e, k, g) in enumerate(pairs)
         ]
         return _Spec(system, preset, seed, rods, tendons,
@@ -319,14 +323,16 @@ def _make_spec(
     rods = [rod(f"rod{i}", p.mass, L, p.rod_radius, centres[i], _axis_frame(axes[i])) for i in range(6)]
     rest = p.rest_length * rs
     tendons = [
-        _Tendon(f"cable{j}", (f"rod{i}_end{e}", f"rod{k}_end{g}"), p.stiffness * ks, p.damping * cs, rest, True)
+        _Tendon(f"cable{j}", (f"rod{i}_end{e}", f"rod{k}_end{g}"), p.stiffness * ks, p.damping * cs,
+                rest, True)
         for j, (i, e, k, g) in enumerate(pairs)
     ]
     names = [t.name for t in tendons]
     return _Spec(
         system, preset, None, rods, tendons,
         gravity=o.get("gravity", p.gravity), timestep=o.get("timestep", p.timestep),
-        ground=True, friction=o.get("friction", p.friction), actuated=names,
+        ground=True, friction=o.get("friction", p.friction), torsional_friction=p.torsional_friction,
+        rolling_friction=p.rolling_friction, actuated=names,
         motor_speed=p.motor_speed,
         rest_min=[p.rest_min_ratio * p.rest_length * rs] * len(names),
         rest_max=[p.rest_max_ratio * p.rest_length * rs] * len(names),
@@ -373,7 +379,8 @@ def preset_parameters(
         "gravity": list(s.gravity),
         "timestep": s.timestep,
         "rods": [
-            {"name": r.name, "mass": r.mass, "inertia": list(r.inertia), "length": r.length, "radius": r.radius}
+            {"name": r.name, "mass": r.mass, "inertia": list(r.inertia), "length": r.length,
+             "radius": r.radius}
             for r in s.rods
         ],
         "springs": [
@@ -418,13 +425,16 @@ def _to_xml(s: _Spec, integrator: str, keyframe: np.ndarray | None) -> str:
     ET.SubElement(asset, "material", name="grid", texture="grid", texrepeat="1 1", texuniform="true")
     ET.SubElement(asset, "material", name="rod", rgba="0.85 0.45 0.15 1")
 
+    friction = f"{_f(s.friction)} {_f(s.torsional_friction)} {_f(s.rolling_friction)}"
     world = ET.SubElement(root, "worldbody")
     ET.SubElement(world, "light", name="sun", pos="0 0 6", dir="0 0 -1", directional="true")
     if s.ground:
         # The ground collides with rods only (conaffinity 1); rods never collide with each other
-        # (rod contype 1, conaffinity 0).
+        # (rod contype 1, conaffinity 0). condim 6: sliding, torsional and rolling friction; without
+        # the last two a rod end cap rolling on the ground spins the rod about its own axis
+        # (axial inertia M r^2/2 is tiny) at tens of rad/s, and nothing in the cables damps that spin.
         ET.SubElement(world, "geom", name="ground", type="plane", size="0 0 0.05", material="grid",
-                      contype="0", conaffinity="1", condim="3", friction=f"{_f(s.friction)} 0.005 0.0001")
+                      contype="0", conaffinity="1", condim="6", friction=friction)
     for name, pos in s.anchors.items():
         ET.SubElement(world, "site", name=name, pos=_v(pos), size="0.04", rgba="0.2 0.2 0.2 1")
     for r in s.rods:
@@ -435,7 +445,7 @@ def _to_xml(s: _Spec, integrator: str, keyframe: np.ndarray | None) -> str:
         geom = {"name": f"{r.name}_geom", "type": "capsule", "fromto": _v([0, 0, -h, 0, 0, h]),
                 "size": _f(r.radius), "material": "rod"}
         if s.ground:
-            geom.update(contype="1", conaffinity="0", condim="3", friction=f"{_f(s.friction)} 0.005 0.0001")
+            geom.update(contype="1", conaffinity="0", condim="6", friction=friction)
         else:
             geom.update(contype="0", conaffinity="0")
         ET.SubElement(b, "geom", **geom)
@@ -477,10 +487,10 @@ def _settle(xml: str, settle_time: float) -> np.ndarray:
     integrator, damping = int(m.opt.integrator), m.tendon_damping.copy()
     m.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     m.tendon_damping[:] = 10.0 * damping
-    for _ in range(int(round(settle_time / m.opt.timestep))):
+    for _ in range(round(settle_time / m.opt.timestep)):
         mujoco.mj_step(m, d)
     m.opt.integrator, m.tendon_damping[:] = integrator, damping
-    for _ in range(int(round(1.0 / m.opt.timestep))):
+    for _ in range(round(1.0 / m.opt.timestep)):
         mujoco.mj_step(m, d)
     if not np.all(np.isfinite(d.qpos)):
         raise RuntimeError("the robot diverged while settling; check the preset parameters")
@@ -515,7 +525,9 @@ def build_model(
     """
     key = str(integrator).lower()
     if key not in INTEGRATORS:
-        raise ValueError(f"unknown integrator '{integrator}'; valid integrators are: {', '.join(INTEGRATORS)}")
+        raise ValueError(
+            f"unknown integrator '{integrator}'; valid integrators are: {', '.join(INTEGRATORS)}"
+        )
     spec = _make_spec(system, preset, seed, overrides)
     keyframe = None
     if spec.settle_time > 0:

@@ -28,17 +28,17 @@ import math
 from dataclasses import dataclass
 
 __all__ = [
-    "SimplePaper",
-    "IcoPaper",
-    "IcoRobot",
-    "SIMPLE_PAPER",
+    "DEFAULT_PRESET",
     "ICO_PAPER",
     "ICO_ROBOT",
-    "SYSTEMS",
-    "DEFAULT_PRESET",
-    "NONUNIFORM_SIGMA",
     "NONUNIFORM_FLOOR",
+    "NONUNIFORM_SIGMA",
     "OVERRIDE_KEYS",
+    "SIMPLE_PAPER",
+    "SYSTEMS",
+    "IcoPaper",
+    "IcoRobot",
+    "SimplePaper",
 ]
 
 
@@ -95,6 +95,11 @@ class IcoRobot:
     damping: float = 30.0
     pretension: float = 100.0  # N at the nominal shape (SUPERball order of magnitude)
     friction: float = 0.9  # sliding friction rod-ground
+    # Contact torsional and rolling friction (MuJoCo condim 6; lengths, m): a rubber end cap's
+    # contact patch. They stop an end cap that rolls on the ground from spinning its rod about the
+    # rod axis (I33 = M r^2/2 is tiny and no cable can damp that spin).
+    torsional_friction: float = 0.02
+    rolling_friction: float = 0.002
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     timestep: float = 0.001  # s
     # Motors: every cable is actuated (SUPERball v2 actuates all 24). A motor changes the rest length

@@ -1,0 +1,441 @@
+"""The MuJoCo plant: the "real" spring-rod system behind the environment.
+
+One call of :meth:`MujocoPlant.step` is one physics step of length ``dt`` and does, in order:
+
+1. the cable motors move every actuated rest length toward its target (:mod:`tensegrity_gym.cables`)
+   and the result is written into ``model.tendon_lengthspring``;
+2. the optional push (force ``(R, 3)`` in the world frame, applied at a point given in each rod's
+   body frame) is converted to a force and torque at the rod's centre of mass (``xfrc_applied``);
+3. ``mujoco.mj_step`` integrates; then the push is cleared.
+
+Recording semantic (what a dataset row ``t`` holds)::
+
+    s_t  = plant.states()            # the state before step t
+    plant.set_targets(u_t)           # the command of step t
+    plant.step(f_t, p_t)             # the push applied during step t
+    r_t  = plant.rest_lengths()      # the rest lengths used during step t
+    s_t1 = plant.states()            # the state after step t
+
+Angular velocity is in the world frame everywhere in this API; the conversion from MuJoCo's
+body-frame free-joint velocity happens in :meth:`MujocoPlant.states` and its inverse in
+:meth:`MujocoPlant.set_states`, nowhere else.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from dataclasses import dataclass
+
+# Offscreen rendering on a headless Linux machine: MuJoCo picks its GL back-end from MUJOCO_GL when
+# mujoco is first imported, and its default (GLFW) needs a display. When nobody chose and there is
+# no display, ask for EGL (works with Mesa's software EGL too). Has no effect if mujoco was already
+# imported, or if MUJOCO_GL is set.
+if sys.platform.startswith("linux") and "mujoco" not in sys.modules and not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco
+import numpy as np
+
+from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
+
+__all__ = ["MujocoPlant", "RodStates", "quat_to_mat"]
+
+_INTEGRATORS = {
+    "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+    "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+    "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+}
+
+
+@dataclass
+class RodStates:
+    """States of all R rods, numpy float64, world frame.
+
+    Attributes:
+        pos: (R, 3) centre-of-mass position, m.
+        quat: (R, 4) orientation w-x-y-z (body frame -> world; rod axis = body z).
+        vel: (R, 3) linear velocity of the centre of mass, world frame, m/s.
+        angvel: (R, 3) angular velocity, WORLD frame, rad/s.
+    """
+
+    pos: np.ndarray
+    quat: np.ndarray
+    vel: np.ndarray
+    angvel: np.ndarray
+
+    def copy(self) -> RodStates:
+        return RodStates(self.pos.copy(), self.quat.copy(), self.vel.copy(), self.angvel.copy())
+
+    def validate(self, n_rods: int) -> RodStates:
+        """Check shapes and finiteness; raise ValueError naming the bad field."""
+        for name, width in (("pos", 3), ("quat", 4), ("vel", 3), ("angvel", 3)):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != (n_rods, width):
+                raise ValueError(f"RodStates.{name} must have shape ({n_rods}, {width}), got {a.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"RodStates.{name} has non-finite values")
+            setattr(self, name, a)
+        norms = np.linalg.norm(self.quat, axis=1)
+        if np.any(norms < 1e-9):
+            raise ValueError("RodStates.quat has a zero quaternion")
+        return self
+
+
+def _quadratic_rotation_table() -> np.ndarray:
+    """(16, 9) table C with R(q).ravel() = (q q^T).ravel() @ C for a unit quaternion q (w-x-y-z)."""
+    w, x, y, z = range(4)
+    entries = {
+        (0, 0): [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)],
+        (1, 1): [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)],
+        (2, 2): [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
+        (0, 1): [(x, y, 2), (w, z, -2)], (1, 0): [(x, y, 2), (w, z, 2)],
+        (0, 2): [(x, z, 2), (w, y, 2)], (2, 0): [(x, z, 2), (w, y, -2)],
+        (1, 2): [(y, z, 2), (w, x, -2)], (2, 1): [(y, z, 2), (w, x, 2)],
+    }
+    c = np.zeros((4, 4, 3, 3))
+    for (i, j), terms in entries.items():
+        for a, b, k in terms:
+            c[a, b, i, j] += k
+    return c.reshape(16, 9)
+
+
+_ROT_TABLE = _quadratic_rotation_table()
+
+
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices (body -> world) of (..., 4) unit quaternions w-x-y-z."""
+    q = np.asarray(q, dtype=float)
+    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
+    return (qq @ _ROT_TABLE).reshape(q.shape[:-1] + (3, 3))
+
+
+def _load(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
+    if isinstance(model, mujoco.MjModel):
+        return model
+    s = os.fspath(model)
+    try:
+        if s.lstrip().startswith("<"):
+            return mujoco.MjModel.from_xml_string(s)
+        if not os.path.isfile(s):
+            raise ValueError(f"model file '{s}' does not exist")
+        return mujoco.MjModel.from_xml_path(s)
+    except ValueError as exc:
+        msg = str(exc).strip().splitlines()
+        raise ValueError(f"MuJoCo cannot load the model: {msg[0] if msg else exc}") from None
+
+
+class MujocoPlant:
+    """A spring-rod system simulated by MuJoCo, seen as rod states and cable rest lengths.
+
+    Args:
+        model: an MJCF path, MJCF text, or a compiled ``mujoco.MjModel`` (used as is, not copied).
+        integrator: ``None`` keeps the model's integrator; ``"euler"``, ``"rk4"``, ``"implicit"``
+            or ``"implicitfast"`` overrides it.
+
+    Raises:
+        ValueError: the model breaks the conventions (a ``rod*`` body without a free joint, a rod
+            without its ``<rod>_end0``/``<rod>_end1`` sites, a rod whose centre of mass is not its
+            body origin, a tendon that is not a spatial tendon between exactly two sites, an
+            actuated name that is not a tendon); the message names the element.
+
+    Attributes:
+        rod_names, site_names, tendon_names, actuated_names: names in model order (actuated in
+            command order).
+        dt: physics time step, s.
+        motor: the :class:`~tensegrity_gym.cables.MotorSpec`.
+        model, data: the raw MuJoCo objects. As with any ``mj_step``, after :meth:`step` the derived
+            quantities in ``data`` (``xpos``, ``site_xpos``, ``ten_length`` ...) still describe the
+            state *before* the step; :meth:`states`, :meth:`end_points` and
+            :meth:`tendon_lengths` are always current (or call ``mujoco.mj_forward``). The motor
+            state lives in the plant: set rest lengths with :meth:`reset`, not by writing
+            ``model.tendon_lengthspring``.
+    """
+
+    def __init__(self, model: str | os.PathLike | mujoco.MjModel, integrator: str | None = None) -> None:
+        self.model = _load(model)
+        m = self.model
+        if integrator is not None:
+            key = str(integrator).lower()
+            if key not in _INTEGRATORS:
+                raise ValueError(
+                    f"unknown integrator '{integrator}'; valid integrators are: {', '.join(_INTEGRATORS)}"
+                )
+            m.opt.integrator = _INTEGRATORS[key]
+        self.data = mujoco.MjData(m)
+        self._validate_and_index()
+        self.motor: MotorSpec = read_motor_spec(m)
+        tid = {n: i for i, n in enumerate(self.tendon_names)}
+        for n in self.motor.names:
+            if n not in tid:
+                raise ValueError(f"actuated cable '{n}' in tensegrity_actuated is not a tendon of the model")
+        self.actuated_names: tuple[str, ...] = self.motor.names
+        self._act_idx = np.array([tid[n] for n in self.motor.names], dtype=int)
+        self._pull_only = self.model.tendon_lengthspring[:, 0] < self.model.tendon_lengthspring[:, 1]
+        self._spring0 = self.model.tendon_lengthspring.copy()  # the MJCF values
+        self._key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "nominal")
+        self._act_both = np.flatnonzero(~self._pull_only[self._act_idx])  # actuated push-pull springs
+        self._dt = float(m.opt.timestep)
+        self._target = np.zeros(len(self.actuated_names))
+        self._rest_act = np.zeros(len(self.actuated_names))
+        self.reset()
+
+    # ------------------------------------------------------------------ conventions
+    def _validate_and_index(self) -> None:
+        m = self.model
+        rods, qadr, vadr, bids = [], [], [], []
+        for b in range(1, m.nbody):
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body#{b}"
+            j0, nj = m.body_jntadr[b], m.body_jntnum[b]
+            free = nj == 1 and m.jnt_type[j0] == mujoco.mjtJoint.mjJNT_FREE
+            if not free:
+                if re.fullmatch(r"rod\d+", name):
+                    raise ValueError(f"rod body '{name}' has no free joint; every rod must be a free body")
+                continue
+            for end in ("end0", "end1"):
+                if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{name}_{end}") < 0:
+                    raise ValueError(f"rod body '{name}' has no site '{name}_{end}'")
+            sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{name}_end0")
+            if m.site_bodyid[sid] != b:
+                raise ValueError(f"site '{name}_end0' is not on rod body '{name}'")
+            if np.linalg.norm(m.body_ipos[b]) > 1e-9 or abs(abs(m.body_iquat[b][0]) - 1) > 1e-9:
+                raise ValueError(
+                    f"rod body '{name}': the centre of mass must be the body origin with principal axes "
+                    "along the body frame (<inertial pos=\"0 0 0\" diaginertia=...>)"
+                )
+            rods.append(name)
+            qadr.append(m.jnt_qposadr[j0])
+            vadr.append(m.jnt_dofadr[j0])
+            bids.append(b)
+        if not rods:
+            raise ValueError("the model has no rods: no body with a free joint")
+        tendons = []
+        for t in range(m.ntendon):
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_TENDON, t) or f"tendon#{t}"
+            a, n = m.tendon_adr[t], m.tendon_num[t]
+            types = m.wrap_type[a : a + n]
+            if n != 2 or not np.all(types == mujoco.mjtWrap.mjWRAP_SITE):
+                raise ValueError(f"tendon '{name}' must be a spatial tendon between exactly two sites")
+            tendons.append(name)
+        sites = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, i) or f"site#{i}" for i in range(m.nsite)]
+        self.rod_names: tuple[str, ...] = tuple(rods)
+        self.tendon_names: tuple[str, ...] = tuple(tendons)
+        self.site_names: tuple[str, ...] = tuple(sites)
+        self._qadr = np.array(qadr)[:, None] + np.arange(7)
+        self._vadr = np.array(vadr)[:, None] + np.arange(6)
+        self._bid = np.array(bids)
+        self._end_sites = np.array(
+            [[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{r}_end{e}") for e in (0, 1)] for r in rods]
+        )
+        self._mass = m.body_mass[self._bid].copy()
+
+    # ------------------------------------------------------------------ basic facts
+    @property
+    def dt(self) -> float:
+        """Physics time step, s (``model.opt.timestep``, read once at construction)."""
+        return self._dt
+
+    @property
+    def n_rods(self) -> int:
+        return len(self.rod_names)
+
+    def rod_lengths(self) -> np.ndarray:
+        """(R,) distance between each rod's end0 and end1 sites, m."""
+        p = self.model.site_pos[self._end_sites]  # (R, 2, 3) in the body frame
+        return np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
+
+    def rest_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rest_min, rest_max), each (A,), m: the motor range of every actuated cable."""
+        return self.motor.rest_min.copy(), self.motor.rest_max.copy()
+
+    # ------------------------------------------------------------------ state
+    def reset(self, states: RodStates | None = None, rest_lengths: np.ndarray | None = None) -> None:
+        """Put the plant at a state with zero time.
+
+        Args:
+            states: rod states; ``None`` takes the keyframe ``"nominal"`` when the model has one,
+                else the model's ``qpos0``, with zero velocities.
+            rest_lengths: (S,) rest length of every tendon (the upper bound for pull-only cables);
+                ``None`` restores the MJCF values. Motor targets are set to the actuated rest
+                lengths, so the motors hold still until :meth:`set_targets`.
+        """
+        m, d = self.model, self.data
+        if self._key >= 0:
+            mujoco.mj_resetDataKeyframe(m, d, self._key)
+        else:
+            mujoco.mj_resetData(m, d)
+        d.qvel[:] = 0.0
+        m.tendon_lengthspring[:] = self._spring0
+        if rest_lengths is not None:
+            r = np.asarray(rest_lengths, dtype=float)
+            if r.shape != (m.ntendon,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+                raise ValueError(
+                    f"rest_lengths must be {m.ntendon} finite positive numbers, got shape {r.shape}"
+                )
+            act = r[self._act_idx]
+            if np.any(act < self.motor.rest_min - 1e-12) or np.any(act > self.motor.rest_max + 1e-12):
+                raise ValueError(
+                    "rest_lengths of actuated cables must lie inside the motor bounds (rest_bounds())"
+                )
+            self._write_rest(r)
+        self._rest_act = m.tendon_lengthspring[self._act_idx, 1].copy()
+        self._target = self._rest_act.copy()
+        if states is not None:
+            self.set_states(states)
+        else:
+            mujoco.mj_forward(m, d)
+
+    def _write_rest(self, r: np.ndarray) -> None:
+        ls = self.model.tendon_lengthspring
+        ls[:, 1] = r
+        ls[~self._pull_only, 0] = r[~self._pull_only]  # push-pull springs: both ends of the "dead-band"
+
+    def states(self) -> RodStates:
+        """Current rod states (copies). Angular velocity converted to the world frame: w = R w_body."""
+        q = self.data.qpos[self._qadr]  # fancy indexing copies
+        v = self.data.qvel[self._vadr]
+        quat = q[:, 3:7]
+        quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
+        rot = quat_to_mat(quat)
+        return RodStates(pos=q[:, :3], quat=quat, vel=v[:, :3], angvel=(rot @ v[:, 3:6, None])[:, :, 0])
+
+    def set_states(self, states: RodStates) -> None:
+        """Set every rod's state (quaternions normalised; w_body = R^T w) and recompute kinematics."""
+        s = RodStates(states.pos, states.quat, states.vel, states.angvel).validate(self.n_rods)
+        quat = s.quat / np.linalg.norm(s.quat, axis=1, keepdims=True)
+        rot = quat_to_mat(quat)
+        d = self.data
+        d.qpos[self._qadr[:, :3]] = s.pos
+        d.qpos[self._qadr[:, 3:]] = quat
+        d.qvel[self._vadr[:, :3]] = s.vel
+        d.qvel[self._vadr[:, 3:]] = (rot.transpose(0, 2, 1) @ s.angvel[:, :, None])[:, :, 0]
+        mujoco.mj_forward(self.model, d)
+
+    def rest_lengths(self) -> np.ndarray:
+        """(S,) current rest length of every tendon, m (upper bound of a pull-only cable's dead-band)."""
+        return self.model.tendon_lengthspring[:, 1].copy()
+
+    def tendon_lengths(self) -> np.ndarray:
+        """(S,) current length of every tendon at the current positions, m."""
+        mujoco.mj_fwdPosition(self.model, self.data)
+        return self.data.ten_length.copy()
+
+    def end_points(self) -> np.ndarray:
+        """(R, 2, 3) world positions of every rod's end0 and end1 sites, m."""
+        s = self.states()
+        local = self.model.site_pos[self._end_sites]  # (R, 2, 3)
+        return s.pos[:, None, :] + np.einsum("rij,rej->rei", quat_to_mat(s.quat), local)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    @property
+    def masses(self) -> np.ndarray:
+        """(R,) rod masses from the model, kg."""
+        return self._mass.copy()
+
+    # ------------------------------------------------------------------ commands and stepping
+    @property
+    def targets(self) -> np.ndarray:
+        """(A,) current motor targets, m."""
+        return self._target.copy()
+
+    def set_targets(self, target_rest: np.ndarray) -> None:
+        """Set the (A,) motor targets in metres (clipped into the motor bounds)."""
+        t = np.asarray(target_rest, dtype=float)
+        if t.shape != self._target.shape:
+            raise ValueError(f"targets must have shape ({len(self.actuated_names)},), got {t.shape}")
+        if not np.isfinite(t).all():
+            raise ValueError("targets must be finite")
+        self._target = np.minimum(np.maximum(t, self.motor.rest_min), self.motor.rest_max)
+
+    def step(self, push_force: np.ndarray | None = None, push_point: np.ndarray | None = None) -> None:
+        """One physics step: motors, then the push, then ``mj_step`` (see the module docstring).
+
+        Args:
+            push_force: (R, 3) world-frame force on each rod, N, held during this step only.
+            push_point: (R, 3) point of application of each force in the rod's body frame, m
+                (``None``: the centre of mass). The torque is (R p) x F about the centre of mass.
+        """
+        m, d = self.model, self.data
+        if self._act_idx.size:
+            rest = motor_step(self._rest_act, self._target, self.motor.speed, self._dt,
+                              self.motor.rest_min, self.motor.rest_max)
+            self._rest_act = rest
+            ls = m.tendon_lengthspring
+            ls[self._act_idx, 1] = rest
+            if self._act_both.size:
+                ls[self._act_idx[self._act_both], 0] = rest[self._act_both]
+        pushed = push_force is not None
+        if pushed:
+            wrench = self._push_wrench(push_force, push_point)
+            d.xfrc_applied[self._bid] = wrench
+        elif push_point is not None:
+            raise ValueError("push_point given without push_force")
+        mujoco.mj_step(m, d)
+        if pushed:
+            d.xfrc_applied[self._bid] = 0.0
+
+    def _push_wrench(self, push_force: np.ndarray, push_point: np.ndarray | None) -> np.ndarray:
+        """(R, 6) force and torque about each COM, world frame: [F, (R p) x F]."""
+        R = self.n_rods
+        f = np.asarray(push_force, dtype=float)
+        if f.shape != (R, 3) or not np.isfinite(f).all():
+            raise ValueError(f"push_force must be finite with shape ({R}, 3), got {f.shape}")
+        wrench = np.zeros((R, 6))
+        wrench[:, :3] = f
+        if push_point is not None:
+            p = np.asarray(push_point, dtype=float)
+            if p.shape != (R, 3) or not np.isfinite(p).all():
+                raise ValueError(f"push_point must be finite with shape ({R}, 3), got {p.shape}")
+            quat = self.data.qpos[self._qadr[:, 3:]]
+            quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
+            a = (quat_to_mat(quat) @ p[:, :, None])[:, :, 0]  # lever arm in the world frame
+            wrench[:, 3] = a[:, 1] * f[:, 2] - a[:, 2] * f[:, 1]
+            wrench[:, 4] = a[:, 2] * f[:, 0] - a[:, 0] * f[:, 2]
+            wrench[:, 5] = a[:, 0] * f[:, 1] - a[:, 1] * f[:, 0]
+        return wrench
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, width: int = 640, height: int = 480, camera: str | int | None = None,
+               distance: float | None = None) -> np.ndarray:
+        """(height, width, 3) uint8 RGB image of the current state (offscreen, ``mujoco.Renderer``).
+
+        ``camera=None`` uses a free camera looking at the mean rod position from ``distance``
+        (default: 2.5 times the longest rod). Offscreen GL must work: set ``MUJOCO_GL=egl`` (GPU) or
+        ``MUJOCO_GL=osmesa`` (software) before importing mujoco if the default does not.
+        Raises RuntimeError with that advice when no GL context can be made.
+        """
+        if self._renderer is None or self._renderer_size != (width, height):
+            self.close()
+            try:
+                self._renderer = mujoco.Renderer(self.model, height=height, width=width)
+            except Exception as exc:  # noqa: BLE001 - GL back-ends raise assorted types
+                raise RuntimeError(
+                    f"offscreen rendering is not available ({type(exc).__name__}: {exc}); set "
+                    "MUJOCO_GL=egl or MUJOCO_GL=osmesa (needs libEGL or libOSMesa) before importing mujoco"
+                ) from None
+            self._renderer_size = (width, height)
+        mujoco.mj_fwdPosition(self.model, self.data)  # current poses (mj_step leaves the previous ones)
+        if camera is None:
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+            cam.lookat[:] = self.states().pos.mean(axis=0)
+            cam.distance = distance if distance is not None else 2.5 * float(self.rod_lengths().max())
+            cam.azimuth, cam.elevation = 135.0, -25.0
+            self._renderer.update_scene(self.data, camera=cam)
+        else:
+            self._renderer.update_scene(self.data, camera=camera)
+        return self._renderer.render().copy()
+
+    _renderer: mujoco.Renderer | None = None
+    _renderer_size: tuple[int, int] | None = None
+
+    def close(self) -> None:
+        """Free the renderer (if one was made)."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -12,6 +12,7 @@ from tensegrity_gym.models.builder import (
     ico_cable_pairs,
     ico_rod_geometry,
     preset_parameters,
+    resolve_preset,
     rod_inertia,
     write_model,
 )
@@ -27,6 +28,7 @@ __all__ = [
     "ico_cable_pairs",
     "ico_rod_geometry",
     "preset_parameters",
+    "resolve_preset",
     "rod_inertia",
     "write_model",
 ]

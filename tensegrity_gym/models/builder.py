@@ -36,6 +36,7 @@ __all__ = [
     "ico_cable_pairs",
     "ico_rod_geometry",
     "preset_parameters",
+    "resolve_preset",
     "rod_inertia",
     "write_model",
 ]
@@ -203,6 +204,15 @@ class _Spec:
     rest_max: list[float] = field(default_factory=list)
     settle_time: float = 0.0
     notes: str = ""
+
+
+def resolve_preset(system: str, preset: str | None = None) -> str:
+    """The preset name that ``preset`` means for ``system`` (``None`` -> the default).
+
+    Raises:
+        ValueError: unknown system or preset, naming the valid ones.
+    """
+    return _resolve(system, preset)[1]
 
 
 def _resolve(system: str, preset: str | None) -> tuple[str, str]:

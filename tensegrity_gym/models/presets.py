@@ -104,11 +104,17 @@ class IcoRobot:
     timestep: float = 0.001  # s
     # Motors: every cable is actuated (SUPERball v2 actuates all 24). A motor changes the rest length
     # at most ``motor_speed`` m/s, within [rest_min_ratio, rest_max_ratio] times the neutral rest
-    # length.
+    # length L0 = 0.991 m, i.e. [0.545, 1.140] m. Reeling one edge of the supporting triangle to
+    # rest_min tips the robot onto the next face (tensegrity_gym.cables.scripted_roll_targets);
+    # the cable then pulls up to ~1 kN. rest_max > nominal length lets a cable go slack. At
+    # 0.3 m/s the full contraction takes 1.5 s, a roll about 2 s.
     motor_speed: float = 0.3  # m/s
     rest_min_ratio: float = 0.55
     rest_max_ratio: float = 1.15
-    settle_time: float = 3.0  # s of simulation with neutral cables to find the keyframe "nominal"
+    # s of simulation with neutral cables that finds the keyframe "nominal" (10x damping under
+    # implicitfast, then 1 s of the true model): the robot standing on its closed face
+    # (rod0_end0, rod2_end0, rod4_end0), centre of mass 0.72 m above the ground.
+    settle_time: float = 3.0
 
     @property
     def nominal_cable_length(self) -> float:

@@ -8,9 +8,8 @@ discretisation of the integration module):
 
 with the spring tension reduced to 1D, ``T_j = K_j x_j + c_j xdot_j`` (stretch ``x_j`` beyond the
 rest length, dead-banded for cables, and stretch rate ``xdot_j``), ``s_ij = +1/-1`` for the two
-ends and ``u_j`` the unit vector along the spring.  Accelerations come from consecutive recorded
-states exactly as a semi-implicit Euler step produces them: ``a = (v[t+1]-v[t])/dt`` and
-``a_b = (R[t+1]^T w[t+1] - R[t]^T w[t])/dt``.  Every term is linear in
+ends and ``u_j`` the unit vector along the spring.  The accelerations ``a`` and ``a_b`` come from
+the recorded states (:mod:`identified.fit.derivatives`).  Every term is linear in
 ``(K, c, M, Ixx, Iyy, Izz, h)``, so the unknowns follow by linear least squares.
 
 The spring geometry is the engine's own (:mod:`identified.engine.forces`): one place for the physics.
@@ -33,19 +32,21 @@ __all__ = ["Chunk", "RodColumns", "equation_rows"]
 
 @dataclass
 class Chunk:
-    """A slab of consecutive steps, flattened over (episode, time): ``N`` steps.
+    """A slab of steps, flattened over (episode, time): ``N`` steps.
 
-    ``pos, quat, vel, angvel``: (N, R, .) at instant t; ``vel_next, angvel_next, quat_next``: at
-    t + 1; ``rest``: (N, S); ``push_force``, ``push_point``: (N, R, 3).
+    ``pos, quat, vel, angvel``: (N, R, .) the state at instant t (world-frame angular velocity);
+    ``angvel_body``: (N, R, 3) the same in the rod frame; ``acc``: (N, R, 3) linear acceleration
+    and ``alpha_body``: (N, R, 3) rod-frame angular acceleration over step t (see
+    :mod:`identified.fit.derivatives`); ``rest``: (N, S); ``push_force``, ``push_point``: (N, R, 3).
     """
 
     pos: torch.Tensor
     quat: torch.Tensor
     vel: torch.Tensor
     angvel: torch.Tensor
-    quat_next: torch.Tensor
-    vel_next: torch.Tensor
-    angvel_next: torch.Tensor
+    angvel_body: torch.Tensor
+    acc: torch.Tensor
+    alpha_body: torch.Tensor
     rest: torch.Tensor
     push_force: torch.Tensor
     push_point: torch.Tensor
@@ -94,7 +95,6 @@ def equation_rows(
     topology: Topology,
     columns: RodColumns,
     chunk: Chunk,
-    dt: float,
     gravity: torch.Tensor,
 ) -> torch.Tensor:
     """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5).
@@ -132,12 +132,10 @@ def equation_rows(
         A[:, ri, 3:6, D + sk] = _to_body(rot_i, torch.cross(lever, fc, dim=-1)).transpose(0, 1)
 
     # mass: M (a - g)
-    A[:, :, 0:3, 2 * D] = (chunk.vel_next - chunk.vel) / dt - gravity
+    A[:, :, 0:3, 2 * D] = chunk.acc - gravity
     # inertia: I a_b + w_b x (I w_b), linear in (Ixx, Iyy, Izz)
-    w = _to_body(rot, chunk.angvel)
-    w_next = _to_body(quat_to_matrix(chunk.quat_next), chunk.angvel_next)
-    alpha = (w_next - w) / dt
-    wx, wy, wz = w.unbind(-1)
+    alpha = chunk.alpha_body
+    wx, wy, wz = chunk.angvel_body.unbind(-1)
     A[:, :, 3:6, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], -1)
     A[:, :, 3:6, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], -1)
     A[:, :, 3:6, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], -1)

@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from identified.dataset import Dataset, DatasetError
-from identified.fit.features import Chunk, RodColumns, equation_rows
+from identified.fit.derivatives import default_window, iter_chunks, weak_form
+from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.regression import Anchor, Solution, accumulate, solve
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
-__all__ = ["ScaleSpec", "identify", "iter_chunks", "check_compatible", "resolve_anchor"]
+__all__ = ["ScaleSpec", "identify", "check_compatible", "resolve_anchor"]
 
 SOLVERS = ("lstsq", "adam")
 
@@ -52,36 +53,6 @@ def check_compatible(dataset: Dataset, topology: Topology) -> None:
                  np.abs(np.diff(dataset.angvel, axis=1)).max())
     if moving <= 1e-12:
         raise DatasetError("the dataset holds no motion: every rod stays still, nothing can be identified")
-
-
-def iter_chunks(
-    dataset: Dataset, chunk_steps: int = 4096, dtype: torch.dtype = torch.float64, device: str = "cpu"
-) -> Iterator[Chunk]:
-    """Slabs of at most ``chunk_steps`` steps, flattened over (episode, time)."""
-    E, T = dataset.n_episodes, dataset.n_steps
-    per = max(1, chunk_steps // T)  # whole episodes per chunk when they are short
-    if per > 1 or T <= chunk_steps:
-        spans = [(slice(e, min(e + per, E)), slice(0, T)) for e in range(0, E, per)]
-    else:
-        spans = [(slice(e, e + 1), slice(t, min(t + chunk_steps, T))) for e in range(E) for t in range(0, T, chunk_steps)]
-
-    def cut(arr: np.ndarray, ep: slice, ts: slice, shift: int = 0) -> torch.Tensor:
-        x = arr[ep, ts.start + shift : ts.stop + shift]
-        return torch.as_tensor(x.reshape(-1, *x.shape[2:]), dtype=dtype, device=device)
-
-    for ep, ts in spans:
-        yield Chunk(
-            pos=cut(dataset.pos, ep, ts),
-            quat=cut(dataset.quat, ep, ts),
-            vel=cut(dataset.vel, ep, ts),
-            angvel=cut(dataset.angvel, ep, ts),
-            quat_next=cut(dataset.quat, ep, ts, 1),
-            vel_next=cut(dataset.vel, ep, ts, 1),
-            angvel_next=cut(dataset.angvel, ep, ts, 1),
-            rest=cut(dataset.rest_length, ep, ts),
-            push_force=cut(dataset.push_force, ep, ts),
-            push_point=cut(dataset.push_point, ep, ts),
-        )
 
 
 def resolve_anchor(
@@ -135,14 +106,23 @@ def identify(
     regressors: str = "multiple",
     scale: ScaleSpec = ScaleSpec(),
     solver: str = "lstsq",
+    weak_window: int | str | None = "auto",
     chunk_steps: int = 4096,
     progress: bool = False,
     device: str = "cpu",
 ) -> IdentifiedModel:
-    """Fit K, c per spring, M, I per rod and the control scale h from rod states alone."""
+    """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
+
+    ``weak_window``: sum the equations over windows of this many steps (the weak form, for noisy
+    data; :mod:`identified.fit.derivatives`); ``None`` or 0: step by step (exact on clean data);
+    ``"auto"``: the weak form with a ~0.3 s window when the dataset records sensor noise.
+    """
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
     check_compatible(dataset, topology)
+    if weak_window == "auto":
+        weak_window = default_window(dataset.dt) if np.any(dataset.noise > 0) else None
+    weak = int(weak_window or 0)
     t0 = time.perf_counter()
     layout = ParameterLayout.for_topology(topology, regressors)
     has_pushes = bool(np.any(dataset.push_force != 0))
@@ -152,8 +132,9 @@ def identify(
     columns = RodColumns.build(topology, layout)
 
     def rows() -> Iterator[torch.Tensor]:
-        for ch in iter_chunks(dataset, chunk_steps, device=device):
-            yield equation_rows(topology, columns, ch, dataset.dt, gravity)
+        for ch, n_ep in iter_chunks(dataset, chunk_steps, device=device):
+            A = equation_rows(topology, columns, ch, gravity)
+            yield weak_form(A, n_ep, weak) if weak > 1 else A
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
     if solver == "lstsq":
@@ -167,7 +148,9 @@ def identify(
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0
-    return _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    model.metrics["weak_window"] = weak if weak > 1 else None
+    return model
 
 
 def _to_model(

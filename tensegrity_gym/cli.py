@@ -24,11 +24,11 @@ class CommandError(Exception):
 
 # ---------------------------------------------------------------------- sub-commands
 def cmd_model(args: argparse.Namespace) -> None:
-    from tensegrity_gym.models import write_model
+    from tensegrity_gym.models import resolve_preset, write_model
 
     _check_writable(args.out)
     write_model(args.out, args.system, preset=args.preset, seed=args.seed, integrator=args.integrator)
-    print(f"wrote {args.system}/{args.preset} model to {args.out}")
+    print(f"wrote {args.system}/{resolve_preset(args.system, args.preset)} model to {args.out}")
 
 
 def cmd_collect(args: argparse.Namespace) -> None:
@@ -94,8 +94,9 @@ def cmd_fit(args: argparse.Namespace) -> None:
     topo = Topology.from_mjcf(args.model)
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
+    weak = "auto" if args.weak_window is None else args.weak_window
     model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     progress=not args.quiet)
+                     weak_window=weak, progress=not args.quiet)
     model.source_model = os.path.abspath(args.model)
     if args.refine:
         from identified.fit.refine import refine
@@ -187,6 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--total-mass", type=float, default=None, metavar="KG", help="known total rod mass")
     f.add_argument("--pushes-unscaled", action="store_true",
                    help="do not trust the recorded push magnitudes as newtons (fit h freely)")
+    f.add_argument("--weak-window", type=int, default=None, metavar="STEPS",
+                   help="sum the equations over windows of STEPS steps (weak form, for noisy data); "
+                   "0: step by step; default: weak form (~0.3 s) when the dataset records sensor noise")
     f.add_argument("--refine", action="store_true", help="refine by multi-step simulation error")
     f.add_argument("--effects", choices=("none", "auto"), default="none", help="effect search (later issue)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")

@@ -1,0 +1,342 @@
+"""The differentiable spring-rod engine: force generation -> acceleration generation -> integration.
+
+One step (paper, Fig. "architecture"):
+
+1. :mod:`~identified.engine.forces` (eqs. 1-2): spring end kinematics, 1D length/rate, tension,
+   end forces;
+2. :mod:`~identified.engine.accelerations` (eqs. 3-4): aggregate forces and torques per rod, add
+   gravity, the scaled control force ``h f_u`` and the plug-in *effects*, then ``a`` and ``α_b``;
+3. :mod:`~identified.engine.integration`: semi-implicit Euler, MuJoCo's integrator for free bodies.
+
+Parameters are physical quantities (:class:`SpringRodParams`): stiffness ``K`` (S,), damping
+``c`` (S,), mass ``M`` (R,), inertia ``(Ixx, Iyy, Izz)`` (R, 3), control scale ``h`` (), gravity
+(3,).  Any of them may carry leading batch dimensions that broadcast with the state's (one set of
+parameters per environment), and any may ``requires_grad`` for gradient-based refinement.
+
+Effects are forces the spring-rod model lacks (ground contact, drag, ...): callables
+``effect(state, ctx) -> (force (..., R, 3) | None, torque_world (..., R, 3) | None)``, summed into
+the rod wrench before the accelerations; ``ctx`` is a :class:`StepContext` with everything the step
+has computed so far.
+
+Nothing here checks finiteness: a diverging state yields NaN/inf, which the caller detects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from identified.engine.accelerations import push_wrench, rod_accelerations, rod_wrench
+from identified.engine.forces import (
+    EndpointKinematics,
+    SpringGeometry,
+    SpringGraph,
+    endpoint_kinematics,
+    spring_end_forces,
+    spring_geometry,
+    spring_tension,
+)
+from identified.engine.integration import RodState, semi_implicit_euler
+from identified.rotation import matrix_apply_transpose, quat_to_matrix
+from identified.topology import Topology
+
+__all__ = ["Effect", "RodState", "SpringRodEngine", "SpringRodParams", "StepContext", "StepTerms"]
+
+_GRAVITY = (0.0, 0.0, -9.81)
+
+
+@dataclass
+class SpringRodParams:
+    """Physical parameters of a spring-rod system, as tensors.
+
+    ``stiffness`` (..., S) N/m, ``damping`` (..., S) N s/m, ``mass`` (..., R) kg, ``inertia``
+    (..., R, 3) kg m² (rod-frame diagonal), ``control_scale`` (...) the control force scalar ``h``,
+    ``gravity`` (..., 3) m/s².  Build from plain numbers with :meth:`from_values`; make some or all
+    trainable with :meth:`requires_grad_`.
+    """
+
+    stiffness: torch.Tensor
+    damping: torch.Tensor
+    mass: torch.Tensor
+    inertia: torch.Tensor
+    control_scale: torch.Tensor
+    gravity: torch.Tensor
+
+    NAMES = ("stiffness", "damping", "mass", "inertia", "control_scale", "gravity")
+
+    @classmethod
+    def from_values(
+        cls,
+        stiffness: Any,
+        damping: Any,
+        mass: Any,
+        inertia: Any,
+        control_scale: Any = 1.0,
+        gravity: Any = _GRAVITY,
+        *,
+        n_rods: int | None = None,
+        n_springs: int | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
+    ) -> SpringRodParams:
+        """From floats, sequences, arrays or tensors.  With ``n_rods``/``n_springs`` given, scalars
+        are expanded to per-rod/per-spring tensors ((S,), (R,), (R, 3)) and shapes are checked."""
+
+        def t(x: Any) -> torch.Tensor:
+            if isinstance(x, torch.Tensor):
+                return x.to(dtype=dtype, device=device)
+            return torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)
+
+        p = cls(t(stiffness), t(damping), t(mass), t(inertia), t(control_scale), t(gravity))
+        if n_springs is not None:
+            p.stiffness = p.stiffness.expand(n_springs).clone() if p.stiffness.ndim == 0 else p.stiffness
+            p.damping = p.damping.expand(n_springs).clone() if p.damping.ndim == 0 else p.damping
+        if n_rods is not None:
+            p.mass = p.mass.expand(n_rods).clone() if p.mass.ndim == 0 else p.mass
+            if p.inertia.ndim <= 1:
+                p.inertia = p.inertia.expand(n_rods, 3).clone()
+        if n_rods is not None and n_springs is not None:
+            p.validate(n_rods, n_springs)
+        return p
+
+    @classmethod
+    def from_model(
+        cls, model: Any, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
+    ) -> SpringRodParams:
+        """From an :class:`identified.model.IdentifiedModel` (its stiffness, damping, mass,
+        inertia, control_scale and gravity)."""
+        topo = model.topology
+        return cls.from_values(
+            model.stiffness, model.damping, model.mass, model.inertia, model.control_scale, model.gravity,
+            n_rods=topo.n_rods, n_springs=topo.n_springs, dtype=dtype, device=device,
+        )
+
+    def validate(self, n_rods: int, n_springs: int) -> None:
+        """Raise ValueError if a parameter's trailing shape does not fit ``n_rods``/``n_springs``."""
+        want = {"stiffness": (n_springs,), "damping": (n_springs,), "mass": (n_rods,),
+                "inertia": (n_rods, 3), "control_scale": (), "gravity": (3,)}
+        for name, shape in want.items():
+            got = tuple(getattr(self, name).shape)
+            tail = got[len(got) - len(shape):] if shape else ()
+            if len(got) < len(shape) or tail != shape:
+                raise ValueError(f"parameter '{name}' has shape {got}, expected (..., {', '.join(map(str, shape))})"
+                                 if shape else f"parameter '{name}' has shape {got}, expected a scalar")
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> SpringRodParams:
+        """Convert every tensor (a no-op, keeping autograd leaves, where nothing changes)."""
+        return replace(self, **{n: getattr(self, n).to(dtype=dtype, device=device) for n in self.NAMES})
+
+    def requires_grad_(self, requires_grad: bool = True, names: Sequence[str] | None = None) -> SpringRodParams:
+        """Mark the named parameters (default: all) as trainable, in place; returns ``self``."""
+        for n in names or self.NAMES:
+            getattr(self, n).requires_grad_(requires_grad)
+        return self
+
+    def parameters(self) -> list[torch.Tensor]:
+        """The tensors that require gradients (for a torch optimiser)."""
+        return [getattr(self, n) for n in self.NAMES if getattr(self, n).requires_grad]
+
+    def detach(self) -> SpringRodParams:
+        return replace(self, **{n: getattr(self, n).detach() for n in self.NAMES})
+
+    def as_dict(self) -> dict[str, torch.Tensor]:
+        return {n: getattr(self, n) for n in self.NAMES}
+
+
+class StepContext(NamedTuple):
+    """What an effect may read: the quantities of the current step (shapes as in the modules).
+
+    ``rot`` (..., R, 3, 3); ``angvel_body`` (..., R, 3); ``ends`` spring end kinematics (..., S, 2, 3);
+    ``geometry`` spring length/rate (..., S) and unit (..., S, 3); ``tension`` (..., S);
+    ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None.
+    """
+
+    params: SpringRodParams
+    dt: float
+    graph: SpringGraph
+    rot: torch.Tensor
+    angvel_body: torch.Tensor
+    ends: EndpointKinematics
+    geometry: SpringGeometry
+    tension: torch.Tensor
+    rest_length: torch.Tensor
+    push_force: torch.Tensor | None
+    push_point: torch.Tensor | None
+
+
+@runtime_checkable
+class Effect(Protocol):
+    """A force term the spring-rod model lacks (contact, drag, ...), added to the rod wrench.
+
+    Called once per step with the current state and the :class:`StepContext`; returns a force
+    (..., R, 3) and a torque about each rod's COM (..., R, 3), both WORLD frame (either may be
+    ``None`` for zero).  Must be differentiable torch code if gradients are wanted.
+    """
+
+    def __call__(self, state: RodState, ctx: StepContext) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        ...
+
+
+class StepTerms(NamedTuple):
+    """Every intermediate of one step's dynamics (for diagnosis and effects).
+
+    ``force``/``torque`` (..., R, 3): total world wrench without gravity; ``lin_acc`` (..., R, 3)
+    world; ``ang_acc_body`` (..., R, 3) rod frame.
+    """
+
+    ctx: StepContext
+    force: torch.Tensor
+    torque: torch.Tensor
+    lin_acc: torch.Tensor
+    ang_acc_body: torch.Tensor
+
+
+class SpringRodEngine:
+    """The identified spring-rod engine: ``step`` and ``rollout`` batched over leading dimensions.
+
+    ``topology``: the system graph (:class:`~identified.topology.Topology` or a prepared
+    :class:`SpringGraph`); ``params``: :class:`SpringRodParams` (or a mapping of its fields);
+    ``dt``: time step, s; ``effects``: extra force terms (:class:`Effect`).  States and inputs may
+    be arrays or tensors; they are converted to ``dtype``/``device`` (a no-op when they match).
+    """
+
+    def __init__(
+        self,
+        topology: Topology | SpringGraph,
+        params: SpringRodParams | Mapping[str, Any],
+        dt: float,
+        effects: Sequence[Effect] = (),
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.dtype = dtype
+        self.device = torch.device(device)
+        if isinstance(topology, SpringGraph):
+            self.graph = topology.to(dtype, self.device)
+        else:
+            self.graph = SpringGraph.from_topology(topology, dtype=dtype, device=self.device)
+        if not isinstance(params, SpringRodParams):
+            params = SpringRodParams.from_values(**dict(params), n_rods=self.graph.n_rods,
+                                                 n_springs=self.graph.n_springs, dtype=dtype, device=self.device)
+        params.validate(self.graph.n_rods, self.graph.n_springs)
+        self.params = params.to(dtype, self.device)
+        self.dt = float(dt)
+        self.effects = list(effects)
+
+    @classmethod
+    def from_model(
+        cls,
+        model: Any,
+        effects: Sequence[Effect] = (),
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
+    ) -> SpringRodEngine:
+        """The engine of an :class:`identified.model.IdentifiedModel` (its topology, parameters, dt)."""
+        return cls(model.topology, SpringRodParams.from_model(model, dtype, device), model.dt,
+                   effects=effects, dtype=dtype, device=device)
+
+    @property
+    def n_rods(self) -> int:
+        return self.graph.n_rods
+
+    @property
+    def n_springs(self) -> int:
+        return self.graph.n_springs
+
+    def _t(self, x: Any) -> torch.Tensor:
+        """A tensor in the engine's dtype and device (a no-op, autograd kept, if it already is)."""
+        if isinstance(x, torch.Tensor):
+            return x.to(dtype=self.dtype, device=self.device)
+        return torch.as_tensor(np.array(x, dtype=np.float64), dtype=self.dtype, device=self.device)
+
+    def state(self, pos: Any, quat: Any, vel: Any, angvel: Any) -> RodState:
+        """A :class:`RodState` from arrays or tensors (world-frame angular velocity)."""
+        return RodState(self._t(pos), self._t(quat), self._t(vel), self._t(angvel))
+
+    # ------------------------------------------------------------------ one step
+    def dynamics(
+        self,
+        state: RodState,
+        rest_length: Any,
+        push_force: Any | None = None,
+        push_point: Any | None = None,
+    ) -> StepTerms:
+        """Force and acceleration generation for ``state`` (no integration).
+
+        ``rest_length`` (..., S) m; ``push_force`` (..., R, 3) world, N; ``push_point`` (..., R, 3)
+        rod frame (``None`` = COM).
+        """
+        p = self.params
+        state = RodState(*(self._t(x) for x in state))
+        pos, quat, vel, angvel = state
+        rest = self._t(rest_length)
+        rot = quat_to_matrix(quat)
+        w_b = matrix_apply_transpose(rot, angvel)
+        ends = endpoint_kinematics(self.graph, pos, quat, vel, angvel, rot=rot)
+        geom = spring_geometry(ends)
+        tension = spring_tension(geom.length, geom.rate, rest, p.stiffness, p.damping, self.graph.pull_only)
+        force, torque = rod_wrench(self.graph, spring_end_forces(geom.unit, tension), ends.lever)
+        fu = ru = None
+        if push_force is not None:
+            fu = self._t(push_force)
+            ru = None if push_point is None else self._t(push_point)
+            pf, pt = push_wrench(rot, fu, ru, p.control_scale)
+            force, torque = force + pf, torque + pt
+        ctx = StepContext(p, self.dt, self.graph, rot, w_b, ends, geom, tension, rest, fu, ru)
+        for effect in self.effects:
+            ef, et = effect(state, ctx)
+            if ef is not None:
+                force = force + ef
+            if et is not None:
+                torque = torque + et
+        lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
+        return StepTerms(ctx, force, torque, lin_acc, ang_acc_b)
+
+    def step(
+        self,
+        state: RodState,
+        rest_length: Any,
+        push_force: Any | None = None,
+        push_point: Any | None = None,
+    ) -> RodState:
+        """Advance every rod by ``dt``: ``state`` (..., R, ·), ``rest_length`` (..., S),
+        ``push_force`` (..., R, 3) world or None, ``push_point`` (..., R, 3) rod frame or None (COM).
+        Returns the next :class:`RodState`."""
+        state = RodState(*(self._t(x) for x in state))
+        terms = self.dynamics(state, rest_length, push_force, push_point)
+        return semi_implicit_euler(state.pos, state.quat, state.vel, terms.ctx.angvel_body,
+                                   terms.lin_acc, terms.ang_acc_body, self.dt)
+
+    # ------------------------------------------------------------------ many steps
+    def rollout(
+        self,
+        state0: RodState,
+        rest_lengths: Any,
+        push_force: Any | None = None,
+        push_point: Any | None = None,
+    ) -> RodState:
+        """Roll ``T`` steps from ``state0`` (..., R, ·).
+
+        ``rest_lengths`` (..., T, S); ``push_force`` (..., T, R, 3) or None; ``push_point``
+        (..., T, R, 3) or None.  Returns the states at the ``T + 1`` instants stacked on a time
+        axis: (..., T + 1, R, ·), the first being ``state0``.
+        """
+        rest = self._t(rest_lengths)
+        fu = None if push_force is None else self._t(push_force)
+        ru = None if push_point is None else self._t(push_point)
+        state = RodState(*(self._t(x) for x in state0))
+        out = [state]
+        for t in range(rest.shape[-2]):
+            state = self.step(
+                state,
+                rest[..., t, :],
+                None if fu is None else fu[..., t, :, :],
+                None if ru is None else ru[..., t, :, :],
+            )
+            out.append(state)
+        return RodState(*(torch.stack(xs, dim=-3) for xs in zip(*out)))
+

@@ -76,12 +76,14 @@ def resolve_anchor(
         e[layout.m(names.index(first))] = 1.0
         for name, kg2 in rest:
             fixed[layout.m(names.index(name))] = kg2
-        desc = {"anchor": "mass", "description": f"absolute: mass of {first} known ({kg} kg)"}
+        desc = {"anchor": "mass", "rod": first, "value": kg,
+                "description": f"absolute: mass of {first} known ({kg} kg)"}
         return Anchor(e, kg, desc["description"]), fixed, desc
     if scale.total_mass is not None:
         e = np.zeros(layout.n_full)
         e[[layout.m(i) for i in range(layout.n_rods)]] = 1.0
-        desc = {"anchor": "total_mass", "description": f"absolute: total rod mass known ({scale.total_mass} kg)"}
+        desc = {"anchor": "total_mass", "value": scale.total_mass,
+                "description": f"absolute: total rod mass known ({scale.total_mass} kg)"}
         return Anchor(e, scale.total_mass, desc["description"]), fixed, desc
     if has_pushes and scale.pushes_in_newton:
         e = np.zeros(layout.n_full)

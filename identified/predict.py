@@ -83,12 +83,13 @@ def one_step_errors(model: IdentifiedModel, data: Dataset, max_steps: int = 2000
 
 
 def attach_metrics(model: IdentifiedModel, data: Dataset, free_run_steps: int = 1000, free_run_episodes: int = 5) -> None:
-    """Store one-step and free-run errors on the fitting data in ``model.metrics``."""
-    model.metrics["one_step_rms"] = one_step_errors(model, data)
+    """Store one-step and free-run errors on the fitting data in ``model.metrics`` (None: diverged)."""
+    finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731  (JSON has no inf/NaN)
+    model.metrics["one_step_rms"] = {k: finite(v) for k, v in one_step_errors(model, data).items()}
     sub = data.select(episodes=slice(0, free_run_episodes))
     fr = rollout_errors(model, sub, horizon=free_run_steps)
-    model.metrics["free_run"] = {k: fr[k] for k in ("horizon", "episodes", "pos_mean", "pos_final",
-                                                    "quat_mean", "quat_final")}
+    model.metrics["free_run"] = {k: fr[k] for k in ("horizon", "episodes")}
+    model.metrics["free_run"].update({k: finite(fr[k]) for k in ("pos_mean", "pos_final", "quat_mean", "quat_final")})
 
 
 def write_error_plot(path: str | os.PathLike, errs: dict[str, Any], title: str = "identified model, free run") -> None:

@@ -218,6 +218,9 @@ def atomic_write(path: str | os.PathLike, writer, binary: bool = False) -> None:
         raise OSError(f"cannot write '{path}': folder '{folder}' does not exist")
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(p), dir=folder)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would hide the file from other users
         with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"encoding": "utf-8"})) as fh:
             writer(fh)
         os.replace(tmp, p)

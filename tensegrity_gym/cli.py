@@ -132,8 +132,17 @@ def cmd_predict(args: argparse.Namespace) -> None:
 
 
 # ---------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line error format (no usage dump)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        print(f"tensegrity: error: {self.prog.removeprefix('tensegrity').strip() or 'usage'}: {message}"
+              f" (see '{self.prog} --help')", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="tensegrity",
         description="Identify a spring-rod (tensegrity) robot from rollouts and train on its twin.",
     )

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
@@ -139,14 +140,17 @@ def identify(
             yield weak_form(A, n_ep, weak) if weak > 1 else A
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
-    if solver == "lstsq":
-        factors = accumulate(rows(), columns, layout.n_full,
-                             on_chunk=(bar.update if bar else None))
-        sol = solve(factors, layout, anchor, fixed)
-    else:
-        from identified.fit.adam import adam_solve
+    # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
+    # (and far faster on a shared, loaded machine); torch keeps its threads for the features
+    with threadpool_limits(1, user_api="blas"):
+        if solver == "lstsq":
+            factors = accumulate(rows(), columns, layout.n_full,
+                                 on_chunk=(bar.update if bar else None))
+            sol = solve(factors, layout, anchor, fixed)
+        else:
+            from identified.fit.adam import adam_solve
 
-        sol = adam_solve(rows, columns, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
+            sol = adam_solve(rows, columns, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0

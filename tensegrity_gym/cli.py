@@ -96,7 +96,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
     weak = "auto" if args.weak_window is None else args.weak_window
     model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     weak_window=weak, progress=not args.quiet)
+                     weak_window=weak, scheme=args.scheme, progress=not args.quiet)
     model.source_model = os.path.abspath(args.model)
     if args.refine:
         from identified.fit.refine import refine
@@ -200,6 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--weak-window", type=int, default=None, metavar="STEPS",
                    help="sum the equations over windows of STEPS steps (weak form, for noisy data); "
                    "0: step by step; default: weak form (~0.3 s) when the dataset records sensor noise")
+    f.add_argument("--scheme", choices=("euler", "central"), default="euler",
+                   help="accelerations by forward differences, exact for a semi-implicit Euler plant "
+                   "(default), or central differences, second order for any integrator (RK4)")
     f.add_argument("--refine", action="store_true", help="refine by multi-step simulation error")
     f.add_argument("--effects", choices=("none", "auto"), default="none", help="effect search (later issue)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")

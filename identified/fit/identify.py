@@ -110,6 +110,7 @@ def identify(
     scale: ScaleSpec = ScaleSpec(),
     solver: str = "lstsq",
     weak_window: int | str | None = "auto",
+    scheme: str = "euler",
     chunk_steps: int = 4096,
     progress: bool = False,
     device: str = "cpu",
@@ -119,6 +120,8 @@ def identify(
     ``weak_window``: sum the equations over windows of this many steps (the weak form, for noisy
     data; :mod:`identified.fit.derivatives`); ``None`` or 0: step by step (exact on clean data);
     ``"auto"``: the weak form with a ~0.3 s window when the dataset records sensor noise.
+    ``scheme``: ``"euler"`` (exact for a semi-implicit Euler plant) or ``"central"`` (second
+    order for any integrator; :mod:`identified.fit.derivatives`).
     """
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
@@ -135,7 +138,7 @@ def identify(
     columns = RodColumns.build(topology, layout)
 
     def rows() -> Iterator[torch.Tensor]:
-        for ch, n_ep in iter_chunks(dataset, chunk_steps, device=device):
+        for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
             A = equation_rows(topology, columns, ch, gravity)
             yield weak_form(A, n_ep, weak) if weak > 1 else A
 
@@ -156,6 +159,7 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.metrics["weak_window"] = weak if weak > 1 else None
+    model.metrics["scheme"] = scheme
     return model
 
 

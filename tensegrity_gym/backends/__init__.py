@@ -18,6 +18,7 @@ __all__ = ["BACKENDS", "Backend", "MotorSpec", "RodStates", "make_backend", "reg
 #: backend name -> "module:Class"; the class is called as ``Class(model, **kwargs)``
 BACKENDS: dict[str, str] = {
     "mujoco": "tensegrity_gym.backends.mujoco_backend:MujocoBackend",
+    "identified": "tensegrity_gym.backends.identified_backend:IdentifiedBackend",
 }
 
 

@@ -3,6 +3,11 @@
 | id | entry point | time limit |
 | --- | --- | --- |
 | ``TensegrityIco-v0`` | ``tensegrity_gym.envs.tensegrity_ico_v0:TensegrityIcoEnv`` | 1000 steps (20 s) |
+
+``TensegrityIco-v0`` also has a ``vector_entry_point``, ``tensegrity_gym.envs.vector:make_vector_env``:
+``gym.make_vec("TensegrityIco-v0", num_envs=N, backend="identified", ...)`` is the natively batched
+twin (one engine call per physics step for all N envs); with the MuJoCo backend ``make_vec`` gives a
+``SyncVectorEnv`` of plants, as it would without the entry point.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ def register_envs() -> None:
         gymnasium.register(
             id="TensegrityIco-v0",
             entry_point="tensegrity_gym.envs.tensegrity_ico_v0:TensegrityIcoEnv",
+            vector_entry_point="tensegrity_gym.envs.vector:make_vector_env",
             max_episode_steps=1000,
         )
 

@@ -24,7 +24,7 @@ import torch
 
 from identified.engine.forces import endpoint_kinematics, spring_geometry, spring_stretch
 from identified.fit.layout import ParameterLayout
-from identified.rotation import quat_to_matrix
+from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix
 from identified.topology import Topology
 
 __all__ = ["Chunk", "RodColumns", "equation_rows"]
@@ -104,48 +104,46 @@ def equation_rows(
     """
     N, R = chunk.pos.shape[:2]
     D = columns.degree
+    L = 2 * D + 5
     dtype, device = chunk.pos.dtype, chunk.pos.device
-    A = torch.zeros(N, R, 6, 2 * D + 5, dtype=dtype, device=device)
+    A = torch.zeros(N, 6, R, L, dtype=dtype, device=device)  # rows before rods: contiguous writes
 
     rot = quat_to_matrix(chunk.quat)  # (N, R, 3, 3)
     ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel, rot=rot)
     length, rate, unit = spring_geometry(ends)
     stretch = spring_stretch(length, chunk.rest, torch.as_tensor(topology.pull_only, device=device))
 
-    end_rods = topology.endpoint_rods
-    for e, sign in ((0, 1.0), (1, -1.0)):
-        on_rod = np.flatnonzero(end_rods[:, e] >= 0)
-        if on_rod.size == 0:
-            continue
-        j = torch.as_tensor(on_rod, device=device)
-        ri = torch.as_tensor(end_rods[on_rod, e], device=device)
-        sk = torch.as_tensor(columns.slot[on_rod, e], device=device)
-        u = sign * unit[:, j]  # (N, s, 3) direction of the force on this end per unit tension
-        lever = ends.lever[:, j, e]  # (N, s, 3) world lever arm from the rod's COM
-        rot_i = rot[:, ri]  # (N, s, 3, 3)
-        fk = -stretch[:, j, None] * u
-        fc = -rate[:, j, None] * u
-        # (advanced indices around a slice put the spring axis first: values are (s, N, 3))
-        A[:, ri, 0:3, sk] = fk.transpose(0, 1)
-        A[:, ri, 0:3, D + sk] = fc.transpose(0, 1)
-        A[:, ri, 3:6, sk] = _to_body(rot_i, torch.cross(lever, fk, dim=-1)).transpose(0, 1)
-        A[:, ri, 3:6, D + sk] = _to_body(rot_i, torch.cross(lever, fc, dim=-1)).transpose(0, 1)
+    # springs: force per unit K (stretch) and per unit c (rate) on each end, and its torque
+    sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device).view(1, 1, 2, 1)
+    u = sign * unit.unsqueeze(-2)  # (N, S, 2, 3): direction of the force on each end
+    f = torch.stack([-stretch[..., None, None] * u, -rate[..., None, None] * u])  # (2, N, S, 2, 3)
+    rods_e = torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=device)  # (S, 2)
+    rot_e = rot[:, rods_e]  # (N, S, 2, 3, 3)
+    tau = _to_body(rot_e, torch.cross(ends.lever.expand_as(f), f, dim=-1))
+    on = np.flatnonzero(topology.endpoint_rods.reshape(-1) >= 0)  # ends on a rod (not anchors)
+    flat_rod = topology.endpoint_rods.reshape(-1)[on]
+    flat_slot = columns.slot.reshape(-1)[on]
+    idx = torch.as_tensor(np.concatenate([flat_rod * L + flat_slot, flat_rod * L + D + flat_slot]), device=device)
+    pick = torch.as_tensor(on, device=device)
+    vals = torch.cat([f, tau], dim=-1).reshape(2, N, -1, 6)[:, :, pick]  # (2, N, ends, 6)
+    vals = torch.cat([vals[0], vals[1]], dim=1).transpose(1, 2)  # (N, 6, 2 * ends)
+    A.view(N, 6, R * L).index_copy_(2, idx, vals)
 
     # mass: M (a - g)
-    A[:, :, 0:3, 2 * D] = chunk.acc - gravity
+    A[:, 0:3, :, 2 * D] = (chunk.acc - gravity).transpose(1, 2)
     # inertia: I a_b + w_b x (I w_b), linear in (Ixx, Iyy, Izz)
     alpha = chunk.alpha_body
     wx, wy, wz = chunk.angvel_body.unbind(-1)
-    A[:, :, 3:6, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], -1)
-    A[:, :, 3:6, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], -1)
-    A[:, :, 3:6, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], -1)
+    A[:, 3:6, :, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], 1)
+    A[:, 3:6, :, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], 1)
+    A[:, 3:6, :, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], 1)
     # control force scalar h: - h f_u, torque - R^T (R r_u x h f_u)
-    lever_u = torch.einsum("nrab,nrb->nra", rot, chunk.push_point)
-    A[:, :, 0:3, 2 * D + 4] = -chunk.push_force
-    A[:, :, 3:6, 2 * D + 4] = -_to_body(rot, torch.cross(lever_u, chunk.push_force, dim=-1))
-    return A
+    lever_u = matrix_apply(rot, chunk.push_point)
+    A[:, 0:3, :, 2 * D + 4] = -chunk.push_force.transpose(1, 2)
+    A[:, 3:6, :, 2 * D + 4] = -_to_body(rot, torch.cross(lever_u, chunk.push_force, dim=-1)).transpose(1, 2)
+    return A.permute(0, 2, 1, 3)
 
 
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """R^T v for batched rotation matrices (..., 3, 3) and vectors (..., 3)."""
-    return torch.einsum("...ba,...b->...a", rot, v)
+    return matrix_apply_transpose(rot, v)

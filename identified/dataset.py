@@ -38,7 +38,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-__all__ = ["Dataset", "DatasetError", "load_dataset", "save_dataset", "atomic_write", "FORMAT"]
+__all__ = ["FORMAT", "Dataset", "DatasetError", "atomic_write", "load_dataset", "save_dataset"]
 
 FORMAT = "tensegrity-dataset/1"
 QUAT_TOL = 1e-6
@@ -84,7 +84,7 @@ class Dataset:
     def n_tendons(self) -> int:
         return int(self.rest_length.shape[2])
 
-    def select(self, episodes: slice | np.ndarray | list[int] = slice(None), steps: int | None = None) -> "Dataset":
+    def select(self, episodes: slice | np.ndarray | list[int] = slice(None), steps: int | None = None) -> Dataset:
         """A sub-dataset: some episodes, and/or the first ``steps`` steps of each."""
         t = self.n_steps if steps is None else int(steps)
         if not 1 <= t <= self.n_steps:
@@ -102,7 +102,7 @@ class Dataset:
             push_point=self.push_point[ep, :t],
         )
 
-    def validate(self) -> "Dataset":
+    def validate(self) -> Dataset:
         """Check shapes, finiteness and unit quaternions; raise DatasetError naming what is wrong."""
         _validate(self)
         return self

@@ -124,7 +124,7 @@ class IdentifiedModel:
         }
 
     @classmethod
-    def from_json(cls, obj: dict[str, Any]) -> "IdentifiedModel":
+    def from_json(cls, obj: dict[str, Any]) -> IdentifiedModel:
         try:
             if obj.get("format") != FORMAT:
                 raise ModelFileError(f"not an identified model (format '{obj.get('format')}', expected '{FORMAT}')")

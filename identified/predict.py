@@ -20,7 +20,7 @@ from identified.engine import SpringRodEngine
 from identified.engine.integration import RodState
 from identified.model import IdentifiedModel
 
-__all__ = ["rollout", "rollout_errors", "one_step_errors", "attach_metrics", "write_error_plot", "quat_distance"]
+__all__ = ["attach_metrics", "one_step_errors", "quat_distance", "rollout", "rollout_errors", "write_error_plot"]
 
 
 def quat_distance(q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
@@ -69,7 +69,7 @@ def one_step_errors(model: IdentifiedModel, data: Dataset, max_steps: int = 2000
     eng = SpringRodEngine.from_model(model, effects=effects)
     T = min(data.n_steps, max(1, max_steps // max(data.n_episodes, 1)))
     sl = (slice(None), slice(0, T))
-    flat = lambda a: a[sl].reshape(-1, *a.shape[2:])  # noqa: E731
+    flat = lambda a: a[sl].reshape(-1, *a.shape[2:])
     s = eng.state(flat(data.pos), flat(data.quat), flat(data.vel), flat(data.angvel))
     nxt = (slice(None), slice(1, T + 1))
     with torch.no_grad():
@@ -84,7 +84,7 @@ def one_step_errors(model: IdentifiedModel, data: Dataset, max_steps: int = 2000
 
 def attach_metrics(model: IdentifiedModel, data: Dataset, free_run_steps: int = 1000, free_run_episodes: int = 5) -> None:
     """Store one-step and free-run errors on the fitting data in ``model.metrics`` (None: diverged)."""
-    finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731  (JSON has no inf/NaN)
+    finite = lambda x: float(x) if np.isfinite(x) else None
     model.metrics["one_step_rms"] = {k: finite(v) for k, v in one_step_errors(model, data).items()}
     sub = data.select(episodes=slice(0, free_run_episodes))
     fr = rollout_errors(model, sub, horizon=free_run_steps)

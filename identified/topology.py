@@ -120,7 +120,7 @@ class Topology:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_mjcf(cls, source: str | os.PathLike) -> "Topology":
+    def from_mjcf(cls, source: str | os.PathLike) -> Topology:
         """Read the topology from an MJCF path or XML string (structure and geometry only)."""
         text = _read_text(source)
         try:

@@ -23,7 +23,7 @@ import numpy as np
 from identified.dataset import Dataset
 from tensegrity_gym.plant import MujocoPlant, RodStates
 
-__all__ = ["CollectConfig", "collect", "perturb_states", "quat_multiply", "axis_angle_quat"]
+__all__ = ["CollectConfig", "axis_angle_quat", "collect", "perturb_states", "quat_multiply"]
 
 
 @dataclass(frozen=True)
@@ -96,7 +96,7 @@ def _command_schedule(rng: np.random.Generator, steps: int, dt: float, period: f
     A = lo.size
     if A == 0:
         return np.zeros((steps, 0))
-    every = max(1, int(round(period / dt)))
+    every = max(1, round(period / dt))
     n_way = steps // every + 2
     way = lo + (hi - lo) * rng.uniform(0, 1, (n_way, A))
     t = np.arange(steps)

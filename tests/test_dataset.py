@@ -59,13 +59,13 @@ def test_select_keeps_alignment():
 @pytest.mark.parametrize(
     "change, message",
     [
-        (dict(pos=np.zeros((2, 6, 2, 2))), r"'pos' has shape \(2, 6, 2, 2\), expected \(2, 6, 2, 3\)"),
-        (dict(command=np.zeros((2, 5, 2))), r"'command' has shape"),
-        (dict(rest_length=np.zeros((2, 4, 3))), r"'rest_length' has shape"),
-        (dict(rod_names=("a",)), r"'pos' has 2 rods but 'rod_names' names 1"),
-        (dict(actuated_names=("nope",)), r"subset"),
-        (dict(dt=0.0), r"'dt' must be a positive"),
-        (dict(gravity=np.array([0.0, np.nan, 1.0])), r"'gravity' must be 3 finite"),
+        ({"pos": np.zeros((2, 6, 2, 2))}, r"'pos' has shape \(2, 6, 2, 2\), expected \(2, 6, 2, 3\)"),
+        ({"command": np.zeros((2, 5, 2))}, r"'command' has shape"),
+        ({"rest_length": np.zeros((2, 4, 3))}, r"'rest_length' has shape"),
+        ({"rod_names": ("a",)}, r"'pos' has 2 rods but 'rod_names' names 1"),
+        ({"actuated_names": ("nope",)}, r"subset"),
+        ({"dt": 0.0}, r"'dt' must be a positive"),
+        ({"gravity": np.array([0.0, np.nan, 1.0])}, r"'gravity' must be 3 finite"),
     ],
 )
 def test_shape_and_value_errors(change, message):

@@ -182,7 +182,7 @@ def test_refine_reduces_free_run_error_on_an_rk4_plant():
     refined = refine(model, data, horizon=50, max_windows=8, iterations=15)
     info = refined.metrics["refine"]
     assert info["loss_after"] < 0.1 * info["loss_before"]
-    K, c, M, _ = truth("paper-nonuniform", 4)
+    K, _c, M, _ = truth("paper-nonuniform", 4)
     # the regression's Euler equations are off by O(dt) on an RK4 plant; refinement stays close
     assert rel(refined.stiffness, K) < 2e-2 and rel(refined.mass, M) < 2e-2
     assert refined.control_scale == model.control_scale == pytest.approx(1.0)  # the push anchor is kept
@@ -191,7 +191,7 @@ def test_refine_reduces_free_run_error_on_an_rk4_plant():
 def test_noisy_data_every_physical_parameter_within_one_percent():
     """1 mm position noise, 1 cm/s velocity, 1 mrad orientation, 0.01 rad/s angular velocity."""
     xml = build_model("ico", "paper-nonuniform", seed=17)
-    noise = dict(noise_pos=1e-3, noise_vel=1e-2, noise_quat=1e-3, noise_angvel=1e-2)
+    noise = {"noise_pos": 1e-3, "noise_vel": 1e-2, "noise_quat": 1e-3, "noise_angvel": 1e-2}
     data = data_for(xml, episodes=20, steps=2000, seed=9, push_every=100, **noise)
     model = identify(data, Topology.from_mjcf(xml))  # the weak form is chosen from the recorded noise
     assert model.metrics["weak_window"] and model.metrics["weak_window"] > 1

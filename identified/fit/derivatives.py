@@ -32,7 +32,7 @@ from identified.dataset import Dataset
 from identified.fit.features import Chunk
 from identified.rotation import matrix_apply_transpose, quat_to_matrix
 
-__all__ = ["SCHEMES", "iter_chunks", "weak_form", "default_window"]
+__all__ = ["SCHEMES", "default_window", "iter_chunks", "weak_form"]
 
 SCHEMES = ("euler", "central")
 
@@ -43,7 +43,7 @@ def default_window(dt: float) -> int:
     Longer windows damp the differentiated velocity noise (as ``window**-1.5``) and lose only
     information above ``~1/window`` in frequency; the equations stay exact whatever the window.
     """
-    n = max(7, int(round(0.3 / dt)))
+    n = max(7, round(0.3 / dt))
     return n + 1 - n % 2
 
 

@@ -66,7 +66,7 @@ class RodColumns:
     degree: int
 
     @classmethod
-    def build(cls, topology: Topology, layout: ParameterLayout) -> "RodColumns":
+    def build(cls, topology: Topology, layout: ParameterLayout) -> RodColumns:
         R, S = topology.n_rods, topology.n_springs
         per_rod = [topology.springs_of_rod(i) for i in range(R)]
         D = max(len(x) for x in per_rod)

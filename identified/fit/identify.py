@@ -25,7 +25,7 @@ from identified.fit.regression import Anchor, Solution, accumulate, solve
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
-__all__ = ["ScaleSpec", "identify", "check_compatible", "resolve_anchor"]
+__all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor"]
 
 SOLVERS = ("lstsq", "adam")
 

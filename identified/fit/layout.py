@@ -14,7 +14,7 @@ import numpy as np
 
 from identified.topology import Topology
 
-__all__ = ["ParameterLayout", "REGRESSORS"]
+__all__ = ["REGRESSORS", "ParameterLayout"]
 
 REGRESSORS = ("single", "multiple")
 AXES = ("xx", "yy", "zz")
@@ -31,7 +31,7 @@ class ParameterLayout:
     rod_names: tuple[str, ...]
 
     @classmethod
-    def for_topology(cls, topology: Topology, regressors: str = "multiple") -> "ParameterLayout":
+    def for_topology(cls, topology: Topology, regressors: str = "multiple") -> ParameterLayout:
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
         return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names)

@@ -54,7 +54,7 @@ def refine(
     horizon = min(horizon, data.n_steps)
     ep, st = window_starts(data, horizon, max_windows)
     idx = st[:, None] + np.arange(horizon + 1)[None, :]  # (W, H+1)
-    take = lambda a, n: torch.as_tensor(a[ep[:, None], idx[:, :n]])  # noqa: E731
+    take = lambda a, n: torch.as_tensor(a[ep[:, None], idx[:, :n]])
     pos, quat, vel, angvel = (take(getattr(data, k), horizon + 1) for k in ("pos", "quat", "vel", "angvel"))
     rest = take(data.rest_length, horizon)
     fu, ru = take(data.push_force, horizon), take(data.push_point, horizon)

@@ -26,7 +26,7 @@ import torch
 from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
 
-__all__ = ["BlockFactors", "Anchor", "Solution", "IdentifiabilityError", "accumulate", "solve"]
+__all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "solve"]
 
 EPS = np.finfo(np.float64).eps
 
@@ -42,7 +42,7 @@ class BlockFactors:
     R: list[np.ndarray]  # (n_full, n_full) each
     rows: list[int]
 
-    def merged(self, other: "BlockFactors") -> "BlockFactors":
+    def merged(self, other: BlockFactors) -> BlockFactors:
         R = [np.linalg.qr(np.vstack([a, b]), mode="r") for a, b in zip(self.R, other.R)]
         return BlockFactors(R=[_square(r, a.shape[1]) for r, a in zip(R, self.R)],
                             rows=[x + y for x, y in zip(self.rows, other.rows)])

@@ -358,12 +358,11 @@ def test_every_bad_case_is_run(bad_cases):
     assert sorted(bad_cases[1]) == sorted(BAD)
 
 
-@pytest.mark.xfail(reason="argparse's own errors (bad int, missing --out) print usage + "
-                   "'tensegrity collect: error:' on several lines (tensegrity_gym/cli.py uses "
-                   "ArgumentParser.error as is)", strict=False)
 @pytest.mark.parametrize("argv", [["collect", "--model", "M.xml", "--episodes", "abc", "--out", "D.npz"],
-                                  ["model", "ico"]])
+                                  ["model", "ico"], ["fit", "D.npz", "--model", "M.xml", "--out", "F.json",
+                                                     "--solver", "sgd"], ["frobnicate"]])
 def test_argument_errors_are_one_line_too(argv, tmp_path, monkeypatch, capsys):
+    """argparse's own errors (bad int, missing option, bad choice, unknown command) follow the contract."""
     monkeypatch.chdir(tmp_path)
     try:
         rc = main(argv)
@@ -375,15 +374,17 @@ def test_argument_errors_are_one_line_too(argv, tmp_path, monkeypatch, capsys):
     assert len(lines) == 1 and lines[0].startswith("tensegrity: error: "), err
 
 
-@pytest.mark.xfail(reason="identified.dataset.atomic_write keeps mkstemp's 0600 mode: datasets, JSON "
-                   "models and plots are unreadable to other users (write_model chmods, atomic_write "
-                   "does not)", strict=False)
 def test_outputs_get_the_usual_permissions(files, tmp_path, monkeypatch, capsys):
+    """Atomic writes go through mkstemp (mode 0600): the result must still follow the umask."""
     monkeypatch.chdir(tmp_path)
     umask = os.umask(0o022)
     try:
-        assert main(["collect", "--model", str(files["ico"]), "--episodes", "1", "--steps", "5",
+        assert main(["model", "simple", "--out", "M.xml"]) == 0
+        assert main(["collect", "--model", "M.xml", "--episodes", "1", "--steps", "20",
                      "--out", "D.npz", "--quiet"]) == 0
+        assert main(["fit", "D.npz", "--model", "M.xml", "--out", "F.json", "--quiet"]) == 0
+        assert main(["predict", "D.npz", "--identified", "F.json", "--plot", "P.png"]) == 0
     finally:
         os.umask(umask)
-    assert (tmp_path / "D.npz").stat().st_mode & 0o777 == 0o644
+    for name in ("M.xml", "D.npz", "F.json", "P.png"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name

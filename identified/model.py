@@ -218,4 +218,7 @@ def load_model(path: str | os.PathLike) -> IdentifiedModel:
         raise ModelFileError(f"'{p}' is not a readable JSON model: {exc}") from None
     if not isinstance(obj, dict):
         raise ModelFileError(f"'{p}' is not an identified model (top level is not an object)")
-    return IdentifiedModel.from_json(obj)
+    try:
+        return IdentifiedModel.from_json(obj)
+    except ModelFileError as exc:
+        raise ModelFileError(f"'{p}': {exc}") from None

@@ -116,11 +116,12 @@ def cmd_predict(args: argparse.Namespace) -> None:
     from identified.model import load_model
     from identified.predict import rollout_errors, write_error_plot
 
+    if args.plot:
+        _check_writable(args.plot)
     model = load_model(args.identified)
     data = load_dataset(args.data)
     errs = rollout_errors(model, data, horizon=args.horizon)
     if args.plot:
-        _check_writable(args.plot)
         write_error_plot(args.plot, errs)
     out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in errs.items() if k != "per_step"}
     if args.json:

@@ -34,6 +34,7 @@ def adam_solve(
     batch_steps: int = 32,
     seed: int = 0,
     on_chunk: Callable[[int], None] | None = None,
+    cache_bytes: float = 2e9,
 ) -> Solution:
     """Minimise the mean squared equation error with Adam; ``rows()`` yields compact (N, R, 6, L) chunks.
 
@@ -63,8 +64,14 @@ def adam_solve(
 
     row_scale: torch.Tensor | None = None
     total_rows = 0
+    cache: list[torch.Tensor] | None = []  # keep the rows after the first epoch while they fit
     for epoch in range(epochs):
-        for A in rows():
+        source = rows() if not cache or epoch == 0 else cache
+        for A in source:
+            if epoch == 0 and cache is not None:
+                cache.append(A)
+                if sum(x.numel() for x in cache) * A.element_size() > cache_bytes:
+                    cache = None
             if row_scale is None:  # equilibrate force and torque rows once, from the first chunk
                 row_scale = 1.0 / A.norm(dim=-1).square().mean(dim=(0, 1)).sqrt().clamp_min(1e-300)
             A = A * row_scale[:, None]  # (6,) -> broadcast over (N, R, 6, L)

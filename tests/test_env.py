@@ -3,9 +3,6 @@ the backend only through rod states and rest lengths."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
 import sys
 import textwrap
 import warnings
@@ -26,6 +23,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import (
     rest_to_action,
     structure_com,
 )
+from tests._render import render_in_subprocess
 
 R, A = 6, 24
 
@@ -419,18 +417,7 @@ _RENDER_SCRIPT = textwrap.dedent(
 
 
 def test_render_rgb_array():
-    results = {}
-    for gl in ("egl", "osmesa"):
-        env = {**os.environ, "MUJOCO_GL": gl}
-        p = subprocess.run([sys.executable, "-c", _RENDER_SCRIPT], env=env, capture_output=True, text=True,
-                           timeout=120, check=False)
-        assert p.returncode == 0, p.stderr[-2000:]
-        results[gl] = json.loads(p.stdout.strip().splitlines()[-1])
-        if "unavailable" not in results[gl]:
-            break
-    else:
-        pytest.skip(f"no offscreen OpenGL here (MUJOCO_GL=egl and osmesa both failed): {results}")
-    r = results[gl]
+    r = render_in_subprocess(_RENDER_SCRIPT)
     assert r["shape"] == [120, 160, 3] and r["dtype"] == "uint8" and r["std"] > 5.0
     assert r["shape2"] == [120, 160, 3] and r["moved"] > 0.0
     # drawing rod states in a MuJoCo model (the twin's hook) gives the plant's picture

@@ -8,10 +8,7 @@ against a SyncVectorEnv of single twins, the SB3 adapter against SB3's DummyVecE
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 import textwrap
 import warnings
 import xml.etree.ElementTree as ET
@@ -46,6 +43,7 @@ from tensegrity_gym.envs.vector import (
 )
 from tensegrity_gym.models import preset_parameters
 from tensegrity_gym.plant import RodStates
+from tests._render import render_in_subprocess
 
 R, A = 6, 24
 FIELDS = ("pos", "quat", "vel", "angvel")
@@ -331,17 +329,7 @@ _RENDER_SCRIPT = textwrap.dedent(
 
 
 def test_render_rgb_array():
-    results = {}
-    for gl in ("egl", "osmesa"):
-        p = subprocess.run([sys.executable, "-c", _RENDER_SCRIPT], env={**os.environ, "MUJOCO_GL": gl},
-                           capture_output=True, text=True, timeout=120, check=False)
-        assert p.returncode == 0, p.stderr[-2000:]
-        results[gl] = json.loads(p.stdout.strip().splitlines()[-1])
-        if "unavailable" not in results[gl]:
-            break
-    else:
-        pytest.skip(f"no offscreen OpenGL here: {results}")
-    r = results[gl]
+    r = render_in_subprocess(_RENDER_SCRIPT)
     assert r["shape"] == [64, 96, 3] and r["dtype"] == "uint8" and r["std"] > 5.0
     assert r["same_as_plant"] < 1.0  # same reset state, drawn by the same MJCF
     assert r["moved"] > 0.0

@@ -32,6 +32,7 @@ __all__ = [
     "reward_terms",
     "structure_com",
     "termination_reason",
+    "termination_reasons",
 ]
 
 
@@ -64,6 +65,9 @@ def observation(states: RodStates, rest_lengths: np.ndarray, actuated_index: np.
                 exclude_current_positions: bool = True) -> np.ndarray:
     """The observation vector (float64; the env casts it to float32) of rod states and rest lengths.
 
+    Works on one env (``pos`` (R, 3) -> (n_obs,)) and on a batch (``pos`` (N, R, 3), ``rest_lengths``
+    (N, S) -> (N, n_obs)): the batched twin calls this same function.
+
     Layout (R rods, A actuated cables; see :func:`observation_names`):
     ``[x_com, y_com]`` (only with ``exclude_current_positions=False``), ``z_com`` (1),
     rod centres relative to the structure's centre (3R), rod rotation matrices body -> world,
@@ -78,19 +82,24 @@ def observation(states: RodStates, rest_lengths: np.ndarray, actuated_index: np.
         exclude_current_positions: leave out the structure's x, y (the task is invariant to them).
     """
     pos = np.asarray(states.pos, dtype=float)
-    com = pos.mean(axis=0)
+    lead = pos.shape[:-2]  # () for one env, (N,) for a batch
+
+    def flat(x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, dtype=float).reshape(*lead, -1)
+
+    com = pos.mean(axis=-2)
     rot = quat_to_mat(np.asarray(states.quat, dtype=float))
-    rest = np.asarray(rest_lengths, dtype=float)[np.asarray(actuated_index, dtype=int)]
-    parts = [] if exclude_current_positions else [com[:2]]
+    rest = np.asarray(rest_lengths, dtype=float)[..., np.asarray(actuated_index, dtype=int)]
+    parts = [] if exclude_current_positions else [com[..., :2]]
     parts += [
-        com[2:3],
-        (pos - com).ravel(),
-        rot.reshape(-1),
-        np.asarray(states.vel, dtype=float).ravel(),
-        np.asarray(states.angvel, dtype=float).ravel(),
+        com[..., 2:3],
+        flat(pos - com[..., None, :]),
+        flat(rot),
+        flat(states.vel),
+        flat(states.angvel),
         rest_to_action(rest, rest_min, rest_max),
     ]
-    return np.concatenate(parts)
+    return np.concatenate(parts, axis=-1)
 
 
 def observation_names(rod_names: tuple[str, ...], actuated_names: tuple[str, ...],
@@ -110,14 +119,16 @@ def reward_terms(com_before: np.ndarray, com_after: np.ndarray, action: np.ndarr
                  forward_reward_weight: float, ctrl_cost_weight: float) -> dict[str, float]:
     """``reward_forward`` = w_f (x_after - x_before) / dt_control and ``reward_ctrl`` = -w_c ||a||^2.
 
-    The reward is their sum. ``action`` is the (clipped) action in [-1, 1].
+    The reward is their sum. ``action`` is the (clipped) action in [-1, 1]. One env: ``com_*`` (3,),
+    ``action`` (A,) -> floats; a batch: (N, 3), (N, A) -> (N,) arrays.
     """
-    x_velocity = (float(com_after[0]) - float(com_before[0])) / dt_control
+    x_velocity = (np.asarray(com_after, dtype=float)[..., 0] - np.asarray(com_before, dtype=float)[..., 0]) / dt_control
     a = np.asarray(action, dtype=float)
-    return {
+    terms = {
         "reward_forward": forward_reward_weight * x_velocity,
-        "reward_ctrl": -ctrl_cost_weight * float(np.dot(a, a)),
+        "reward_ctrl": -ctrl_cost_weight * np.einsum("...i,...i->...", a, a),
     }
+    return {k: float(v) if np.ndim(v) == 0 else v for k, v in terms.items()}
 
 
 def termination_reason(states: RodStates, rest_lengths: np.ndarray,
@@ -128,17 +139,29 @@ def termination_reason(states: RodStates, rest_lengths: np.ndarray,
     ``"collapsed"`` / ``"left the ground"``: the structure's centre is below / above
     ``healthy_z_range`` (``None``: no such check).
     """
-    arrays = (states.pos, states.quat, states.vel, states.angvel, rest_lengths)
-    flat = np.concatenate([np.ravel(x) for x in arrays])
-    if not np.isfinite(flat).all():
-        return "non-finite state"
+    return termination_reasons(states.pos, states.quat, states.vel, states.angvel, rest_lengths,
+                               healthy_z_range)[()]
+
+
+def termination_reasons(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
+                        rest_lengths: np.ndarray, healthy_z_range: tuple[float, float] | None) -> np.ndarray:
+    """:func:`termination_reason` over any leading dimensions: an object array of str or ``None``.
+
+    ``pos`` (..., R, 3), ``quat`` (..., R, 4), ``vel``/``angvel`` (..., R, 3), ``rest_lengths`` (..., S).
+    """
+    pos = np.asarray(pos, dtype=float)
+    lead = pos.shape[:-2]
+    finite = np.isfinite(np.asarray(rest_lengths, dtype=float)).reshape(*lead, -1).all(axis=-1)
+    for x in (pos, quat, vel, angvel):
+        finite &= np.isfinite(np.asarray(x, dtype=float)).reshape(*lead, -1).all(axis=-1)
+    out = np.full(lead, None, dtype=object)
     if healthy_z_range is not None:
-        z = float(np.mean(np.asarray(states.pos)[:, 2]))
-        if z < healthy_z_range[0]:
-            return "collapsed"
-        if z > healthy_z_range[1]:
-            return "left the ground"
-    return None
+        with np.errstate(invalid="ignore"):
+            z = pos[..., 2].mean(axis=-1)
+            out[z < healthy_z_range[0]] = "collapsed"
+            out[z > healthy_z_range[1]] = "left the ground"
+    out[~finite] = "non-finite state"
+    return out
 
 
 def perturb_start(nominal: RodStates, rng: np.random.Generator, scale: float) -> RodStates:

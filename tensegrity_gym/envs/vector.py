@@ -5,8 +5,9 @@ backend="identified", model="F.json")`` builds :class:`TensegrityIcoVectorEnv`: 
 states live in tensors ``(N, R, ·)`` and every physics substep is ONE batched engine call
 (:class:`~tensegrity_gym.backends.identified_backend.TwinPhysics`). Observation, reward and
 termination are the env's pure functions (:mod:`tensegrity_gym.envs.tensegrity_ico_v0`) applied to
-the batch: :func:`batch_observation`, :func:`batch_termination_reason` and :func:`batch_reward_terms`
-are their row-by-row equivalents (tests check them against the single-env functions). Measured
+the batch — the same functions, which work over a leading batch dimension (:func:`batch_observation`,
+:func:`batch_termination_reason` and :func:`batch_reward_terms` are thin aliases); tests check them
+against the single-env calls. Measured
 with ``benchmarks/bench_twin.py`` (N = 1024, 2-core CPU): 2-12 ms per step batched against
 110-200 ms for a Python loop over the single-env functions (the CPU engine takes ~4 s for the
 step's 20 substeps; the loop would dominate a GPU engine's step).
@@ -41,10 +42,12 @@ from tensegrity_gym.backends.identified_backend import IdentifiedBackend, TwinPh
 from tensegrity_gym.envs.tensegrity_ico_v0 import (
     TensegrityIcoEnv,
     action_to_rest,
+    observation,
     perturb_start,
-    rest_to_action,
+    reward_terms,
+    termination_reasons,
 )
-from tensegrity_gym.plant import RodStates, quat_to_mat
+from tensegrity_gym.plant import RodStates
 
 __all__ = [
     "TensegrityIcoVectorEnv",
@@ -61,55 +64,25 @@ NON_FINITE = "non-finite state"
 def batch_observation(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
                       rest_lengths: np.ndarray, actuated_index: np.ndarray, rest_min: np.ndarray,
                       rest_max: np.ndarray, exclude_current_positions: bool = True) -> np.ndarray:
-    """(N, n_obs) float64: :func:`~tensegrity_gym.envs.tensegrity_ico_v0.observation` of every row.
-
-    ``pos``, ``vel``, ``angvel`` (N, R, 3), ``quat`` (N, R, 4), ``rest_lengths`` (N, S); same layout.
-    """
-    N = pos.shape[0]
-    com = pos.mean(axis=1)
-    parts = [] if exclude_current_positions else [com[:, :2]]
-    parts += [
-        com[:, 2:3],
-        (pos - com[:, None, :]).reshape(N, -1),
-        quat_to_mat(quat).reshape(N, -1),
-        vel.reshape(N, -1),
-        angvel.reshape(N, -1),
-        rest_to_action(rest_lengths[:, actuated_index], rest_min, rest_max),
-    ]
-    return np.concatenate(parts, axis=1)
+    """(N, n_obs) float64: the env's own :func:`~tensegrity_gym.envs.tensegrity_ico_v0.observation`
+    on a batch (``pos``, ``vel``, ``angvel`` (N, R, 3), ``quat`` (N, R, 4), ``rest_lengths`` (N, S))."""
+    return observation(RodStates(pos, quat, vel, angvel), rest_lengths, actuated_index, rest_min, rest_max,
+                       exclude_current_positions)
 
 
 def batch_termination_reason(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
                              rest_lengths: np.ndarray, healthy_z_range: tuple[float, float] | None
                              ) -> np.ndarray:
-    """(N,) object array: :func:`~tensegrity_gym.envs.tensegrity_ico_v0.termination_reason` of every
-    row (``None`` where the episode goes on)."""
-    N = pos.shape[0]
-    finite = np.isfinite(rest_lengths).all(axis=1)
-    for x in (pos, quat, vel, angvel):
-        finite &= np.isfinite(x.reshape(N, -1)).all(axis=1)
-    out = np.full(N, None, dtype=object)
-    if healthy_z_range is not None:
-        with np.errstate(invalid="ignore"):
-            z = pos[:, :, 2].mean(axis=1)
-            out[z < healthy_z_range[0]] = "collapsed"
-            out[z > healthy_z_range[1]] = "left the ground"
-    out[~finite] = NON_FINITE
-    return out
+    """(N,) object array: the env's own termination reasons of every row (``None``: goes on)."""
+    return termination_reasons(pos, quat, vel, angvel, rest_lengths, healthy_z_range)
 
 
 def batch_reward_terms(com_before: np.ndarray, com_after: np.ndarray, action: np.ndarray,
                        dt_control: float, forward_reward_weight: float, ctrl_cost_weight: float
                        ) -> dict[str, np.ndarray]:
-    """(N,) ``reward_forward`` and ``reward_ctrl``:
-    :func:`~tensegrity_gym.envs.tensegrity_ico_v0.reward_terms` of every row (``com_*`` (N, 3),
-    ``action`` (N, A) clipped)."""
-    x_velocity = (com_after[:, 0] - com_before[:, 0]) / dt_control
-    a = np.asarray(action, dtype=float)
-    return {
-        "reward_forward": forward_reward_weight * x_velocity,
-        "reward_ctrl": -ctrl_cost_weight * np.einsum("ij,ij->i", a, a),
-    }
+    """(N,) ``reward_forward`` and ``reward_ctrl``: the env's own
+    :func:`~tensegrity_gym.envs.tensegrity_ico_v0.reward_terms` on a batch."""
+    return reward_terms(com_before, com_after, action, dt_control, forward_reward_weight, ctrl_cost_weight)
 
 
 # ---------------------------------------------------------------------- the vector env

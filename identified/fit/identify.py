@@ -137,23 +137,25 @@ def identify(
 
     columns = RodColumns.build(topology, layout)
 
+    bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
+
     def rows() -> Iterator[torch.Tensor]:
         for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
             A = equation_rows(topology, columns, ch, gravity)
+            if bar is not None and bar.n < bar.total:  # steps, counted once (Adam makes 30 passes)
+                bar.update(ch.pos.shape[0])
             yield weak_form(A, n_ep, weak) if weak > 1 else A
 
-    bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
     # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
     # (and far faster on a shared, loaded machine); torch keeps its threads for the features
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
-            factors = accumulate(rows(), columns, layout.n_full,
-                                 on_chunk=(bar.update if bar else None))
+            factors = accumulate(rows(), columns, layout.n_full)
             sol = solve(factors, layout, anchor, fixed)
         else:
             from identified.fit.adam import adam_solve
 
-            sol = adam_solve(rows, columns, layout, anchor, fixed, on_chunk=(bar.update if bar else None))
+            sol = adam_solve(rows, columns, layout, anchor, fixed)
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0

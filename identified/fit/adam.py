@@ -33,7 +33,6 @@ def adam_solve(
     lr: float = 0.1,
     batch_steps: int = 32,
     seed: int = 0,
-    on_chunk: Callable[[int], None] | None = None,
     cache_bytes: float = 2e9,
 ) -> Solution:
     """Minimise the mean squared equation error with Adam; ``rows()`` yields compact (N, R, 6, L) chunks.
@@ -84,8 +83,6 @@ def adam_solve(
                 opt.step()
             if epoch == 0:
                 total_rows += A.shape[0] * A.shape[1] * A.shape[2]
-                if on_chunk is not None:
-                    on_chunk(A.shape[0])
         sched.step()
     with torch.no_grad():
         theta = theta_full().numpy()

@@ -15,7 +15,7 @@ the anchored problem is solved in the anchor's null space.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,11 +40,6 @@ class BlockFactors:
 
     R: list[np.ndarray]  # (n_full, n_full) each
     rows: list[int]
-
-    def merged(self, other: BlockFactors) -> BlockFactors:
-        R = [np.linalg.qr(np.vstack([a, b]), mode="r") for a, b in zip(self.R, other.R)]
-        return BlockFactors(R=[_square(r, a.shape[1]) for r, a in zip(R, self.R)],
-                            rows=[x + y for x, y in zip(self.rows, other.rows)])
 
 
 @dataclass(frozen=True)
@@ -72,7 +67,6 @@ def accumulate(
     chunks: Iterable[torch.Tensor],
     columns: RodColumns,
     n_full: int,
-    on_chunk: Callable[[int], None] | None = None,
 ) -> BlockFactors:
     """Stream chunks of compact equation rows (N, R, 6, 2D + 5) into per-block triangular factors.
 
@@ -84,7 +78,6 @@ def accumulate(
     rows = [0] * len(local)
     for A in chunks:
         An = A.detach().cpu().numpy()
-        N = An.shape[0]
         for b, cols in enumerate(local):
             i, k = divmod(b, 2)
             blk = np.take(An[:, i, 3 * k : 3 * k + 3], cols, axis=-1).reshape(-1, len(cols))
@@ -93,8 +86,6 @@ def accumulate(
             r = np.linalg.qr(np.concatenate([sub[b], blk]), mode="r")
             sub[b] = _square(r, len(cols))
             rows[b] += blk.shape[0]
-        if on_chunk is not None:
-            on_chunk(N)
     full = []
     for b, cols in enumerate(local):
         i = b // 2

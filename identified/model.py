@@ -4,7 +4,8 @@ Keys (DESIGN.md): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, 
 rest_length), ``control_scale`` (h), ``effects`` (name and parameters of every added effect),
 ``metrics`` (fit error, data used).  Besides these, ``topology`` stores the geometry the engine
 needs (rod attachment points, which sites each spring joins), so that the twin stands on its own,
-``dt`` and ``gravity`` the conditions of the data, and ``scale`` how the global scale was fixed.
+``dt`` and ``gravity`` the conditions of the data, ``integrator`` the engine's velocity update that
+matches the plant (``euler``, ``implicit`` or ``rk4``), and ``scale`` how the global scale was fixed.
 Every value carries its standard error where the fit gives one (``*_stderr``).
 """
 
@@ -23,6 +24,7 @@ from identified.topology import Rod, Spring, Topology
 __all__ = ["IdentifiedModel", "ModelFileError", "load_model", "save_model"]
 
 FORMAT = "tensegrity-identified/1"
+INTEGRATORS = ("euler", "implicit", "rk4")  # as identified.engine.integration.INTEGRATORS
 
 
 class ModelFileError(ValueError):
@@ -47,6 +49,7 @@ class IdentifiedModel:
     effects: list[dict[str, Any]] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
     source_model: str | None = None
+    integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
 
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
@@ -109,6 +112,7 @@ class IdentifiedModel:
             "metrics": self.metrics,
             "scale": self.scale,
             "dt": float(self.dt),
+            "integrator": self.integrator,
             "gravity": np.asarray(self.gravity, dtype=float).tolist(),
             "source_model": self.source_model,
             "topology": {
@@ -171,6 +175,7 @@ class IdentifiedModel:
                 effects=list(obj.get("effects", [])),
                 metrics=dict(obj.get("metrics", {})),
                 source_model=obj.get("source_model"),
+                integrator=str(obj.get("integrator", "euler")),
             )
         except ModelFileError:
             raise
@@ -189,6 +194,8 @@ class IdentifiedModel:
                 raise ModelFileError(f"'{key}' has shape {arr.shape}, expected {shape}")
             if not np.all(np.isfinite(arr)):
                 raise ModelFileError(f"'{key}' holds a non-finite value")
+        if self.integrator not in INTEGRATORS:
+            raise ModelFileError(f"'integrator' is '{self.integrator}', expected one of {', '.join(INTEGRATORS)}")
         if np.any(self.mass <= 0) or np.any(self.inertia[:, :2] <= 0):
             raise ModelFileError("rod masses and transverse inertias must be positive")
 

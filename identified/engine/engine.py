@@ -6,7 +6,10 @@ One step (paper, Fig. "architecture"):
    end forces;
 2. :mod:`~identified.engine.accelerations` (eqs. 3-4): aggregate forces and torques per rod, add
    gravity, the scaled control force ``h f_u`` and the plug-in *effects*, then ``a`` and ``α_b``;
-3. :mod:`~identified.engine.integration`: semi-implicit Euler, MuJoCo's integrator for free bodies.
+3. :mod:`~identified.engine.integration`: semi-implicit Euler, MuJoCo's integrator for free bodies
+   (``integrator="euler"``, default), optionally with the velocity update of MuJoCo's implicit
+   integrators (``integrator="implicit"``: implicit spring damping and gyroscopic term), or
+   MuJoCo's RK4 (``integrator="rk4"``).
 
 Parameters are physical quantities (:class:`SpringRodParams`): stiffness ``K`` (S,), damping
 ``c`` (S,), mass ``M`` (R,), inertia ``(Ixx, Iyy, Izz)`` (R, 3), control scale ``h`` (), gravity
@@ -40,8 +43,14 @@ from identified.engine.forces import (
     spring_geometry,
     spring_tension,
 )
-from identified.engine.integration import RodState, semi_implicit_euler
-from identified.rotation import matrix_apply_transpose, quat_to_matrix
+from identified.engine.integration import (
+    INTEGRATORS,
+    RodState,
+    implicit_accelerations,
+    runge_kutta4,
+    semi_implicit_euler,
+)
+from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix
 from identified.topology import Topology
 
 __all__ = ["Effect", "RodState", "SpringRodEngine", "SpringRodParams", "StepContext", "StepTerms"]
@@ -200,8 +209,10 @@ class SpringRodEngine:
 
     ``topology``: the system graph (:class:`~identified.topology.Topology` or a prepared
     :class:`SpringGraph`); ``params``: :class:`SpringRodParams` (or a mapping of its fields);
-    ``dt``: time step, s; ``effects``: extra force terms (:class:`Effect`).  States and inputs may
-    be arrays or tensors; they are converted to ``dtype``/``device`` (a no-op when they match).
+    ``dt``: time step, s; ``effects``: extra force terms (:class:`Effect`); ``integrator``:
+    ``"euler"`` (MuJoCo's default), ``"implicit"`` (MuJoCo's implicit/implicitfast) or ``"rk4"``
+    (MuJoCo's RK4), see :mod:`~identified.engine.integration`.  States and inputs may be arrays or tensors; they are
+    converted to ``dtype``/``device`` (a no-op when they match).
     """
 
     def __init__(
@@ -212,7 +223,11 @@ class SpringRodEngine:
         effects: Sequence[Effect] = (),
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
+        integrator: str = "euler",
     ) -> None:
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS)}, got '{integrator}'")
+        self.integrator = integrator
         self.dtype = dtype
         self.device = torch.device(device)
         if isinstance(topology, SpringGraph):
@@ -235,9 +250,10 @@ class SpringRodEngine:
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
     ) -> SpringRodEngine:
-        """The engine of an :class:`identified.model.IdentifiedModel` (its topology, parameters, dt)."""
+        """The engine of an :class:`identified.model.IdentifiedModel` (its topology, parameters, dt
+        and integrator)."""
         return cls(model.topology, SpringRodParams.from_model(model, dtype, device), model.dt,
-                   effects=effects, dtype=dtype, device=device)
+                   effects=effects, dtype=dtype, device=device, integrator=model.integrator)
 
     @property
     def n_rods(self) -> int:
@@ -294,6 +310,9 @@ class SpringRodEngine:
             if et is not None:
                 torque = torque + et
         lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
+        if self.integrator == "implicit":
+            lin_acc, ang_acc_b = implicit_accelerations(self.graph, geom.unit, ends.lever, rot, w_b, lin_acc,
+                                                        ang_acc_b, p.mass, p.inertia, p.damping, self.dt)
         return StepTerms(ctx, force, torque, lin_acc, ang_acc_b)
 
     def step(
@@ -307,6 +326,22 @@ class SpringRodEngine:
         ``push_force`` (..., R, 3) world or None, ``push_point`` (..., R, 3) rod frame or None (COM).
         Returns the next :class:`RodState`."""
         state = RodState(*(self._t(x) for x in state))
+        if self.integrator == "rk4":
+            rest = self._t(rest_length)
+            fu = None if push_force is None else self._t(push_force)
+            ru = None if push_point is None else self._t(push_point)
+
+            rot0 = quat_to_matrix(state.quat)
+            lever = None if ru is None else matrix_apply(rot0, ru)
+
+            def acc(s: RodState, _w_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                # the push is held for the step as a WORLD force and torque (as MuJoCo's
+                # xfrc_applied): its point moves with the stage's rotation so the lever stays put
+                point = None if lever is None else matrix_apply_transpose(quat_to_matrix(s.quat), lever)
+                terms = self.dynamics(s, rest, fu, point)
+                return terms.lin_acc, terms.ang_acc_body
+
+            return runge_kutta4(acc, state, matrix_apply_transpose(rot0, state.angvel), self.dt)
         terms = self.dynamics(state, rest_length, push_force, push_point)
         return semi_implicit_euler(state.pos, state.quat, state.vel, terms.ctx.angvel_body,
                                    terms.lin_acc, terms.ang_acc_body, self.dt)

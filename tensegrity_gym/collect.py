@@ -7,8 +7,10 @@ Exciting inputs, as in the paper's experiments:
 * smooth random commands to the actuated cables: a target rest length that glides between random
   way points inside the motor's range (the motor's speed limit smooths it further);
 * random pushes (the paper's control force ``f_u``) every ``push_every`` steps: a force of random
-  direction and known magnitude on a random rod at a random point along its axis, held for
-  ``push_duration`` steps.
+  direction and known magnitude on a rod (in shuffled rounds, so every rod is pushed as often)
+  at a random point of its surface (a random point
+  along its axis, at the rod's radius in a random direction: so pushes also spin a rod about its
+  axis and excite the axial inertia), held for ``push_duration`` steps.
 
 Sensor noise (``noise_pos`` etc.) is added to what is recorded, never to the simulation.
 """
@@ -106,19 +108,22 @@ def _command_schedule(rng: np.random.Generator, steps: int, dt: float, period: f
 
 
 def _pushes(rng: np.random.Generator, cfg: CollectConfig, steps: int, n_rods: int,
-            half_lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            half_lengths: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     force = np.zeros((steps, n_rods, 3))
     point = np.zeros((steps, n_rods, 3))
     if cfg.push_every is None:
         return force, point
-    for start in range(cfg.push_every, steps, cfg.push_every):
-        rod = rng.integers(n_rods)
+    starts = range(cfg.push_every, steps, cfg.push_every)
+    # rods in shuffled rounds: every rod is pushed as often as any other (±1)
+    order = np.concatenate([rng.permutation(n_rods) for _ in range(len(starts) // n_rods + 1)])
+    for start, rod in zip(starts, order):
         d = rng.normal(size=3)
         f = cfg.push_magnitude * d / np.linalg.norm(d)
         z = rng.uniform(-1, 1) * half_lengths[rod]
+        phi = rng.uniform(0, 2 * np.pi)
         stop = min(start + cfg.push_duration, steps)
         force[start:stop, rod] = f
-        point[start:stop, rod] = (0.0, 0.0, z)
+        point[start:stop, rod] = (radii[rod] * np.cos(phi), radii[rod] * np.sin(phi), z)
     return force, point
 
 
@@ -151,7 +156,7 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     push_force = np.zeros((E, T, R, 3))
     push_point = np.zeros((E, T, R, 3))
     lo, hi = plant.rest_bounds() if A else (np.zeros(0), np.zeros(0))
-    half = 0.5 * plant.rod_lengths()
+    half, radii = 0.5 * plant.rod_lengths(), plant.rod_radii()
 
     bar = None
     if progress:
@@ -163,7 +168,7 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
         plant.set_states(perturb_states(plant.states(), rng, cfg.init_pos_std, cfg.init_rot_std,
                                         cfg.init_vel_std, cfg.init_angvel_std))
         command[e] = _command_schedule(rng, T, plant.dt, cfg.command_period, lo, hi)
-        push_force[e], push_point[e] = _pushes(rng, cfg, T, R, half)
+        push_force[e], push_point[e] = _pushes(rng, cfg, T, R, half, radii)
         for t in range(T):
             s = plant.states()
             pos[e, t], quat[e, t], vel[e, t], angvel[e, t] = s.pos, s.quat, s.vel, s.angvel

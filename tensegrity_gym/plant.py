@@ -246,6 +246,16 @@ class MujocoPlant:
         p = self.model.site_pos[self._end_sites]  # (R, 2, 3) in the body frame
         return np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
 
+    def rod_radii(self) -> np.ndarray:
+        """(R,) radius of each rod's largest capsule or cylinder geom (0 if it has none), m."""
+        m = self.model
+        out = np.zeros(len(self._bid))
+        for i, b in enumerate(self._bid):
+            for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
+                if int(m.geom_type[g]) in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+                    out[i] = max(out[i], float(m.geom_size[g, 0]))
+        return out
+
     def rest_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(rest_min, rest_max), each (A,), m: the motor range of every actuated cable."""
         return self.motor.rest_min.copy(), self.motor.rest_max.copy()

@@ -83,6 +83,11 @@ def cmd_summary(args: argparse.Namespace) -> None:
           f"push-steps {info['pushes']}, sensor noise {d.noise.tolist()}")
 
 
+def _integrator(name: str) -> str:
+    """MuJoCo's integrator names to the engine's (implicit and implicitfast step free rods alike)."""
+    return "implicit" if name == "implicitfast" else name
+
+
 def cmd_fit(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
     from identified.fit.identify import ScaleSpec, identify
@@ -96,7 +101,8 @@ def cmd_fit(args: argparse.Namespace) -> None:
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
     weak = "auto" if args.weak_window is None else args.weak_window
     model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     weak_window=weak, scheme=args.scheme, progress=not args.quiet)
+                     weak_window=weak, integrator=_integrator(args.integrator), scheme=args.scheme,
+                     progress=not args.quiet)
     model.source_model = os.path.abspath(args.model)
     if args.refine:
         from identified.fit.refine import refine
@@ -155,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--preset", default=None,
                    help="simple: paper; ico: paper-uniform, paper-nonuniform, robot (default: paper / robot)")
     m.add_argument("--seed", type=int, default=None, help="seed for randomised presets (paper-nonuniform)")
-    m.add_argument("--integrator", default="euler", help="MuJoCo integrator: euler (default), rk4, implicitfast")
+    m.add_argument("--integrator", default="euler", help="MuJoCo integrator: euler (default), implicit, implicitfast, rk4")
     m.add_argument("--out", required=True, help="output .xml path")
     m.set_defaults(func=cmd_model)
 
@@ -201,9 +207,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--weak-window", type=int, default=None, metavar="STEPS",
                    help="sum the equations over windows of STEPS steps (weak form, for noisy data); "
                    "0: step by step; default: weak form (~0.3 s) when the dataset records sensor noise")
-    f.add_argument("--scheme", choices=("euler", "central"), default="euler",
-                   help="accelerations by forward differences, exact for a semi-implicit Euler plant "
-                   "(default), or central differences, second order for any integrator (RK4)")
+    f.add_argument("--integrator", choices=("euler", "implicit", "implicitfast", "rk4", "auto"), default="euler",
+                   help="how the plant steps, and so how the identified engine will: MuJoCo's euler "
+                   "(default), implicit or implicitfast (the same for free rods), rk4, or auto: chosen "
+                   "from the data by the equation residual of each")
+    f.add_argument("--scheme", choices=("forward", "central"), default=None,
+                   help="accelerations by forward differences (exact for euler and implicit plants; the "
+                   "default for them) or central differences (second order for any integrator; the default "
+                   "for rk4)")
     f.add_argument("--refine", action="store_true", help="refine by multi-step simulation error")
     f.add_argument("--effects", choices=("none", "auto"), default="none", help="effect search (later issue)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")

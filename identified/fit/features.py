@@ -12,7 +12,15 @@ ends and ``u_j`` the unit vector along the spring.  The accelerations ``a`` and 
 the recorded states (:mod:`identified.fit.derivatives`).  Every term is linear in
 ``(K, c, M, Ixx, Iyy, Izz, h)``, so the unknowns follow by linear least squares.
 
-The spring geometry is the engine's own (:mod:`identified.engine.forces`): one place for the physics.
+A plant on MuJoCo's implicit integrators (``implicit``, ``implicitfast``) steps with
+``(M - dt D) qacc = f`` (:mod:`identified.engine.integration`); its equations keep the same form
+with two extra terms that are still linear in the parameters: each damper sees the stretch rate
+``xdot_j + dt rho_j`` (``rho_j`` the rate of change of ``xdot_j`` from its own rod's acceleration),
+and the rotation gains ``dt (w_b x (I a_b) + a_b x (I w_b))`` (``implicit_dt`` in
+:func:`equation_rows`).
+
+The spring geometry and the implicit terms are the engine's own (:mod:`identified.engine.forces`,
+:mod:`identified.engine.integration`): one place for the physics.
 """
 
 from __future__ import annotations
@@ -22,9 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from identified.engine.forces import endpoint_kinematics, spring_geometry, spring_stretch
+from identified.engine.forces import SpringGraph, endpoint_kinematics, spring_geometry, spring_stretch
+from identified.engine.integration import gyroscopic_derivative, implicit_rate_correction, spring_rate_rows
 from identified.fit.layout import ParameterLayout
-from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix
+from identified.rotation import matrix_apply_transpose, quat_to_matrix
 from identified.topology import Topology
 
 __all__ = ["Chunk", "RodColumns", "equation_rows"]
@@ -37,7 +46,8 @@ class Chunk:
     ``pos, quat, vel, angvel``: (N, R, .) the state at instant t (world-frame angular velocity);
     ``angvel_body``: (N, R, 3) the same in the rod frame; ``acc``: (N, R, 3) linear acceleration
     and ``alpha_body``: (N, R, 3) rod-frame angular acceleration over step t (see
-    :mod:`identified.fit.derivatives`); ``rest``: (N, S); ``push_force``, ``push_point``: (N, R, 3).
+    :mod:`identified.fit.derivatives`); ``rest``: (N, S); ``push_force``: (N, R, 3) world and
+    ``push_torque_body``: (N, R, 3) its torque about the COM in the rod frame (both per unit ``h``).
     """
 
     pos: torch.Tensor
@@ -49,7 +59,8 @@ class Chunk:
     alpha_body: torch.Tensor
     rest: torch.Tensor
     push_force: torch.Tensor
-    push_point: torch.Tensor
+    push_torque_body: torch.Tensor
+    row_weight: torch.Tensor | None = None  # (N, R): 0 drops a rod's equations at an instant
 
 
 @dataclass(frozen=True)
@@ -96,11 +107,13 @@ def equation_rows(
     columns: RodColumns,
     chunk: Chunk,
     gravity: torch.Tensor,
+    implicit_dt: float | None = None,
 ) -> torch.Tensor:
     """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5).
 
     Rows 0-2 are translation (world frame), rows 3-5 rotation (rod frame).  The equations are
-    homogeneous (``A theta = 0``): the scale is fixed later by an anchor.
+    homogeneous (``A theta = 0``): the scale is fixed later by an anchor.  ``implicit_dt``: the
+    time step of a plant on MuJoCo's implicit integrators (adds their terms), ``None`` for Euler.
     """
     N, R = chunk.pos.shape[:2]
     D = columns.degree
@@ -112,11 +125,16 @@ def equation_rows(
     ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel, rot=rot)
     length, rate, unit = spring_geometry(ends)
     stretch = spring_stretch(length, chunk.rest, torch.as_tensor(topology.pull_only, device=device))
+    rate_e = rate.unsqueeze(-1).expand(*rate.shape, 2)  # the stretch rate each end's damper sees
+    if implicit_dt:
+        graph = SpringGraph.from_topology(topology, dtype=dtype, device=device)
+        rows, _ = spring_rate_rows(graph, unit, ends.lever, rot)
+        rate_e = rate_e + implicit_rate_correction(graph, rows, chunk.acc, chunk.alpha_body, implicit_dt)
 
     # springs: force per unit K (stretch) and per unit c (rate) on each end, and its torque
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device).view(1, 1, 2, 1)
     u = sign * unit.unsqueeze(-2)  # (N, S, 2, 3): direction of the force on each end
-    f = torch.stack([-stretch[..., None, None] * u, -rate[..., None, None] * u])  # (2, N, S, 2, 3)
+    f = torch.stack([-stretch[..., None, None] * u, -rate_e[..., None] * u])  # (2, N, S, 2, 3)
     rods_e = torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=device)  # (S, 2)
     rot_e = rot[:, rods_e]  # (N, S, 2, 3, 3)
     tau = _to_body(rot_e, torch.cross(ends.lever.expand_as(f), f, dim=-1))
@@ -137,11 +155,18 @@ def equation_rows(
     A[:, 3:6, :, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], 1)
     A[:, 3:6, :, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], 1)
     A[:, 3:6, :, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], 1)
+    if implicit_dt:  # + dt G(I) a_b, column k with I = e_k
+        eye = torch.eye(3, dtype=dtype, device=device)
+        w, a, basis = torch.broadcast_tensors(chunk.angvel_body.unsqueeze(-2), alpha.unsqueeze(-2), eye)
+        gyro = implicit_dt * gyroscopic_derivative(w, a, basis)  # (N, R, k, 3)
+        A[:, 3:6, :, 2 * D + 1 : 2 * D + 4] += gyro.permute(0, 3, 1, 2)
     # control force scalar h: - h f_u, torque - R^T (R r_u x h f_u)
-    lever_u = matrix_apply(rot, chunk.push_point)
     A[:, 0:3, :, 2 * D + 4] = -chunk.push_force.transpose(1, 2)
-    A[:, 3:6, :, 2 * D + 4] = -_to_body(rot, torch.cross(lever_u, chunk.push_force, dim=-1)).transpose(1, 2)
-    return A.permute(0, 2, 1, 3)
+    A[:, 3:6, :, 2 * D + 4] = -chunk.push_torque_body.transpose(1, 2)
+    A = A.permute(0, 2, 1, 3)
+    if chunk.row_weight is not None:
+        A = A * chunk.row_weight[:, :, None, None]
+    return A
 
 
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

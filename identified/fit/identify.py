@@ -18,6 +18,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
+from identified.engine.integration import INTEGRATORS
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
@@ -25,7 +26,7 @@ from identified.fit.regression import Anchor, Solution, accumulate, solve
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
-__all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor"]
+__all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
 
@@ -110,7 +111,8 @@ def identify(
     scale: ScaleSpec = ScaleSpec(),
     solver: str = "lstsq",
     weak_window: int | str | None = "auto",
-    scheme: str = "euler",
+    integrator: str = "euler",
+    scheme: str | None = None,
     chunk_steps: int = 4096,
     progress: bool = False,
     device: str = "cpu",
@@ -120,9 +122,21 @@ def identify(
     ``weak_window``: sum the equations over windows of this many steps (the weak form, for noisy
     data; :mod:`identified.fit.derivatives`); ``None`` or 0: step by step (exact on clean data);
     ``"auto"``: the weak form with a ~0.3 s window when the dataset records sensor noise.
-    ``scheme``: ``"euler"`` (exact for a semi-implicit Euler plant) or ``"central"`` (second
-    order for any integrator; :mod:`identified.fit.derivatives`).
+    ``integrator``: how the plant steps, and so how the identified engine will: ``"euler"``
+    (MuJoCo's default), ``"implicit"`` (MuJoCo's implicit and implicitfast), ``"rk4"``, or
+    ``"auto"``: chosen from the data (:func:`select_integrator`).  ``scheme``: how accelerations
+    are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
+    (second order for any integrator; the default for rk4), :mod:`identified.fit.derivatives`.
     """
+    if integrator == "auto":
+        integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
+        model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
+                         chunk_steps, progress, device)
+        model.metrics["integrator_selection"] = scores
+        return model
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS + ('auto',))}, got '{integrator}'")
+    scheme = scheme or ("central" if integrator == "rk4" else "forward")
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
     check_compatible(dataset, topology)
@@ -136,12 +150,13 @@ def identify(
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
+    implicit_dt = dataset.dt if integrator == "implicit" else None
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
 
     def rows() -> Iterator[torch.Tensor]:
         for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
-            A = equation_rows(topology, columns, ch, gravity)
+            A = equation_rows(topology, columns, ch, gravity, implicit_dt)
             if bar is not None and bar.n < bar.total:  # steps, counted once (Adam makes 30 passes)
                 bar.update(ch.pos.shape[0])
             yield weak_form(A, n_ep, weak) if weak > 1 else A
@@ -162,7 +177,40 @@ def identify(
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.metrics["weak_window"] = weak if weak > 1 else None
     model.metrics["scheme"] = scheme
+    model.metrics["integrator"] = integrator
+    model.integrator = integrator
     return model
+
+
+def select_integrator(
+    dataset: Dataset,
+    topology: Topology,
+    regressors: str = "multiple",
+    scale: ScaleSpec = ScaleSpec(),
+    weak_window: int | str | None = "auto",
+    device: str = "cpu",
+    max_steps: int = 20000,
+) -> tuple[str, dict[str, float]]:
+    """Which integrator's equations fit the data best: the plant's own, when it is one of them.
+
+    Fits every candidate of :data:`INTEGRATORS` on a part of the data (up to ``max_steps``
+    steps) and compares their equation residuals (translation and rotation RMS, each relative to
+    the best candidate's, summed).  On clean data the plant's integrator leaves a residual at
+    rounding level and the others ``O(dt)``; noise narrows the margin but not the order.
+    Returns the winner and every candidate's score (1 per residual kind at best, so 2 = best).
+    """
+    per = max(1, max_steps // max(dataset.n_episodes, 1))
+    steps = min(dataset.n_steps, max(per, 64))
+    episodes = slice(0, max(1, min(dataset.n_episodes, max_steps // steps)))
+    part = dataset.select(episodes=episodes, steps=steps)
+    res = {}
+    for name in INTEGRATORS:
+        fit = identify(part, topology, regressors, scale, "lstsq", weak_window, name)
+        rms = fit.metrics["equation_residual_rms"]
+        res[name] = (rms["translation"] or np.inf, rms["rotation"] or np.inf)
+    best = [max(min(r[k] for r in res.values()), 1e-300) for k in range(2)]
+    scores = {n: float(r[0] / best[0] + r[1] / best[1]) for n, r in res.items()}
+    return min(scores, key=scores.get), scores
 
 
 def _to_model(

@@ -1,7 +1,7 @@
 """Multi-step refinement: fit the parameters to whole stretches of trajectory (simulation error).
 
-The regression fits one step at a time.  When the plant integrates differently from the engine
-(RK4, implicit integrators) or the data are noisy, the parameters that best predict *one* step
+The regression fits one step at a time.  When its equations are only approximate (an RK4 plant,
+fitted by central differences) or the data are noisy, the parameters that best predict *one* step
 are not quite those that best predict *many*.  :func:`refine` starts from the regression result
 and minimises the error of free runs of the differentiable engine over windows of ``horizon``
 steps (started from recorded states, driven by the recorded rest lengths and pushes), by L-BFGS
@@ -88,7 +88,7 @@ def refine(
         return replace(base, **vals)
 
     def loss_fn() -> torch.Tensor:
-        eng = SpringRodEngine(model.topology, params(), data.dt)
+        eng = SpringRodEngine(model.topology, params(), data.dt, integrator=model.integrator)
         s0 = eng.state(pos[:, 0], quat[:, 0], vel[:, 0] + dv0, angvel[:, 0] + dw0)
         out = eng.rollout(s0, rest, fu, ru)
         ep_ = (out.pos - pos) / length

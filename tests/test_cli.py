@@ -35,7 +35,7 @@ SUBCOMMANDS = {
                 "--quiet"],
     "summary": ["--json"],
     "fit": ["--model", "--out", "--regressors", "--solver", "--mass", "--total-mass", "--pushes-unscaled",
-            "--refine", "--effects", "--quiet"],
+            "--integrator", "--scheme", "--refine", "--effects", "--quiet"],
     "predict": ["--identified", "--horizon", "--plot", "--json"],
 }
 
@@ -120,6 +120,28 @@ def test_model_collect_summary_fit_predict(tmp_path, monkeypatch, capsys):
     png = (tmp_path / "P.png").read_bytes()
     assert png.startswith(PNG_MAGIC) and len(png) > 1000
     assert sorted(os.listdir(tmp_path)) == ["D.npz", "F.json", "M.xml", "P.png"]
+
+
+def test_fit_auto_integrator_on_an_implicitfast_plant(tmp_path, monkeypatch, capsys):
+    """The fit recognises MuJoCo's implicitfast from the data; the twin model then steps like it
+    and free-runs the held-out plant to rounding error."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "ico", "--preset", "paper-nonuniform", "--seed", "8", "--integrator", "implicitfast",
+                 "--out", "M.xml"]) == 0
+    for seed, out in ((1, "D.npz"), (2, "H.npz")):
+        assert main(["collect", "--model", "M.xml", "--episodes", "2", "--steps", "300", "--seed", str(seed),
+                     "--push-every", "50", "--out", out, "--quiet"]) == 0
+    assert main(["fit", "D.npz", "--model", "M.xml", "--integrator", "auto", "--out", "F.json", "--quiet"]) == 0
+    fit = json.loads((tmp_path / "F.json").read_text())
+    assert fit["integrator"] == "implicit"
+    scores = fit["metrics"]["integrator_selection"]
+    assert scores["implicit"] < 1e-6 * min(scores["euler"], scores["rk4"])
+    truth = preset_parameters("ico", "paper-nonuniform", 8)
+    assert rel([s["damping"] for s in fit["springs"]], [s["damping"] for s in truth["springs"]]) < 1e-9
+    capsys.readouterr()
+    assert main(["predict", "H.npz", "--identified", "F.json", "--json"]) == 0
+    pred = json.loads(capsys.readouterr().out)
+    assert pred["pos_mean"] < 1e-9 and pred["quat_mean"] < 1e-9
 
 
 # ---------------------------------------------------------------------- --help

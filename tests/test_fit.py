@@ -228,7 +228,10 @@ def test_noisy_data_every_physical_parameter_within_one_percent():
     assert rel(model.stiffness, K) < 0.01
     assert rel(model.damping, c) < 0.01
     assert rel(model.mass, M) < 0.01
-    assert rel(model.inertia[:, :2], Inert[:, :2]) < 0.01
+    # the axial inertia too: the pushes act on the rod's surface, and the axial rotation rows, free
+    # of spring torques and far less noisy than the transverse ones, get their own weight
+    assert rel(model.inertia, Inert) < 0.01
+    assert model.metrics["errors_in_variables"]  # the recorded noise's bias is corrected
 
 
 def test_central_scheme_on_an_rk4_plant():

@@ -22,6 +22,7 @@ from identified.engine.integration import INTEGRATORS
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
+from identified.fit.noise import with_noise_replicates
 from identified.fit.regression import Anchor, Solution, accumulate, solve
 from identified.model import IdentifiedModel
 from identified.topology import Topology
@@ -116,6 +117,7 @@ def identify(
     chunk_steps: int = 4096,
     progress: bool = False,
     device: str = "cpu",
+    noise_copies: int = 1,
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -127,11 +129,14 @@ def identify(
     ``"auto"``: chosen from the data (:func:`select_integrator`).  ``scheme``: how accelerations
     are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
     (second order for any integrator; the default for rk4), :mod:`identified.fit.derivatives`.
+    ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
+    noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
+    :mod:`identified.fit.regression`); 0 fits as if the states were exact.
     """
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device)
+                         chunk_steps, progress, device, noise_copies)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -154,18 +159,23 @@ def identify(
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
 
-    def rows() -> Iterator[torch.Tensor]:
-        for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
+    def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
+        """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
+        for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
             A = equation_rows(topology, columns, ch, gravity, implicit_dt)
-            if bar is not None and bar.n < bar.total:  # steps, counted once (Adam makes 30 passes)
+            # steps, counted once (not for the noisy copies; Adam makes 30 passes)
+            if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])
-            yield weak_form(A, n_ep, weak) if weak > 1 else A
+            yield (weak_form(A, n_ep, weak) if weak > 1 else A), n_ep
+
+    def rows() -> Iterator[torch.Tensor]:
+        return (A for A, _ in runs(dataset))
 
     # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
     # (and far faster on a shared, loaded machine); torch keeps its threads for the features
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
-            factors = accumulate(rows(), columns, layout.n_full)
+            factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
             sol = solve(factors, layout, anchor, fixed)
         else:
             from identified.fit.adam import adam_solve
@@ -178,6 +188,8 @@ def identify(
     model.metrics["weak_window"] = weak if weak > 1 else None
     model.metrics["scheme"] = scheme
     model.metrics["integrator"] = integrator
+    model.metrics["stderr"] = sol.covariance or None
+    model.metrics["errors_in_variables"] = sol.errors_in_variables
     model.integrator = integrator
     return model
 

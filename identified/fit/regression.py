@@ -5,12 +5,33 @@ ratios (K/M, c/M, I/M, h/M) follow.  One linear *anchor* ``a . theta = d`` fixes
 known rod mass, a known total mass, pushes of known magnitude (``h = 1``) or, failing all of
 these, a normalisation (mean rod mass 1) that the identified model reports as such.
 
-The data are reduced block by block (translation / rotation rows of each rod) to triangular
-factors ``R_b`` with ``||A_b theta||^2 = ||R_b theta||^2`` by a streaming QR (TSQR), so the fit
-never holds the whole design matrix and keeps the accuracy of an orthogonal solve (no normal
-equations: least squares on exactly matching features recovers the parameters to ~1e-13).
-The blocks are then weighted by their residual scale (feasible generalised least squares) and
-the anchored problem is solved in the anchor's null space.
+The data are reduced block by block -- one block per rod and equation: translation along world
+x, y, z, rotation about the rod's x, y, z -- to triangular factors ``R_b`` with
+``||A_b theta||^2 = ||R_b theta||^2`` by a streaming QR (TSQR), so the fit never holds the whole
+design matrix and keeps the accuracy of an orthogonal solve (no normal equations: least squares on
+exactly matching features recovers the parameters to ~1e-13).  Every independent run of rows
+(an episode, :func:`accumulate`) keeps its own factors too, for the error bars
+(:mod:`identified.fit.uncertainty`).
+
+Weighting (feasible generalised least squares): without a noise model, the three translation and
+the three rotation equations of a rod share one weight, the inverse of their residual scale.
+When the dataset records its sensor noise, the noise Gram ``C_b = E[ΔA_bᵀ ΔA_b]`` of every block
+is measured (:mod:`identified.fit.noise`) and the fit maximises the profile likelihood of Gaussian
+residuals whose variance per row the noise model predicts, ``thetaᵀ C_b theta / m_b``, up to one
+free factor per block:
+
+    min  sum_b m_b log(thetaᵀ G_b theta / thetaᵀ C_b theta)     (G_b = R_bᵀ R_b, m_b rows)
+
+-- the approximate maximum-likelihood cost of errors-in-variables fitting, ``sum thetaᵀG theta /
+thetaᵀC theta`` (Chojnacki, Brooks, van den Hengel and Gawley 2000, IEEE TPAMI 22: 1294), with
+each block's noise level left free.  Its stationarity condition ``sum_b (a_b G_b - c_b C_b) theta
+= 0``, ``a_b = m_b / thetaᵀG_b theta``, ``c_b = m_b / thetaᵀC_b theta``, is weighted least squares
+with the errors-in-variables bias ``E[G_b] - G_b,clean = C_b`` subtracted (scaled by the fitted
+noise factor); it is solved by fixed-point iteration.  Every equation gets its own weight: the
+axial rotation row, free of spring torques, is far less noisy than the transverse ones, and with
+the pushes' torque about the axis it fixes the axial inertia.  An equation whose rows are noise
+only has ``G_b ~ C_b``: its ratio is ~1 whatever the parameters and it pulls on none of them,
+where weighted least squares would shrink the parameters it multiplies towards zero.
 """
 
 from __future__ import annotations
@@ -24,10 +45,14 @@ import torch
 
 from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
+from identified.fit.uncertainty import LinearSolve, covariance
 
 __all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "solve"]
 
 EPS = np.finfo(np.float64).eps
+EQUATIONS = 6  # per rod: translation x, y, z (world), rotation x, y, z (rod frame)
+EIV_ITERATIONS = 50
+EIV_TOL = 1e-10
 
 
 class IdentifiabilityError(ValueError):
@@ -36,10 +61,22 @@ class IdentifiabilityError(ValueError):
 
 @dataclass
 class BlockFactors:
-    """Triangular factors of each equation block, in the full parameter space."""
+    """Triangular factors of each equation block (rod, equation), merged and per independent run.
 
-    R: list[np.ndarray]  # (n_full, n_full) each
+    ``R``: (n_full, n_full) merged factor per block; ``rows``: equations summed into it;
+    ``blocks``: (rod, equation 0-5) of each block; ``columns``: full-vector index of each local
+    column of a block; ``cluster_R``: [run][block] local triangular factor of that run's rows;
+    ``noise`` / ``cluster_noise``: the same layout for the measured noise Gram ``E[ΔAᵀΔA]``
+    (``None`` without a noise model).
+    """
+
+    R: list[np.ndarray]
     rows: list[int]
+    blocks: list[tuple[int, int]]
+    columns: list[np.ndarray]
+    cluster_R: list[list[np.ndarray]]
+    noise: list[np.ndarray] | None = None
+    cluster_noise: list[list[np.ndarray]] | None = None
 
 
 @dataclass(frozen=True)
@@ -57,42 +94,67 @@ class Solution:
 
     theta: np.ndarray  # (n_full,)
     cov: np.ndarray | None  # (n_full, n_full); None when the solver gives no covariance
-    residual_rms: list[float]  # per block, RMS equation error
+    residual_rms: list[float]  # per rod: translation, rotation RMS equation error
     condition: float  # of the (column-scaled) anchored problem
     rows: int
     free: int
+    covariance: str = ""  # how ``cov`` was estimated (uncertainty.covariance)
+    errors_in_variables: bool = False  # the noise model's bias correction was applied
 
 
 def accumulate(
-    chunks: Iterable[torch.Tensor],
+    chunks: Iterable[torch.Tensor | tuple],
     columns: RodColumns,
     n_full: int,
 ) -> BlockFactors:
-    """Stream chunks of compact equation rows (N, R, 6, 2D + 5) into per-block triangular factors.
+    """Reduce chunks of compact equation rows (N, R, 6, 2D + 5) to per-block triangular factors.
 
-    Blocks are ``[translation rod0, rotation rod0, translation rod1, ...]``.
+    A chunk is ``A``, ``(A, n_runs)`` or ``(A, n_runs, replicates)``: its N rows are ``n_runs``
+    equal, consecutive runs independent of each other (episodes; a bare ``A`` is one run), and
+    ``replicates`` the same rows computed from the data with fresh sensor noise
+    (:func:`identified.fit.noise.with_noise_replicates`), whose differences to ``A`` measure the
+    noise Gram.
     """
-    R = columns.full.shape[0]
-    local = [columns.block_columns(i, rotation=bool(k)) for i in range(R) for k in range(2)]
-    sub = [np.zeros((0, len(c))) for c in local]
-    rows = [0] * len(local)
-    for A in chunks:
+    n_rods = columns.full.shape[0]
+    blocks = [(i, k) for i in range(n_rods) for k in range(EQUATIONS)]
+    local = [columns.block_columns(i, rotation=k >= 3) for i, k in blocks]
+    cluster_R: list[list[np.ndarray]] = []
+    cluster_C: list[list[np.ndarray]] = []
+    rows = [0] * len(blocks)
+    for item in chunks:
+        A, n_runs, reps = (item, 1, []) if isinstance(item, torch.Tensor) else (tuple(item) + ([],))[:3]
         An = A.detach().cpu().numpy()
-        for b, cols in enumerate(local):
-            i, k = divmod(b, 2)
-            blk = np.take(An[:, i, 3 * k : 3 * k + 3], cols, axis=-1).reshape(-1, len(cols))
-            # Householder: each block is (nearly) rank-deficient by one on clean data -- its rows
-            # are satisfied exactly by the true parameters -- so Gram/Cholesky shortcuts fail here
-            r = np.linalg.qr(np.concatenate([sub[b], blk]), mode="r")
-            sub[b] = _square(r, len(cols))
-            rows[b] += blk.shape[0]
-    full = []
-    for b, cols in enumerate(local):
-        i = b // 2
-        F = np.zeros((n_full, n_full))
-        F[np.ix_(np.arange(len(cols)), columns.full[i, cols])] = sub[b]
-        full.append(F)
-    return BlockFactors(R=full, rows=rows)
+        D = [r.detach().cpu().numpy() - An for r in reps]
+        N = An.shape[0]
+        if N % n_runs:
+            raise ValueError(f"{N} rows do not split into {n_runs} equal runs")
+        for g in range(n_runs):
+            part = slice(g * (N // n_runs), (g + 1) * (N // n_runs))
+            Rg, Cg = [], []
+            for b, (i, k) in enumerate(blocks):
+                x = An[part, i, k][:, local[b]]
+                # Householder: a block is (nearly) rank-deficient by one on clean data -- its rows
+                # are satisfied exactly by the true parameters -- so Gram/Cholesky shortcuts fail here
+                Rg.append(_square(np.linalg.qr(x, mode="r"), len(local[b])))
+                rows[b] += x.shape[0]
+                if D:
+                    dx = [d[part, i, k][:, local[b]] for d in D]
+                    Cg.append(sum(e.T @ e for e in dx) / len(D))
+            cluster_R.append(Rg)
+            if D:
+                cluster_C.append(Cg)
+    full_cols = [columns.full[i, c] for (i, _), c in zip(blocks, local)]
+    merged = []
+    for b, cols in enumerate(full_cols):
+        stack = np.concatenate([Rg[b] for Rg in cluster_R]) if cluster_R else np.zeros((0, len(cols)))
+        r = _square(np.linalg.qr(stack, mode="r"), len(cols))
+        merged.append(_embed(r, np.arange(len(cols)), cols, n_full))
+    noise = None
+    if cluster_C and len(cluster_C) == len(cluster_R):
+        noise = [_embed(sum(Cg[b] for Cg in cluster_C), cols, cols, n_full)
+                 for b, cols in enumerate(full_cols)]
+    return BlockFactors(R=merged, rows=rows, blocks=blocks, columns=full_cols, cluster_R=cluster_R,
+                        noise=noise, cluster_noise=cluster_C if noise is not None else None)
 
 
 def solve(
@@ -102,12 +164,112 @@ def solve(
     fixed: dict[int, float] | None = None,
     reweight: bool = True,
 ) -> Solution:
-    """Anchored least squares ``min sum_b w_b^2 ||R_b G phi||^2`` s.t. the anchor and fixed values.
+    """Anchored weighted least squares ``min sum_b a_b ||R_b G phi||^2`` s.t. the anchor and fixed
+    values; with a noise model (``factors.noise``), the errors-in-variables estimator of the module
+    docstring.
 
     ``fixed`` pins full-vector entries (e.g. ``h = 1`` when there are no pushes, which leaves it
     out of the data).  Raises :class:`IdentifiabilityError` naming the parameters that the data
     cannot determine.
     """
+    G = layout.tie
+    phi_p, Nul = _constrained(layout, anchor, fixed)
+    Rg = [R @ G for R in factors.R]
+    m = np.array([max(r, 1) for r in factors.rows], dtype=float)
+    eiv = reweight and factors.noise is not None
+    Cg = [G.T @ c @ G for c in factors.noise] if eiv else None
+
+    # FGLS with one weight per rod and kind (translation / rotation); the initial weights
+    # equilibrate the units of force and torque rows
+    groups = [2 * i + (k >= 3) for i, k in factors.blocks]
+    gsize = np.bincount(groups, weights=m)
+    energy = np.bincount(groups, weights=[np.linalg.norm(r) ** 2 for r in Rg])
+    a = gsize[groups] / np.maximum(energy[groups], 1e-300)
+    phi, lin = _weighted_solve(Rg, a, None, Nul, phi_p, layout)
+    if reweight:
+        res = np.bincount(groups, weights=[np.linalg.norm(r @ phi) ** 2 for r in Rg])
+        floor = EPS**2 * energy * (phi @ phi)
+        a = gsize[groups] / np.maximum(np.maximum(res, floor)[groups], 1e-300)
+        phi, lin = _weighted_solve(Rg, a, None, Nul, phi_p, layout)
+    c = None
+    if eiv:
+        for _ in range(EIV_ITERATIONS):
+            a, c = _eiv_weights(Rg, Cg, m, phi)
+            new, lin = _weighted_solve(Rg, a, sum(cb * C for cb, C in zip(c, Cg)), Nul, phi_p, layout)
+            change = np.max(np.abs(new - phi)) / max(np.max(np.abs(new)), 1e-300)
+            phi = new
+            if change < EIV_TOL:
+                break
+    cov_phi, how = covariance(factors, G, Nul, phi, a, c, lin)
+    per_rod = np.zeros((layout.n_rods * 2, 2))
+    for (i, k), r, mb in zip(factors.blocks, Rg, m):
+        per_rod[2 * i + (k >= 3)] += (np.linalg.norm(r @ phi) ** 2, mb)
+    s = lin.singular_values
+    return Solution(
+        theta=G @ phi,
+        cov=G @ cov_phi @ G.T,
+        residual_rms=[float(np.sqrt(e / max(n, 1))) for e, n in per_rod],
+        condition=float(s[0] / s[-1]) if s.size else 1.0,
+        rows=int(sum(factors.rows)),
+        free=Nul.shape[1],
+        covariance=how,
+        errors_in_variables=eiv,
+    )
+
+
+def _weighted_solve(
+    Rg: list[np.ndarray],
+    a: np.ndarray,
+    comp: np.ndarray | None,
+    Nul: np.ndarray,
+    phi_p: np.ndarray,
+    layout: ParameterLayout,
+) -> tuple[np.ndarray, LinearSolve]:
+    """``phi = phi_p + Nul z`` minimising ``sum_b a_b ||R_b phi||^2 - phiᵀ comp phi``.
+
+    Orthogonal solve: the SVD ``BN / scale = U S Vᵀ`` of the weighted, column-scaled factors, then
+    the compensation as the well-conditioned ``(I - K) y = ...`` in the rotated coordinates
+    ``z = M y``, ``M = scale⁻¹ V S⁻¹`` (with ``comp = 0`` this is the plain orthogonal solve).
+    """
+    B = np.vstack([np.sqrt(ab) * r for ab, r in zip(a, Rg)])
+    BN = B @ Nul
+    scale = np.linalg.norm(BN, axis=0)
+    scale[scale == 0] = 1.0
+    U, s, Vt = np.linalg.svd(BN / scale, full_matrices=False)
+    tol = s[0] * max(BN.shape) * EPS * 10 if s.size else 0.0
+    _check_rank(s <= tol, Vt, scale, Nul, layout, "rank-deficient regression")
+    M = (Vt.T / s) / scale[:, None]
+    y = U.T @ -(B @ phi_p)
+    IK = None
+    if comp is not None:
+        IK = np.eye(len(s)) - M.T @ (Nul.T @ comp @ Nul) @ M
+        IK = 0.5 * (IK + IK.T)
+        ev, evec = np.linalg.eigh(IK)
+        # a direction whose curvature the noise accounts for entirely is not identified beyond noise
+        _check_rank(ev <= 1e3 * EPS * max(1.0, ev.max()), (M @ evec).T * scale, scale, Nul, layout,
+                    "the rows' noise accounts for all of their variation")
+        y = np.linalg.solve(IK, y + M.T @ (Nul.T @ comp @ phi_p))
+    phi = phi_p + Nul @ (M @ y)
+    resid = float(sum(ab * np.linalg.norm(r @ phi) ** 2 for ab, r in zip(a, Rg)))
+    return phi, LinearSolve(M=M, IK=IK, singular_values=s, residual=resid)
+
+
+def _eiv_weights(
+    Rg: list[np.ndarray], Cg: list[np.ndarray], m: np.ndarray, phi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``a_b = m_b / phiᵀG_b phi`` (residual) and ``c_b = m_b / phiᵀC_b phi`` (predicted noise)."""
+    res = np.array([np.linalg.norm(r @ phi) ** 2 for r in Rg])
+    noise = np.array([phi @ C @ phi for C in Cg])
+    floor = EPS**2 * np.array([np.linalg.norm(r) ** 2 for r in Rg]) * (phi @ phi)
+    a = m / np.maximum(np.maximum(res, floor), 1e-300)
+    c = np.where(noise > floor, m / np.maximum(noise, 1e-300), 0.0)
+    return a, c
+
+
+def _constrained(
+    layout: ParameterLayout, anchor: Anchor, fixed: dict[int, float] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A particular solution of the anchor and fixed values, and the null space of these constraints."""
     G = layout.tie
     cons_rows = [anchor.coeff @ G]
     cons_vals = [anchor.value]
@@ -121,54 +283,28 @@ def solve(
     # drop duplicate constraints (single regressors tie many entries to one column)
     C, keep = _independent_rows(C)
     d = d[keep]
-    phi_p = np.linalg.lstsq(C, d, rcond=None)[0]
-    Nul = sla.null_space(C)
-    n_free = Nul.shape[1]
+    return np.linalg.lstsq(C, d, rcond=None)[0], sla.null_space(C)
 
-    Rg = [R @ G for R in factors.R]
-    # initial weights equilibrate the units of force and torque rows
-    w = np.array([1.0 / max(np.linalg.norm(r) / np.sqrt(max(m, 1)), 1e-300) for r, m in zip(Rg, factors.rows)])
-    for it in range(2 if reweight else 1):
-        B = np.vstack([wb * r for wb, r in zip(w, Rg)])
-        BN = B @ Nul
-        scale = np.linalg.norm(BN, axis=0)
-        scale[scale == 0] = 1.0
-        U, s, Vt = np.linalg.svd(BN / scale, full_matrices=False)
-        tol = s[0] * max(BN.shape) * EPS * 10 if s.size else 0.0
-        bad = s <= tol
-        if bad.any():
-            names: list[str] = []
-            for v in Vt[bad]:
-                direction = Nul @ (v / scale)
-                for n in layout.describe_free(direction):
-                    if n not in names:
-                        names.append(n)
-            raise IdentifiabilityError(
-                "the data cannot identify " + ", ".join(names[:12]) + (" ..." if len(names) > 12 else "")
-                + " (rank-deficient regression: excite these with more varied motion, pushes or longer runs)"
-            )
-        rhs = -(B @ phi_p)
-        z = (Vt.T @ ((U.T @ rhs) / s)) / scale
-        phi = phi_p + Nul @ z
-        rms = [float(np.linalg.norm(r @ phi) / np.sqrt(max(m, 1))) for r, m in zip(Rg, factors.rows)]
-        if reweight:
-            floor = [EPS * np.linalg.norm(r) * np.linalg.norm(phi) / np.sqrt(max(m, 1)) for r, m in zip(Rg, factors.rows)]
-            w = np.array([1.0 / max(x, f, 1e-300) for x, f in zip(rms, floor)])
-    m_rows = int(sum(factors.rows))
-    dof = max(m_rows - n_free, 1)
-    resid = float(sum((wb * np.linalg.norm(r @ phi)) ** 2 for wb, r in zip(w, Rg)))
-    sigma2 = resid / dof
-    Vs = Vt.T / s  # (BN/scale)^+ = V S^-1 U^T  -> cov_z = sigma2 * D^-1 V S^-2 V^T D^-1
-    cov_z = sigma2 * (Vs @ Vs.T) / np.outer(scale, scale)
-    cov_phi = Nul @ cov_z @ Nul.T
-    return Solution(
-        theta=G @ phi,
-        cov=G @ cov_phi @ G.T,
-        residual_rms=rms,
-        condition=float(s[0] / s[-1]) if s.size else 1.0,
-        rows=m_rows,
-        free=n_free,
+
+def _check_rank(bad: np.ndarray, directions: np.ndarray, scale: np.ndarray, Nul: np.ndarray,
+                layout: ParameterLayout, why: str) -> None:
+    if not bad.any():
+        return
+    names: list[str] = []
+    for v in directions[bad]:
+        for n in layout.describe_free(Nul @ (v / scale)):
+            if n not in names:
+                names.append(n)
+    raise IdentifiabilityError(
+        "the data cannot identify " + ", ".join(names[:12]) + (" ..." if len(names) > 12 else "")
+        + f" ({why}: excite these with more varied motion, pushes or longer runs)"
     )
+
+
+def _embed(block: np.ndarray, rows: np.ndarray, cols: np.ndarray, n_full: int) -> np.ndarray:
+    out = np.zeros((n_full, n_full))
+    out[np.ix_(rows, cols)] = block
+    return out
 
 
 def _square(r: np.ndarray, n: int) -> np.ndarray:

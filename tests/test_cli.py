@@ -144,6 +144,36 @@ def test_fit_auto_integrator_on_an_implicitfast_plant(tmp_path, monkeypatch, cap
     assert pred["pos_mean"] < 1e-9 and pred["quat_mean"] < 1e-9
 
 
+def test_fit_refine_picks_the_plants_integrator(tmp_path, monkeypatch, capsys):
+    """``fit --refine`` on an implicitfast plant, no --integrator given: refining Euler's model
+    would keep its O(dt) bias (~5e-3); the refinement first picks the integrator from the data."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "ico", "--preset", "paper-nonuniform", "--seed", "9", "--integrator", "implicitfast",
+                 "--out", "M.xml"]) == 0
+    assert main(["collect", "--model", "M.xml", "--episodes", "2", "--steps", "200", "--seed", "4",
+                 "--push-every", "50", "--out", "D.npz", "--quiet"]) == 0
+    assert main(["fit", "D.npz", "--model", "M.xml", "--refine", "--out", "F.json", "--quiet"]) == 0
+    assert "integrator implicit" in capsys.readouterr().out
+    fit = json.loads((tmp_path / "F.json").read_text())
+    assert fit["integrator"] == "implicit" and "refine" in fit["metrics"]
+    truth = preset_parameters("ico", "paper-nonuniform", 9)
+    for key in ("stiffness", "damping"):
+        assert rel([s[key] for s in fit["springs"]], [s[key] for s in truth["springs"]]) < 1e-3, key
+    assert rel([r["mass"] for r in fit["rods"]], [r["mass"] for r in truth["rods"]]) < 1e-3
+
+
+def test_fit_effects_auto_is_refused_until_it_exists(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "simple", "--out", "M.xml"]) == 0
+    assert main(["collect", "--model", "M.xml", "--episodes", "1", "--steps", "50", "--out", "D.npz",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["fit", "D.npz", "--model", "M.xml", "--effects", "auto", "--out", "F.json"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tensegrity: error: --effects auto") and err.count("\n") == 1
+    assert not (tmp_path / "F.json").exists()
+
+
 # ---------------------------------------------------------------------- --help
 @pytest.mark.parametrize("command", [None, *SUBCOMMANDS])
 def test_help_exits_0_and_lists_options(command, capsys):

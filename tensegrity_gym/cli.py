@@ -100,6 +100,10 @@ def cmd_fit(args: argparse.Namespace) -> None:
     _check_writable(args.out)
     data = load_dataset(args.data)
     topo = Topology.from_mjcf(args.model)
+    if args.refine:
+        from identified.fit.refine import check_refinable
+
+        check_refinable(data)  # before the fit: a dataset the refinement refuses fails at once
     # --refine is for plants whose integrator may differ from the engine's: without an explicit
     # --integrator it first picks the one whose equations fit the data (refining the wrong
     # integrator's model cannot remove its O(dt) bias)

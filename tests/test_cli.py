@@ -440,3 +440,15 @@ def test_outputs_get_the_usual_permissions(files, tmp_path, monkeypatch, capsys)
         os.umask(umask)
     for name in ("M.xml", "D.npz", "F.json", "P.png"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
+
+
+def test_fit_refine_refuses_noise_on_some_channels_only(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "simple", "--out", "M.xml"]) == 0
+    assert main(["collect", "--model", "M.xml", "--episodes", "1", "--steps", "400", "--noise-pos", "0.001",
+                 "--out", "D.npz", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["fit", "D.npz", "--model", "M.xml", "--refine", "--out", "F.json", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tensegrity: error: the dataset records noise") and err.count("\n") == 1
+    assert not (tmp_path / "F.json").exists()

@@ -35,7 +35,18 @@ from identified.engine import SpringRodEngine, SpringRodParams
 from identified.model import IdentifiedModel
 from identified.rotation import quat_exp, quat_multiply, quat_normalize, quat_to_matrix
 
-__all__ = ["refine", "window_starts"]
+__all__ = ["check_refinable", "refine", "window_starts"]
+
+
+def check_refinable(data: Dataset) -> bool:
+    """Whether ``data`` calls for the noisy-data refinement (it records sensor noise); raises
+    ValueError when it records noise on some channels only (the cost needs all four)."""
+    sigma = np.asarray(data.noise, dtype=np.float64)
+    noisy = bool(np.any(sigma > 0))
+    if noisy and not np.all(sigma > 0):
+        raise ValueError(f"the dataset records noise {sigma.tolist()} on some channels only: the refinement's "
+                         "maximum-likelihood cost needs the noise of pos, vel, quat and angvel")
+    return noisy
 
 
 def window_starts(data: Dataset, horizon: int, max_windows: int) -> tuple[np.ndarray, np.ndarray]:
@@ -71,11 +82,8 @@ def refine(
     """
     t0 = time.perf_counter()
     horizon = min(horizon, data.n_steps)
+    noisy = check_refinable(data)
     sigma = np.asarray(data.noise, dtype=np.float64)
-    noisy = bool(np.any(sigma > 0))
-    if noisy and not np.all(sigma > 0):
-        raise ValueError(f"the dataset records noise {sigma.tolist()} on some channels only: the refinement's "
-                         "maximum-likelihood cost needs the noise of pos, vel, quat and angvel")
     ep, st = window_starts(data, horizon, max_windows_noisy if noisy else max_windows)
     idx = st[:, None] + np.arange(horizon + 1)[None, :]  # (W, H+1)
     take = lambda a, n: torch.as_tensor(a[ep[:, None], idx[:, :n]])

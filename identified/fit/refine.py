@@ -83,7 +83,6 @@ def refine(
     t0 = time.perf_counter()
     horizon = min(horizon, data.n_steps)
     noisy = check_refinable(data)
-    sigma = np.asarray(data.noise, dtype=np.float64)
     ep, st = window_starts(data, horizon, max_windows_noisy if noisy else max_windows)
     idx = st[:, None] + np.arange(horizon + 1)[None, :]  # (W, H+1)
     take = lambda a, n: torch.as_tensor(a[ep[:, None], idx[:, :n]])
@@ -111,7 +110,7 @@ def refine(
     dp0 = torch.zeros_like(pos[:, 0], requires_grad=noisy)
     dq0 = torch.zeros_like(pos[:, 0], requires_grad=noisy)  # rotation vector, world frame
     starts = [dp0, dq0, dv0, dw0] if noisy else [dv0, dw0]
-    sp, sv, sq, sw = sigma if noisy else (1.0, 1.0, 1.0, 1.0)
+    sp, sv, sq, sw = (float(x) for x in data.noise) if noisy else (1.0, 1.0, 1.0, 1.0)
     rot_rec = quat_to_matrix(quat)
     held_mass = None
     if anchor == "mass":
@@ -143,15 +142,17 @@ def refine(
                 + (out.angvel - angvel).square().sum() / sw**2)
         return cost / pos[..., 0].numel()  # per rod and instant: ~12 at the optimum
 
+    max_eval = iterations * 5 // 4  # LBFGS's own default, named so the progress bar counts the same
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=(2 if noisy else 1) * int(1.25 * iterations), desc="refine", unit="rollout", leave=False)
+        bar = tqdm(total=(2 if noisy else 1) * max_eval, desc="refine", unit="rollout", leave=False)
 
     def run(variables: list[torch.Tensor], norm: float) -> None:
-        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-12, tolerance_change=1e-14, history_size=20)
+        opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=iterations, max_eval=max_eval,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14,
+                                history_size=20)
 
         def closure() -> torch.Tensor:
             opt.zero_grad()

@@ -1,0 +1,258 @@
+"""``ground_contact``: normal and friction forces between the rods' capsules and a ground plane.
+
+Geometry (read from the MJCF, never its physics parameters): every rod's collision capsule
+(radius, segment end points in the rod frame) and the ground plane (height and normal).  Each end
+sphere of a capsule is a contact candidate; it is *in contact* when it penetrates the plane,
+depth ``d = r - (n·c - h) > 0`` (``c`` the sphere centre), at the point ``ρ = c - r n`` (lever from
+the rod's centre of mass).
+
+Force law.  MuJoCo's contact is a soft *constraint*, not a penalty spring: the solver chooses the
+force that gives the contact point a reference acceleration, ``f = (a_ref - J qacc) / R``, with
+``a_ref = k d - b v`` and a regulariser ``R`` proportional to the inverse effective mass.  Written
+with the acceleration ``a0`` that the contact point would have under every *other* force (springs,
+gravity, pushes, other effects) this is, for one contact on a rod,
+
+    f_n = max(0, m_n (κ d - β_n v_n - γ_n a0_n))                        (normal)
+    f_t = m_t (-β_t v_t - γ_t a0_t),   |f_t| <= μ f_n                    (friction, two axes)
+
+where ``m_u = 1 / (1/M + (ρ×u)ᵀ I_w⁻¹ (ρ×u))`` is the effective mass of the contact point along
+``u`` from the rod's identified M and I, ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
+(no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
+ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
+so none of them scales with the mass.  Given M, I and ``a0`` -- all from the jointly identified
+spring-rod model -- the law is *linear* in ``(κ, β_n, γ_n, β_t, γ_t)``: it is fitted by least
+squares on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
+and the friction bound ``μ`` by a profile scan of the same residual.  Measured on the robot preset,
+this law explains most of the contact force (``explained_variance`` in the fit's metrics).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from typing import Any
+
+import numpy as np
+import torch
+
+from identified.effects.base import Effect, ParamBlock
+from identified.rotation import matrix_apply, matrix_apply_transpose
+
+__all__ = ["GroundContact", "read_contact_geometry"]
+
+LINEAR = ("kappa", "beta_n", "gamma_n", "beta_t", "gamma_t")
+
+
+class GeometryError(ValueError):
+    """The MJCF lacks the geometry an effect needs."""
+
+
+def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, Any]:
+    """Capsule radius and segment ends per rod, and the ground plane, from an MJCF (XML only).
+
+    Returns ``{"radius": [R], "segment": [R][2][3] rod frame, "ground_height": h, "normal": [3]}``.
+    Raises :class:`GeometryError` (one line) when there is no ground plane or a rod has no capsule.
+    """
+    from identified.topology import _frame, _read_text, _vec
+
+    text = _read_text(mjcf)
+    root = ET.fromstring(text)
+    world = root.find("worldbody")
+    planes = [g for g in world.iter("geom") if g.get("type") == "plane"] if world is not None else []
+    if not planes:
+        raise GeometryError("ground_contact needs a ground plane (a <geom type=\"plane\">) in the MJCF; it has none")
+    g = planes[0]
+    pos = _vec(g.get("pos"), 3)
+    q = _vec(g.get("quat"), 4) if g.get("quat") else np.array([1.0, 0, 0, 0])
+    fake = ET.Element("body", {"pos": " ".join(map(str, pos)), "quat": " ".join(map(str, q))})
+    _, rot = _frame(fake)
+    normal = rot[:, 2]
+    radius, segment = [], []
+    bodies = {b.get("name"): b for b in world.findall("body")}
+    for name in rod_names:
+        b = bodies.get(name)
+        caps = [] if b is None else [x for x in b.findall("geom") if x.get("type") == "capsule"]
+        if not caps:
+            raise GeometryError(f"ground_contact needs a collision capsule on rod '{name}'; the MJCF has none")
+        c = caps[0]
+        size = [float(v) for v in (c.get("size") or "0").split()]
+        if c.get("fromto"):
+            ft = _vec(c.get("fromto"), 6)
+            ends = [ft[:3], ft[3:]]
+        else:
+            if c.get("quat") or c.get("euler") or c.get("axisangle"):
+                raise GeometryError(f"rod '{name}': give its capsule as fromto to read its geometry")
+            p = _vec(c.get("pos"), 3)
+            half = size[1] if len(size) > 1 else 0.0
+            ends = [p - [0, 0, half], p + [0, 0, half]]
+        radius.append(size[0])
+        segment.append([list(map(float, e)) for e in ends])
+    return {"radius": radius, "segment": segment, "ground_height": float(normal @ pos),
+            "normal": normal.tolist()}
+
+
+class GroundContact(Effect):
+    name = "ground_contact"
+    description = "rod capsules on a ground plane: constraint-like normal force and saturating friction"
+    blocks = (
+        ParamBlock("kappa", "global", mass_scaled=False, unit="1/s^2"),
+        ParamBlock("beta_n", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_n", "global", mass_scaled=False),
+        ParamBlock("beta_t", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_t", "global", mass_scaled=False),
+        ParamBlock("mu", "global", mass_scaled=False),
+    )
+    stage = "residual"
+    needs_base_acceleration = True
+
+    @classmethod
+    def for_system(cls, topology: Any, mjcf: str | None = None) -> GroundContact:
+        if mjcf is None:
+            raise GeometryError("ground_contact needs the MJCF's geometry (capsules and ground plane)")
+        return cls(topology.n_rods, topology.n_springs, options=read_contact_geometry(mjcf, topology.rod_names))
+
+    # ------------------------------------------------------------------ geometry
+    def _geom(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        key = ("geom", like.dtype, like.device)
+        if key not in self._cache:
+            t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
+            n = t(self.options["normal"])
+            a = torch.tensor([1.0, 0, 0], dtype=like.dtype) if abs(float(n[0])) < 0.9 else torch.tensor([0, 1.0, 0], dtype=like.dtype)
+            t1 = torch.linalg.cross(n, a.to(like.device))
+            t1 = t1 / t1.norm()
+            t2 = torch.linalg.cross(n, t1)
+            self._cache[key] = (t(self.options["radius"]), t(self.options["segment"]), n, t1, t2,
+                                t(self.options["ground_height"]))
+        return self._cache[key]
+
+    def contacts(self, state: Any, ctx: Any) -> dict[str, torch.Tensor]:
+        """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3), and the effective
+        masses (..., R, 2, 3) along (n, t1, t2) with the model's M and I."""
+        radius, seg, n, t1, t2, height = self._geom(state.pos)
+        rot = ctx.rot
+        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3)
+        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        lever = centre - radius[:, None, None] * n - state.pos.unsqueeze(-2)
+        dirs = torch.stack((n, t1, t2))  # (3, 3)
+        p = ctx.params
+        mass = p.mass.unsqueeze(-1).unsqueeze(-1)
+        inertia = p.inertia.unsqueeze(-2).unsqueeze(-2)
+        rxu = torch.linalg.cross(lever.unsqueeze(-2), dirs.expand(lever.shape[:-1] + (3, 3)))  # (..., R, 2, 3, 3)
+        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu)
+        m_eff = 1.0 / (1.0 / mass + (body * body / inertia).sum(-1))
+        return {"depth": depth, "active": depth > 0, "lever": lever, "m_eff": m_eff, "dirs": dirs}
+
+    def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Velocity and other-force acceleration of each contact point along (n, t1, t2): (..., R, 2, 3)."""
+        lever = c["lever"]
+        vel = state.vel.unsqueeze(-2) + torch.linalg.cross(state.angvel.unsqueeze(-2).expand_as(lever), lever)
+        alpha_w = matrix_apply(ctx.rot, ctx.base_ang_acc_body)
+        acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2).expand_as(lever), lever)
+        dirs = c["dirs"]
+        return vel @ dirs.T, acc @ dirs.T
+
+    def _linear_terms(self, state: Any, ctx: Any) -> tuple[dict, torch.Tensor]:
+        """Force per unit of each linear parameter, per contact, in (n, t1, t2) components:
+        (..., R, 2, 5, 3); zero where not in contact."""
+        c = self.contacts(state, ctx)
+        v, a0 = self._point_kinematics(state, ctx, c)
+        m = c["m_eff"]
+        zero = torch.zeros_like(v[..., 0])
+        on = c["active"].to(v.dtype)
+        cols = [
+            torch.stack((m[..., 0] * c["depth"], zero, zero), -1),
+            torch.stack((-m[..., 0] * v[..., 0], zero, zero), -1),
+            torch.stack((-m[..., 0] * a0[..., 0], zero, zero), -1),
+            torch.stack((zero, -m[..., 1] * v[..., 1], -m[..., 2] * v[..., 2]), -1),
+            torch.stack((zero, -m[..., 1] * a0[..., 1], -m[..., 2] * a0[..., 2]), -1),
+        ]
+        return c, torch.stack(cols, -2) * on[..., None, None]
+
+    def _to_wrench(self, c: dict, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Contact-frame forces, (..., R, 2, 3) or per parameter (..., R, 2, K, 3), to the rod force
+        and WORLD torque about its centre of mass, (..., R, 3) or (..., R, K, 3)."""
+        world = local @ c["dirs"]
+        lever = c["lever"]
+        if local.dim() == lever.dim():
+            return world.sum(-2), torch.linalg.cross(lever, world).sum(-2)
+        torque = torch.linalg.cross(lever.unsqueeze(-2).expand_as(world), world)
+        return world.sum(-3), torque.sum(-3)
+
+    def features(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Force and torque per unit of the five linear parameters (..., R, 5, 3); μ unbounded."""
+        c, terms = self._linear_terms(state, ctx)
+        return self._to_wrench(c, terms)
+
+    def contact_forces(self, state: Any, ctx: Any, theta: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
+        """The law with its clamps: forces per contact in (n, t1, t2) components, (..., R, 2, 3)."""
+        th = self.theta(state.pos) if theta is None else theta
+        c, terms = self._linear_terms(state, ctx)
+        raw = (terms * th[:5, None]).sum(-2)  # (..., R, 2, 3)
+        fn = raw[..., 0].clamp_min(0.0)
+        ft = raw[..., 1:]
+        cap = th[5] * fn
+        norm = ft.norm(dim=-1).clamp_min(1e-12)
+        ft = ft * torch.clamp(cap / norm, max=1.0).unsqueeze(-1)
+        return c, torch.cat((fn.unsqueeze(-1), ft), -1)
+
+    def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        c, f = self.contact_forces(state, ctx)
+        return self._to_wrench(c, f)
+
+    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
+        """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
+        radius, seg, n, _, _, height = self._geom(state.pos)
+        centre = state.pos.unsqueeze(-2) + matrix_apply(ctx.rot.unsqueeze(-3), seg)
+        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        return (depth > -margin).any(-1)
+
+    # ------------------------------------------------------------------ fit on the residual
+    def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
+                     groups: np.ndarray, rows: torch.Tensor) -> dict[str, Any]:
+        """Least squares of the law on the residual wrench of the contact rows.
+
+        ``force``/``torque`` (N, R, 3) world: the wrench the jointly fitted model leaves
+        unexplained; ``rows`` (N, R) bool: the rod equations to use; ``groups`` (N,): the episode
+        of each instant (cluster-robust standard errors).  Sets ``values``/``stderr`` and
+        returns fit statistics.
+        """
+        c, terms = self._linear_terms(state, ctx)
+        F, T = self._to_wrench(c, terms)  # (N, R, 5, 3)
+        scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
+        sel = rows & c["active"].any(-1)
+        X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, 5).numpy()
+        Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
+        g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
+        if X.shape[0] < 50:
+            raise ValueError("too few contact rows to identify ground_contact")
+        keep = np.ones(len(Y), dtype=bool)
+        theta = np.linalg.lstsq(X, Y, rcond=None)[0]
+        best = (np.inf, None, 1.0)
+        full = torch.zeros(6, dtype=torch.float64)
+        for mu in np.geomspace(0.05, 3.0, 40):
+            full[:5] = torch.as_tensor(theta)
+            full[5] = mu
+            cc, f = self.contact_forces(state, ctx, full)
+            Fm, Tm = self._to_wrench(cc, f)
+            r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
+            sse = float(r @ r)
+            if sse < best[0]:
+                best = (sse, r, mu)
+        sse, r, mu = best
+        cov = _cluster_cov(X[keep], Y[keep] - X[keep] @ theta, g[keep])
+        self.values = np.concatenate([theta, [mu]])
+        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan]])  # μ: profile scan
+        return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
+                "mu_profile": "scan over 0.05..3 (no standard error)"}
+
+
+def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Cluster-robust (sandwich) covariance of least squares, clusters = episodes."""
+    XtX_inv = np.linalg.pinv(X.T @ X)
+    meat = np.zeros((X.shape[1], X.shape[1]))
+    for gid in np.unique(groups):
+        m = groups == gid
+        s = X[m].T @ r[m]
+        meat += np.outer(s, s)
+    G = len(np.unique(groups))
+    corr = G / max(G - 1, 1)
+    return corr * XtX_inv @ meat @ XtX_inv

@@ -90,45 +90,30 @@ def _integrator(name: str) -> str:
 
 def cmd_fit(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
-    from identified.fit.identify import ScaleSpec, identify
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.pipeline import fit_model, parse_effects
     from identified.model import save_model
-    from identified.topology import Topology
 
-    if args.effects != "none":
-        raise CommandError(f"--effects {args.effects}: the effect search is not in this version yet "
-                           "(fit the spring-rod model with --effects none)")
+    parse_effects(args.effects)  # a bad name fails before anything is read
     _check_writable(args.out)
+    _check_readable(args.model)
     data = load_dataset(args.data)
-    topo = Topology.from_mjcf(args.model)
-    if args.refine:
-        from identified.fit.refine import check_refinable
-
-        check_refinable(data)  # before the fit: a dataset the refinement refuses fails at once
-    # --refine is for plants whose integrator may differ from the engine's: without an explicit
-    # --integrator it first picks the one whose equations fit the data (refining the wrong
-    # integrator's model cannot remove its O(dt) bias)
-    integrator = args.integrator or ("auto" if args.refine else "euler")
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
     weak = "auto" if args.weak_window is None else args.weak_window
-    model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     weak_window=weak, integrator=_integrator(integrator), scheme=args.scheme,
-                     progress=not args.quiet)
-    model.source_model = os.path.abspath(args.model)
-    if args.refine:
-        from identified.fit.refine import refine
-
-        model = refine(model, data, progress=not args.quiet)
-    from identified.predict import attach_metrics
-
-    attach_metrics(model, data)
+    # --refine is for plants whose integrator may differ from the engine's: without an explicit
+    # --integrator it first picks the one whose equations fit the data (fit_model)
+    model = fit_model(data, args.model, effects=args.effects, regressors=args.regressors, scale=scale,
+                      solver=args.solver, weak_window=weak, integrator=args.integrator, scheme=args.scheme,
+                      refine=args.refine, progress=not args.quiet)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
     refined = model.metrics.get("refine")
     extra = f", refine {refined['seconds']:.3g} s" if refined else ""
+    added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
-          f"integrator {model.integrator})")
+          f"integrator {model.integrator}, effects: {added})")
 
 
 def cmd_predict(args: argparse.Namespace) -> None:
@@ -232,9 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--refine", action="store_true",
                    help="refine by multi-step simulation error (picks the integrator from the data unless "
                    "--integrator is given)")
-    f.add_argument("--effects", choices=("none", "auto"), default="none",
-                   help="none: the spring-rod model alone (auto, the search for missing effects, is not in "
-                   "this version yet)")
+    f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
+                   help="none: the spring-rod model alone (default); auto: search the effect library for what "
+                   "the data show (held-out free-run error, see the README); or effect names: ground_contact, "
+                   "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 

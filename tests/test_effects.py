@@ -7,6 +7,7 @@ dataset does not declare, the robot's ground plane); the fit is never told which
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import re
 
@@ -69,7 +70,7 @@ def test_a_hidden_fluid_effect_is_found_and_removes_the_error(ico, tmp_path, opt
 
 def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_path):
     plant, data = _hidden(ico, tmp_path, 'gravity="0.4 0 -9.81"', 4)
-    data.gravity = np.array([0.0, 0.0, -9.81])  # the dataset declares the nominal gravity
+    data = dataclasses.replace(data, gravity=np.array([0.0, 0.0, -9.81]))  # it declares the nominal one
     model = fit_model(data, ico, effects="auto")
     assert [e["name"] for e in model.effects] == ["constant_force"]
     force = np.array(model.effects[0]["parameters"]["force"])  # (R, 3): M_i * (0.4, 0, 0)

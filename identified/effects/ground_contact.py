@@ -15,8 +15,11 @@ gravity, pushes, other effects) this is, for one contact on a rod,
     f_n = max(0, m_n (κ d - β_n v_n - γ_n a0_n))                        (normal)
     f_t = m_t (-β_t v_t - γ_t a0_t),   |f_t| <= μ f_n                    (friction, two axes)
 
-where ``m_u = 1 / (1/M + (ρ×u)ᵀ I_w⁻¹ (ρ×u))`` is the effective mass of the contact point along
-``u`` from the rod's identified M and I, ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
+written here per direction for one contact: in full, the force in contact coordinates
+``(n, t1, t2)`` is ``A⁻¹ g`` with ``g`` the bracketed reference accelerations and
+``A_ab = δ_ab / M + (ρ×u_a)ᵀ I_w⁻¹ (ρ×u_b)`` the contact point's inverse effective-mass matrix from
+the rod's identified M and I (its off-diagonal terms are why a normal force at a tilted rod's end
+also moves the point sideways, which the friction must cancel to stick); ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
 (no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
 ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
 so none of them scales with the mass.  Given M, I and ``a0`` -- all from the jointly identified
@@ -39,6 +42,7 @@ from identified.rotation import matrix_apply, matrix_apply_transpose
 
 __all__ = ["GroundContact", "read_contact_geometry"]
 
+REGULARISER = 1e-2  # relative, on the diagonal of the contact-space inverse mass
 LINEAR = ("kappa", "beta_n", "gamma_n", "beta_t", "gamma_t")
 
 
@@ -125,21 +129,26 @@ class GroundContact(Effect):
         return self._cache[key]
 
     def contacts(self, state: Any, ctx: Any) -> dict[str, torch.Tensor]:
-        """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3), and the effective
-        masses (..., R, 2, 3) along (n, t1, t2) with the model's M and I."""
+        """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3); per rod the
+        contact-space inverse effective-mass matrix of both ends, ``A`` (..., R, 6, 6), rows
+        (end, direction) with directions (n, t1, t2), from the model's M and I."""
         radius, seg, n, t1, t2, height = self._geom(state.pos)
         rot = ctx.rot
         centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3)
         depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
-        lever = centre - radius[:, None, None] * n - state.pos.unsqueeze(-2)
+        # the force acts on the rod's axis at the end sphere's centre: a contact at the capsule's
+        # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
+        # small for the data to identify and which the plant's torsional friction holds still
+        lever = centre - state.pos.unsqueeze(-2)
         dirs = torch.stack((n, t1, t2))  # (3, 3)
         p = ctx.params
-        mass = p.mass.unsqueeze(-1).unsqueeze(-1)
         inertia = p.inertia.unsqueeze(-2).unsqueeze(-2)
         rxu = torch.linalg.cross(lever.unsqueeze(-2), dirs.expand(lever.shape[:-1] + (3, 3)))  # (..., R, 2, 3, 3)
-        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu)
-        m_eff = 1.0 / (1.0 / mass + (body * body / inertia).sum(-1))
-        return {"depth": depth, "active": depth > 0, "lever": lever, "m_eff": m_eff, "dirs": dirs}
+        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
+        B = body.reshape(body.shape[:-3] + (6, 3))
+        eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
+        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
+        return {"depth": depth, "active": depth > 0, "lever": lever, "A": A, "dirs": dirs}
 
     def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """Velocity and other-force acceleration of each contact point along (n, t1, t2): (..., R, 2, 3)."""
@@ -150,22 +159,44 @@ class GroundContact(Effect):
         dirs = c["dirs"]
         return vel @ dirs.T, acc @ dirs.T
 
+    @staticmethod
+    def _inverse(A: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """``(A + ε diag A)⁻¹`` restricted to the active contacts of each rod (zero rows and columns
+        elsewhere).  Two point contacts on one rod leave its spin about the line through them free:
+        ``A`` is then singular, and the small regulariser ``ε = REGULARISER`` (as MuJoCo's own
+        ``R``) picks the least-force solution."""
+        m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
+        m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
+        A = A + REGULARISER * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
+        Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
+        return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
+
+    def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
+        """Reference accelerations per unit of each linear parameter, (..., R, 2, 5, 3) contact frame."""
+        v, a0 = self._point_kinematics(state, ctx, c)
+        zero = torch.zeros_like(v[..., 0])
+        return torch.stack([
+            torch.stack((c["depth"], zero, zero), -1),
+            torch.stack((-v[..., 0], zero, zero), -1),
+            torch.stack((-a0[..., 0], zero, zero), -1),
+            torch.stack((zero, -v[..., 1], -v[..., 2]), -1),
+            torch.stack((zero, -a0[..., 1], -a0[..., 2]), -1),
+        ], -2)
+
+    @staticmethod
+    def _apply(Ainv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        """``A⁻¹ g`` per rod: g (..., R, 2, [K,] 3) in (end, direction) -> forces of the same shape."""
+        if g.dim() == Ainv.dim():  # (..., R, 2, 3)
+            return (Ainv @ g.reshape(g.shape[:-2] + (6, 1))).reshape(g.shape)
+        K = g.shape[-2]
+        flat = g.transpose(-2, -3).reshape(g.shape[:-3] + (K, 6))  # (..., R, K, 6)
+        return (flat @ Ainv.transpose(-1, -2)).reshape(g.shape[:-3] + (K, 2, 3)).transpose(-2, -3)
+
     def _linear_terms(self, state: Any, ctx: Any) -> tuple[dict, torch.Tensor]:
         """Force per unit of each linear parameter, per contact, in (n, t1, t2) components:
         (..., R, 2, 5, 3); zero where not in contact."""
         c = self.contacts(state, ctx)
-        v, a0 = self._point_kinematics(state, ctx, c)
-        m = c["m_eff"]
-        zero = torch.zeros_like(v[..., 0])
-        on = c["active"].to(v.dtype)
-        cols = [
-            torch.stack((m[..., 0] * c["depth"], zero, zero), -1),
-            torch.stack((-m[..., 0] * v[..., 0], zero, zero), -1),
-            torch.stack((-m[..., 0] * a0[..., 0], zero, zero), -1),
-            torch.stack((zero, -m[..., 1] * v[..., 1], -m[..., 2] * v[..., 2]), -1),
-            torch.stack((zero, -m[..., 1] * a0[..., 1], -m[..., 2] * a0[..., 2]), -1),
-        ]
-        return c, torch.stack(cols, -2) * on[..., None, None]
+        return c, self._apply(self._inverse(c["A"], c["active"]), self._references(state, ctx, c))
 
     def _to_wrench(self, c: dict, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Contact-frame forces, (..., R, 2, 3) or per parameter (..., R, 2, K, 3), to the rod force
@@ -183,10 +214,18 @@ class GroundContact(Effect):
         return self._to_wrench(c, terms)
 
     def contact_forces(self, state: Any, ctx: Any, theta: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
-        """The law with its clamps: forces per contact in (n, t1, t2) components, (..., R, 2, 3)."""
+        """The law with its clamps: forces per contact in (n, t1, t2) components, (..., R, 2, 3).
+
+        Both ends of a rod are solved together; an end whose normal force comes out pulling is
+        released and the rod solved again (once), then friction is capped at ``μ f_n``.
+        """
         th = self.theta(state.pos) if theta is None else theta
-        c, terms = self._linear_terms(state, ctx)
-        raw = (terms * th[:5, None]).sum(-2)  # (..., R, 2, 3)
+        c = self.contacts(state, ctx)
+        g = (self._references(state, ctx, c) * th[:5, None]).sum(-2)  # (..., R, 2, 3)
+        active = c["active"]
+        raw = self._apply(self._inverse(c["A"], active), g)
+        active = active & (raw[..., 0] > 0)
+        raw = self._apply(self._inverse(c["A"], active), g)
         fn = raw[..., 0].clamp_min(0.0)
         ft = raw[..., 1:]
         cap = th[5] * fn

@@ -20,16 +20,19 @@ model misses.  For the Euler integrator this is exactly ``M (a - g) - F`` and
 (z is the rod's axis).
 
 **Candidates**: every effect of the library (:data:`identified.effects.EFFECTS`) the model does not
-have.  Its *score* is the fraction of the one-step residual's sum of squares that a least-squares
-fit on the candidate's feature columns alone explains, ``b' G⁺ b / y'y`` with ``G = X'X``,
-``b = X'y``: the rows ``y`` are the residual force (3 rows) and the residual torque divided by the
-rod's half-length (3 rows, world frame, so both are in newtons) of every rod at every instant, the
-columns ``X`` the force and torque/half-length of the candidate per unit of each of its parameters
-(:meth:`identified.effects.Effect.features`).  1 = the candidate explains the residual
-completely, 0 = not at all; an unrelated candidate with ``P`` parameters scores about
-``P / rows`` on white residuals.  ``ground_contact`` needs the MJCF's ground plane and capsules
-(``mjcf=``, else ``model.source_model`` when it is a file); without them it is listed under
-``skipped``.
+have.  The rows ``y`` are the residual force (3 rows) and the residual torque divided by the rod's
+half-length (3 rows; world frame, so both are in newtons) of every rod at every instant; a
+candidate's columns ``X`` are the same rows of its force and torque per unit of each of its
+parameters (:meth:`identified.effects.Effect.features`).  Its *score* is the fraction of the
+residual that adding it to the model would remove: least squares of ``y`` on the model's own
+equation columns ``B`` (:func:`identified.fit.features.equation_rows`: K, c, M, I, h and the model's
+joint effects, with the total mass held, which fixes the scale) together with ``X``, against ``B``
+alone, ``score = 1 - RSS(B, X) / RSS(B)`` (``unexplained = 1 - score``): the base parameters may
+move, because a fit without the effect has bent them to mimic it.  1 = the candidate explains the
+residual completely, 0 = not at all; an unrelated candidate with ``P`` parameters scores about
+``P / rows`` on white residuals.  ``score_alone`` is the fraction of ``y'y`` that ``X`` alone
+explains.  ``ground_contact`` needs the MJCF's ground plane and capsules (``mjcf=``, else
+``model.source_model`` when it is a file); without them it is listed under ``skipped``.
 
 **Explained** (``explained``, with the reason in ``explained_by``): the residual is at rounding
 level (its RMS below ``1e-6`` times the RMS of the recorded inertial wrench, for both force and
@@ -37,8 +40,9 @@ torque), or it is white (no rod/dof series rejects the Ljung-Box test at 1 % aft
 correction over the series), or the model's added effects cut the free-run error at least 5×
 (``error_after <= 0.2 error_before``).
 
-Also: the residual by region of state (rod ends near the ground, springs shorter than their rest
-length, the fastest 10 % of rod-instants, rods under a push) against the rest; k-step errors;
+Also: the residual by region of state (rod ends near the ground, slack cables -- springs shorter
+than their rest length when no cable is declared --, the fastest 10 % of rod-instants, rods under a
+push) against the rest; k-step errors;
 Ljung-Box statistics per rod and dof; the residual's correlation with the inputs (rest lengths,
 pushes) and with every candidate feature.  The result is a JSON-able dict (``None`` for anything
 undefined, never NaN).
@@ -53,15 +57,18 @@ from typing import Any
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError, atomic_write
-from identified.effects import EFFECTS, GeometryError, make_effect, read_contact_geometry
+from identified.effects import EFFECTS, GeometryError, effects_from_model, make_effect, read_contact_geometry
 from identified.engine import SpringRodEngine
 from identified.engine.integration import RodState
 from identified.fit.derivatives import iter_chunks
+from identified.fit.features import RodColumns, equation_rows
+from identified.fit.layout import ParameterLayout
 from identified.model import IdentifiedModel
 from identified.predict import quat_distance, rollout
-from identified.rotation import matrix_apply, matrix_apply_transpose
+from identified.rotation import matrix_apply
 
 __all__ = ["DOFS", "K_STEPS", "diagnose", "ljung_box", "write_report"]
 
@@ -98,7 +105,28 @@ def diagnose(
     ``mjcf``: path or text of the plant's MJCF, for the ground geometry (default: the model's
     ``source_model`` when it is a readable file).  Raises ``DatasetError`` when the data do not
     belong to the model, ``ValueError`` when they are too short for the horizon.
+
+    Keys: ``error_before``, ``error_after`` (m), ``metric``, ``horizon_s``, ``added``,
+    ``explained``, ``explained_by`` (``"rounding"``, ``"white"``, ``"improved"``),
+    ``explained_rule``; ``candidates`` (best first: ``name``, ``score``, ``unexplained``,
+    ``score_alone``, ``n_params``, ``max_abs_corr``, ``best_feature``, ``top_features``, ``note``),
+    ``score_rule``, ``skipped`` (``name``, ``reason``), ``base_refit_explains``; ``data``;
+    ``one_step`` (``force_rms`` N and ``torque_rms`` N m per axis, ``relative``, ``per_rod``,
+    ``worst_rod``); ``k_step`` (``after``/``before``: ``{"1", "10", "100"}`` with ``pos`` m and
+    ``quat``); ``free_run`` (``time_s``, ``before``, ``after`` curves, subsampled); ``regions``
+    (``near_ground``, ``slack``, ``fast``, ``pushed``: RMS residual in and out); ``whiteness``
+    (Ljung-Box per rod and dof, ``white``, ``min_p``); ``input_correlation`` (``rest_length``,
+    ``push_force``); ``best_feature``; ``plot_data`` (what :func:`write_report` draws).
+
+    Runs on one thread: its work is many small steps, which a team of threads only slows down
+    (badly so on a loaded machine).
     """
+    with threadpool_limits(1):
+        return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps)
+
+
+def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps: int,
+              mjcf: str | os.PathLike | None, chunk_steps: int) -> dict[str, Any]:
     topo = model.topology
     if data.rod_names != topo.rod_names or data.tendon_names != topo.spring_names:
         missing = sorted(set(topo.rod_names + topo.spring_names) - set(data.rod_names + data.tendon_names))
@@ -106,7 +134,7 @@ def diagnose(
                            + (f" (the data lack {', '.join(missing[:4])})" if missing else ""))
     if not (np.isfinite(horizon_s) and horizon_s > 0):
         raise ValueError(f"horizon must be a positive number of seconds, got {horizon_s}")
-    H = int(round(horizon_s / data.dt))
+    H = round(horizon_s / data.dt)
     if H < 1 or H > data.n_steps:
         raise ValueError(f"the data hold {data.n_steps * data.dt:g} s per episode, shorter than the "
                          f"{horizon_s:g} s horizon")
@@ -163,10 +191,13 @@ def diagnose(
                            f"no rod/dof series rejects at {ALPHA:g} after Bonferroni), or the added effects cut the "
                            f"free-run error at least {1 / EXPLAINED_GAIN:g}x"),
         "candidates": cand,
-        "score_rule": ("fraction of the one-step residual's sum of squares (rows: force and torque / rod "
-                       "half-length, world frame, every rod and instant) explained by a least-squares fit on "
-                       "the candidate's feature columns alone"),
+        "score_rule": ("fraction of the one-step residual (rows: force and torque / rod half-length, world frame, "
+                       "every rod and instant) that adding the candidate would remove: 1 - RSS(model columns + "
+                       "candidate columns) / RSS(model columns), least squares with the model's own K, c, M, I, h "
+                       "(total mass held) free to move; score_alone: the fraction the candidate's columns alone "
+                       "explain"),
         "skipped": skipped,
+        "base_refit_explains": one["base_refit"],
         "data": {"episodes": sub.n_episodes, "steps_per_episode": sub.n_steps, "dt": sub.dt,
                  "instants": int(one["rows"]), "scheme": one["scheme"], "integrator": model.integrator,
                  "episodes_given": data.n_episodes, "steps_given": data.n_steps},
@@ -345,7 +376,7 @@ def _k_step(model: IdentifiedModel, data: Dataset) -> dict[str, Any]:
                              data.push_point[ep[:, None], span])
             pe = np.linalg.norm(st.pos[:, -1].numpy() - data.pos[ep, t0 + k], axis=-1)
             qe = quat_distance(st.quat[:, -1].numpy(), data.quat[ep, t0 + k])
-        out[str(k)] = {"pos": _finite(pe.mean()), "quat": _finite(qe.mean()), "starts": int(len(pick))}
+        out[str(k)] = {"pos": _finite(pe.mean()), "quat": _finite(qe.mean()), "starts": len(pick)}
     return out
 
 
@@ -369,23 +400,67 @@ def _windows(data: Dataset, chunk_steps: int, first: int):
 
 # ---------------------------------------------------------------------- the one-step pass
 class _Accumulator:
-    """Normal equations and moment sums of one candidate's columns against the residual rows."""
+    """Normal equations and moment sums of one candidate's columns ``X`` against the residual rows
+    ``y`` and the base model's equation columns ``B``, added rod by rod (each rod's rows touch only
+    its own columns: the sums stay small)."""
 
-    def __init__(self, eff: Any, names: list[str]) -> None:
-        self.eff, self.names = eff, names
-        self.G = self.b = self.sx = self.sxx = None
+    def __init__(self, eff: Any, names: list[str], n_base: int) -> None:
+        self.eff, self.names, self.n_base = eff, names, n_base
+        self.P = 0
+        self.nonfinite = self.entries = 0
         self.sample: list[np.ndarray] = []
 
-    def add(self, X: np.ndarray, y: np.ndarray) -> None:  # X (n, P), y (n,)
-        G, b = X.T @ X, X.T @ y
-        sx, sxx = X.sum(0), (X * X).sum(0)
-        if self.G is None:
-            self.G, self.b, self.sx, self.sxx = G, b, sx, sxx
-        else:
-            self.G += G
-            self.b += b
-            self.sx += sx
-            self.sxx += sxx
+    def allocate(self, blocks: list[tuple[torch.Tensor, np.ndarray]]) -> None:
+        """Size the sums by the columns the features give (a global effect may have parameters
+        without a feature column, e.g. the friction bound of ground contact)."""
+        if self.P:
+            return
+        kind = self.eff.kind
+        P = self.P = self.eff.n_params if kind != "global" else max(len(xi) for _, xi in blocks)
+        self.XX, self.Xy, self.BX = np.zeros((P, P)), np.zeros(P), np.zeros((self.n_base, P))
+        self.sx, self.sxx = np.zeros(P), np.zeros(P)
+
+    def add(self, X: np.ndarray, xi: np.ndarray, y: np.ndarray, B: np.ndarray, bi: np.ndarray) -> None:
+        """One rod's rows: ``X`` (n, w) the candidate's columns ``xi``, ``B`` (n, nb) the base's ``bi``."""
+        self.XX[np.ix_(xi, xi)] += X.T @ X
+        self.Xy[xi] += X.T @ y
+        self.BX[np.ix_(bi, xi)] += B.T @ X
+        self.sx[xi] += X.sum(0)
+        self.sxx[xi] += (X * X).sum(0)
+
+
+def _explained(G: np.ndarray, b: np.ndarray) -> float:
+    """``b' G⁺ b``: the sum of squares a least-squares fit on the columns behind ``G = X'X``,
+    ``b = X'y`` explains (columns equilibrated; directions below 1e-12 of the largest dropped)."""
+    d = np.sqrt(np.clip(np.diag(G), 0.0, None))
+    live = d > 0
+    if not live.any():
+        return 0.0
+    Gn = G[np.ix_(live, live)] / np.outer(d[live], d[live])
+    bn = b[live] / d[live]
+    w, V = np.linalg.eigh(Gn)
+    keep = w > w.max() * 1e-12
+    z = V[:, keep].T @ bn
+    return float(np.sum(z * z / w[keep]))
+
+
+def _base_rows(A: torch.Tensor, rot: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+    """Compact equation rows (N, R, 6, L) of :func:`~identified.fit.features.equation_rows` in the
+    residual's rows: rotation rows (rod frame there) turned to the world and divided by the
+    half-length."""
+    tb = A[:, :, 3:].transpose(-1, -2)  # (N, R, L, 3)
+    tw = matrix_apply(rot.unsqueeze(-3), tb).transpose(-1, -2) / half[:, None, None]
+    return torch.cat((A[:, :, :3], tw), 2)
+
+
+def _mass_total_held(n_full: int, m_idx: np.ndarray) -> np.ndarray:
+    """``Z`` (n_full, n_full - 1): parameter changes with the total mass held (the last rod's mass
+    change is minus the others'), which fixes the scale: otherwise the model's own parameters
+    would explain any residual (``A θ = y``)."""
+    keep = [k for k in range(n_full) if k != m_idx[-1]]
+    Z = np.eye(n_full)[:, keep]
+    Z[m_idx[-1], [keep.index(k) for k in m_idx[:-1]]] = -1.0
+    return Z
 
 
 def _half_lengths(model: IdentifiedModel) -> np.ndarray:
@@ -405,16 +480,23 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
     Tn = T - first
     res = np.full((E, Tn, R, 6), np.nan)
     ref = np.zeros((E, Tn, R, 6))  # the recorded inertial wrench, for the relative RMS
-    regions = {k: np.zeros((E, Tn, R), dtype=bool) for k in ("near_ground", "short_spring", "pushed")}
+    regions = {k: np.zeros((E, Tn, R), dtype=bool) for k in ("near_ground", "pushed")}
+    short_all = np.zeros((E, Tn, S), dtype=bool)
     speed = np.zeros((E, Tn, R))
-    accs = [_Accumulator(c, c.param_names(topo.rod_names, topo.spring_names)) for c in candidates]
+    # the base model's columns (its joint effects' too), refitted beside each candidate
+    joint = [e for e in effects_from_model(model) if e.stage == "joint"]
+    layout = ParameterLayout.for_topology(topo, "multiple", joint)
+    rcols = RodColumns.build(topo, layout)
+    nb = layout.n_full
+    base_idx = [np.flatnonzero(rcols.full[i] >= 0) for i in range(R)]  # local columns used by rod i
+    implicit_dt = data.dt if model.integrator == "implicit" else None
+    GBB, bB = np.zeros((nb, nb)), np.zeros(nb)
+    accs = [_Accumulator(c, c.param_names(topo.rod_names, topo.spring_names), nb) for c in candidates]
     sy = syy = 0.0
     n_rows = 0
     sample_rows: list[np.ndarray] = []
     total = E * Tn
     stride = max(1, total // _SAMPLE_INSTANTS)
-    ends_rod = torch.as_tensor(np.maximum(topo.endpoint_rods, 0))
-    on_rod = torch.as_tensor(topo.endpoint_rods >= 0)
 
     for win, eps, t_first in _windows(data, chunk_steps, first):
         ch, _ = next(iter_chunks(win, 10**12, scheme))
@@ -435,18 +517,27 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
             y = torch.cat((rf, matrix_apply(rot, rtb) / half[:, None]), -1)  # (N, R, 6) world, N
             ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
             # regions
-            short = (terms.ctx.geometry.length < ch.rest)  # (N, S)
-            sr = _scatter_any(short & on_rod[:, 0], ends_rod[:, 0], R) | _scatter_any(short & on_rod[:, 1], ends_rod[:, 1], R)
+            short = terms.ctx.geometry.length < ch.rest  # (N, S)
             near = _near_ground(state, rot, geometry) if geometry is not None else None
+            Bt = _base_rows(equation_rows(topo, rcols, ch, p.gravity, implicit_dt, joint), rot, half)
+            if ch.row_weight is not None:  # the central scheme leaves out rows across a push switch
+                y = y * ch.row_weight[..., None]
             cand_X = []
             for acc in accs:
-                X = _candidate_columns(acc.eff, state, ctx, topo, half)  # (N, R, 6, P)
-                cand_X.append(X.reshape(-1, X.shape[-1]).numpy())
+                blocks = _candidate_blocks(acc.eff, state, ctx, topo, half)
+                acc.allocate(blocks)
+                # a model far from physical (negative inertia) can make a feature non-finite: count, zero
+                acc.nonfinite += sum(int((~torch.isfinite(X)).sum()) for X, _ in blocks)
+                acc.entries += sum(X.numel() for X, _ in blocks)
+                blocks = [(torch.nan_to_num(X, nan=0.0, posinf=0.0, neginf=0.0), xi) for X, xi in blocks]
+                if ch.row_weight is not None:
+                    blocks = [(X * ch.row_weight[:, i, None, None], xi) for i, (X, xi) in enumerate(blocks)]
+                cand_X.append(blocks)
         ts = np.arange(t_first, t_first + n_t) - first
         blk = (eps[:, None], ts[None, :])
         res[blk] = torch.cat((rf, rtb), -1).reshape(len(eps), n_t, R, 6).numpy()
         ref[blk] = torch.cat((ref_f, ref_t), -1).reshape(len(eps), n_t, R, 6).numpy()
-        regions["short_spring"][blk] = sr.reshape(len(eps), n_t, R).numpy()
+        short_all[blk] = short.reshape(len(eps), n_t, S).numpy()
         regions["pushed"][blk] = (ch.push_force.norm(dim=-1) > 0).reshape(len(eps), n_t, R).numpy()
         if near is not None:
             regions["near_ground"][blk] = near.reshape(len(eps), n_t, R).numpy()
@@ -460,16 +551,29 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
         keep = np.flatnonzero(flat % stride == 0)
         rows_keep = (keep[:, None] * (R * 6) + np.arange(R * 6)).reshape(-1)
         sample_rows.append(yv[rows_keep])
-        for acc, X in zip(accs, cand_X):
-            acc.add(X, yv)
-            acc.sample.append(X[rows_keep])
+        yr = y.numpy()
+        for i in range(R):
+            yi = yr[:, i].reshape(-1)
+            bi = base_idx[i]
+            Bi = Bt[:, i][..., torch.as_tensor(bi)].reshape(-1, len(bi)).numpy()
+            fi = rcols.full[i, bi]
+            GBB[np.ix_(fi, fi)] += Bi.T @ Bi
+            bB[fi] += Bi.T @ yi
+            for acc, blocks in zip(accs, cand_X):
+                X, xi = blocks[i]
+                acc.add(X.reshape(-1, len(xi)).numpy(), xi, yi, Bi, fi)
+        for acc, blocks in zip(accs, cand_X):  # the sampled instants' rows, dense, for the scatter plot
+            Xs = np.zeros((len(keep), R, 6, acc.P))
+            for i, (X, xi) in enumerate(blocks):
+                Xs[:, i][..., xi] = X[torch.as_tensor(keep)].numpy()
+            acc.sample.append(Xs.reshape(-1, acc.P))
 
-    valid = ~np.isnan(res[..., 0])
+    valid = ~np.isnan(res[..., 0, 0])  # (E, Tn)
     r, rf_ = res[valid], ref[valid]  # (n, R, 6)
     rms = lambda a, ax=0: np.sqrt(np.mean(a * a, axis=ax))
-    force_rms, torque_rms = rms(r[..., :3], (0, 1, 2)), rms(r[..., 3:], (0, 1, 2))
-    rel = {"force": _ratio(force_rms, rms(rf_[..., :3], (0, 1, 2))),
-           "torque": _ratio(torque_rms, rms(rf_[..., 3:], (0, 1, 2)))}
+    force_rms, torque_rms = rms(r[..., :3], (0, 1)), rms(r[..., 3:], (0, 1))
+    rel = {"force": _ratio(np.sqrt((force_rms ** 2).mean()), rms(rf_[..., :3], (0, 1, 2))),
+           "torque": _ratio(np.sqrt((torque_rms ** 2).mean()), rms(rf_[..., 3:], (0, 1, 2)))}
     per = rms(r, 0)  # (R, 6)
     per_rod = [{"rod": name, "force_rms": per[i, :3].tolist(), "torque_rms": per[i, 3:].tolist(),
                 "force_rms_norm": float(np.sqrt((per[i, :3] ** 2).sum())),
@@ -478,27 +582,39 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
     worst = int(np.argmax([x["force_rms_norm"] + x["torque_rms_norm"] / half[i].item()
                            for i, x in enumerate(per_rod)]))
 
-    # regions: residual norm in each region against the rest
-    fast = speed >= np.quantile(speed[valid], FAST_QUANTILE)
-    masks = {"near_ground": regions["near_ground"] if geometry is not None else None,
-             "short_spring": regions["short_spring"], "fast": fast, "pushed": regions["pushed"]}
-    descr = {"near_ground": f"a capsule end within {NEAR_GROUND_M:g} m of the ground plane",
-             "short_spring": "a spring of the rod shorter than its rest length (a slack cable)",
-             "fast": f"rod speed in the top {100 * (1 - FAST_QUANTILE):g} % of rod-instants",
-             "pushed": "a push acts on the rod"}
+    # regions: residual norm in each region against the rest (rod-instants; spring ends for the springs)
     fnorm = np.sqrt((res[..., :3] ** 2).sum(-1))
     tnorm = np.sqrt((res[..., 3:] ** 2).sum(-1))
+    vr = np.broadcast_to(valid[..., None], fnorm.shape)
+    fast = speed >= np.quantile(speed[valid], FAST_QUANTILE)
+    cables = np.asarray(topo.pull_only, dtype=bool)
+    springs = np.flatnonzero(cables) if cables.any() else np.arange(S)
+    js, es = np.nonzero(topo.endpoint_rods[springs] >= 0)
+    end_rod, end_spring = topo.endpoint_rods[springs][js, es], springs[js]
+    masks = {
+        "near_ground": None if geometry is None else (regions["near_ground"], fnorm, tnorm, vr),
+        "slack": (short_all[..., end_spring], fnorm[..., end_rod], tnorm[..., end_rod], vr[..., end_rod]),
+        "fast": (fast, fnorm, tnorm, vr),
+        "pushed": (regions["pushed"], fnorm, tnorm, vr),
+    }
+    descr = {"near_ground": f"a rod's capsule end within {NEAR_GROUND_M:g} m of the ground plane (rod-instants)",
+             "slack": ("a cable shorter than its rest length, i.e. slack (the rods at its ends, per cable end)"
+                       if cables.any() else "a spring shorter than its rest length: slack if it were a cable "
+                       "(the rods at its ends, per spring end)"),
+             "fast": f"rod speed in the top {100 * (1 - FAST_QUANTILE):g} % of rod-instants",
+             "pushed": "a push acts on the rod (rod-instants)"}
     reg_out: dict[str, Any] = {}
-    for k, m in masks.items():
-        if m is None:
+    for k, spec in masks.items():
+        if spec is None:
             reg_out[k] = {"description": descr[k], "available": False,
                           "reason": "no ground geometry (a ground_contact effect or the plant's MJCF)"}
             continue
-        m = m & valid[..., None]
-        o = ~m & valid[..., None]
-        f_in, f_out = _rms_or_none(fnorm[m]), _rms_or_none(fnorm[o])
-        t_in, t_out = _rms_or_none(tnorm[m]), _rms_or_none(tnorm[o])
-        reg_out[k] = {"description": descr[k], "available": True, "fraction": float(m.sum() / max(o.sum() + m.sum(), 1)),
+        m, fv, tv, ok = spec
+        inside, outside = m & ok, ~m & ok
+        f_in, f_out = _rms_or_none(fv[inside]), _rms_or_none(fv[outside])
+        t_in, t_out = _rms_or_none(tv[inside]), _rms_or_none(tv[outside])
+        reg_out[k] = {"description": descr[k], "available": True,
+                      "fraction": float(inside.sum() / max(ok.sum(), 1)),
                       "force_rms_in": f_in, "force_rms_out": f_out, "torque_rms_in": t_in, "torque_rms_out": t_out,
                       "force_ratio": _ratio(f_in, f_out), "torque_ratio": _ratio(t_in, t_out)}
 
@@ -506,24 +622,35 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
     sample_y = np.concatenate(sample_rows)
     cands, best = [], None
     my, vy = sy / max(n_rows, 1), syy / max(n_rows, 1) - (sy / max(n_rows, 1)) ** 2
+    Z = _mass_total_held(nb, np.array([layout.m(i) for i in range(R)]))
+    GBB, bB = Z.T @ GBB @ Z, Z.T @ bB
+    rss_base = max(syy - _explained(GBB, bB), 0.0) if accs else None
     for acc in accs:
-        P = acc.G.shape[0]
-        d = np.sqrt(np.clip(np.diag(acc.G), 0, None))
-        live = d > 0
-        score = None
-        if syy > 0 and live.any():
-            Gn = acc.G[np.ix_(live, live)] / np.outer(d[live], d[live])
-            bn = acc.b[live] / d[live]
-            theta = np.linalg.lstsq(Gn, bn, rcond=1e-12)[0]
-            score = float(np.clip(bn @ theta / syy, 0.0, 1.0))
+        P = acc.P
+        BX = Z.T @ acc.BX
+        score = alone = unexplained = None
+        if syy > 0:
+            alone = float(np.clip(_explained(acc.XX, acc.Xy) / syy, 0.0, 1.0))
+            G = np.block([[GBB, BX], [BX.T, acc.XX]])
+            rss = max(syy - _explained(G, np.concatenate((bB, acc.Xy))), 0.0)
+            if rss_base > 0:
+                unexplained = float(np.clip(rss / rss_base, 0.0, 1.0))
+                score = 1.0 - unexplained
+        note = None
+        if acc.nonfinite > 0.01 * max(acc.entries, 1):
+            note = (f"features not finite on {acc.nonfinite / acc.entries:.0%} of the entries under this model's "
+                    f"parameters (a negative inertia?): not scored")
+            score = unexplained = alone = None
         mx, vx = acc.sx / n_rows, acc.sxx / n_rows - (acc.sx / n_rows) ** 2
-        cov = acc.b / n_rows - mx * my
+        cov = acc.Xy / n_rows - mx * my
         with np.errstate(all="ignore"):
             corr = np.where((vx > 0) & (vy > 0), cov / np.sqrt(np.clip(vx, 1e-300, None) * max(vy, 1e-300)), 0.0)
         j = int(np.argmax(np.abs(corr))) if P else 0
         names = acc.names[:P]
         top = np.argsort(-np.abs(corr))[:3]
-        cands.append({"name": acc.eff.name, "score": score, "n_params": int(P), "description": acc.eff.description,
+        cands.append({"name": acc.eff.name, "score": score, "unexplained": unexplained, "score_alone": alone,
+                      "n_params": int(P), "description": acc.eff.description,
+                      "nonfinite_features": int(acc.nonfinite), "note": note,
                       "max_abs_corr": _finite(abs(corr[j])) if P else None,
                       "best_feature": names[j] if P else None,
                       "top_features": [{"feature": names[i], "corr": _finite(corr[i])} for i in top]})
@@ -547,14 +674,8 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
     return {"res": res, "times": np.arange(first, T), "scheme": scheme, "rows": int(valid.sum()),
             "force_rms": force_rms.tolist(), "torque_rms": torque_rms.tolist(), "relative": rel,
             "per_rod": per_rod, "worst_rod": topo.rod_names[worst], "regions": reg_out,
-            "candidates": cands, "best_feature": best_feature, "scatter": scatter, "time_series": time_series}
-
-
-def _scatter_any(mask: torch.Tensor, rods: torch.Tensor, R: int) -> torch.Tensor:
-    """(N, S) bool per spring end -> (N, R) bool: any flagged spring end on the rod."""
-    out = torch.zeros(mask.shape[0], R, dtype=torch.int64)
-    out.index_add_(1, rods, mask.to(torch.int64))
-    return out > 0
+            "candidates": cands, "best_feature": best_feature, "scatter": scatter, "time_series": time_series,
+            "base_refit": None if rss_base is None or syy <= 0 else float(np.clip(1 - rss_base / syy, 0, 1))}
 
 
 def _near_ground(state: RodState, rot: torch.Tensor, geo: dict[str, Any]) -> torch.Tensor:
@@ -565,39 +686,38 @@ def _near_ground(state: RodState, rot: torch.Tensor, geo: dict[str, Any]) -> tor
     return (gap < NEAR_GROUND_M).any(-1)
 
 
-def _candidate_columns(eff: Any, state: RodState, ctx: Any, topo: Any, half: torch.Tensor) -> torch.Tensor:
-    """(N, R, 6, P): force (world) and torque / half-length (world) on every rod per unit parameter."""
-    N, R = state.pos.shape[:2]
+def _candidate_blocks(eff: Any, state: RodState, ctx: Any, topo: Any,
+                     half: torch.Tensor) -> list[tuple[torch.Tensor, np.ndarray]]:
+    """Per rod: its rows (N, 6, w) of the candidate's columns (force and torque / half-length,
+    world) and which of the candidate's parameters they belong to (w,)."""
+    R = state.pos.shape[-2]
     if eff.kind == "spring":
         f = eff.end_features(state, ctx)  # (N, S, 2, 3)
         tau = torch.cross(ctx.ends.lever, f, dim=-1)
-        S = f.shape[1]
-        X = torch.zeros(N, R, 6, S, dtype=f.dtype)
-        for e in range(2):
-            for j in range(S):
-                i = int(topo.endpoint_rods[j, e])
-                if i < 0:
-                    continue
-                X[:, i, :3, j] += f[:, j, e]
-                X[:, i, 3:, j] += tau[:, j, e] / half[i]
-        return X
+        out = []
+        for i in range(R):
+            js, es = np.nonzero(topo.endpoint_rods == i)
+            u, inv = np.unique(js, return_inverse=True)
+            cols = torch.cat((f[:, js, es], tau[:, js, es] / half[i]), -1)  # (N, k, 6)
+            X = torch.zeros(f.shape[0], len(u), 6, dtype=f.dtype).index_add_(1, torch.as_tensor(inv), cols)
+            out.append((X.transpose(1, 2), u))
+        return out
     force, torque = eff.features(state, ctx)  # (N, R, W, 3) rod / (N, R, P, 3) global
     cols = torch.cat((force, torque / half[:, None, None]), -1).transpose(-1, -2)  # (N, R, 6, W)
-    if eff.kind == "global":
-        return cols
     W = cols.shape[-1]
-    X = torch.zeros(N, R, 6, R * W, dtype=cols.dtype)
-    for i in range(R):
-        X[:, i, :, i * W: (i + 1) * W] = cols[:, i]
-    return X
+    if eff.kind == "global":
+        return [(cols[:, i], np.arange(W)) for i in range(R)]
+    return [(cols[:, i], i * W + np.arange(W)) for i in range(R)]
 
 
 # ---------------------------------------------------------------------- statistics
 def _whiteness(res: np.ndarray, rod_names: tuple[str, ...]) -> dict[str, Any]:
     """Ljung-Box per rod and dof, the episodes' Q summed (dof summed)."""
-    from scipy.stats import chi2
+    from scipy.special import (
+        chdtrc,  # the chi-square survival function (scipy.stats.chi2.sf), light to import
+    )
 
-    E, Tn, R, _ = res.shape
+    _E, _Tn, R, _ = res.shape
     valid = ~np.isnan(res[0, :, 0, 0])
     x = res[:, valid]  # (E, n, R, 6)
     n = x.shape[1]
@@ -607,7 +727,7 @@ def _whiteness(res: np.ndarray, rod_names: tuple[str, ...]) -> dict[str, Any]:
         row = []
         for k in range(6):
             q, dof = ljung_box(x[:, :, i, k], lags) if n > 2 else (float("nan"), 0)
-            pv = float(chi2.sf(q, dof)) if dof > 0 and np.isfinite(q) else None
+            pv = float(chdtrc(dof, q)) if dof > 0 and np.isfinite(q) else None
             row.append({"dof": DOFS[k], "Q": _finite(q), "df": dof, "p": pv})
             if pv is not None:
                 pvals.append(pv)
@@ -624,7 +744,7 @@ def _whiteness(res: np.ndarray, rod_names: tuple[str, ...]) -> dict[str, Any]:
 
 def _input_correlation(res: np.ndarray, times: np.ndarray, data: Dataset) -> dict[str, Any]:
     """Largest |Pearson correlation| of the residual series (per rod and dof) with each input."""
-    E, Tn, R, _ = res.shape
+    _E, _Tn, R, _ = res.shape
     valid = ~np.isnan(res[0, :, 0, 0])
     t = times[valid]
     y = res[:, valid].reshape(-1, R * 6)
@@ -645,10 +765,13 @@ def _input_correlation(res: np.ndarray, times: np.ndarray, data: Dataset) -> dic
 
 
 def _corr_matrix(y: np.ndarray, x: np.ndarray) -> np.ndarray | None:
-    yc, xc = y - y.mean(0), x - x.mean(0)
-    sy, sx = np.sqrt((yc * yc).sum(0)), np.sqrt((xc * xc).sum(0))
-    if not (sx > 0).any() or not (sy > 0).any():
+    """Pearson correlations (y columns x x columns); 0 where a column is constant (to rounding)."""
+    varies = lambda a: np.ptp(a, axis=0) > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    xv, yv = varies(x), varies(y)
+    if not xv.any() or not yv.any():
         return None
+    yc, xc = (y - y.mean(0)) * yv, (x - x.mean(0)) * xv
+    sy, sx = np.sqrt((yc * yc).sum(0)), np.sqrt((xc * xc).sum(0))
     with np.errstate(all="ignore"):
         c = (yc.T @ xc) / np.outer(sy, sx)
     c[~np.isfinite(c)] = 0.0
@@ -695,9 +818,9 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
         L.append(f"| {k} | {f(v and v['pos'])} | {f(v and v['quat'])} |")
     os_ = r["one_step"]
     L += ["", "## One-step residual", "", f"Definition: {os_['definition']}.", "",
-          f"RMS over all rods: force {', '.join(f(x) for x in os_['force_rms'])} N (x, y, z), "
+          (f"RMS over all rods: force {', '.join(f(x) for x in os_['force_rms'])} N (x, y, z), "
           f"torque {', '.join(f(x) for x in os_['torque_rms'])} N m (rod frame x, y, z); relative to the recorded "
-          f"wrench: force {f(os_['relative']['force'])}, torque {f(os_['relative']['torque'])}.", "",
+          f"wrench: force {f(os_['relative']['force'])}, torque {f(os_['relative']['torque'])}."), "",
           "| rod | force RMS x, y, z (N) | torque RMS x, y, z (N m) |", "|---|---|---|"]
     for p in os_["per_rod"]:
         L.append(f"| {p['rod']} | {', '.join(f(x) for x in p['force_rms'])} | {', '.join(f(x) for x in p['torque_rms'])} |")
@@ -714,9 +837,9 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
                  f"{f(v['torque_rms_in'])} / {f(v['torque_rms_out'])} |")
     w = r["whiteness"]
     L += ["", "## Statistics", "",
-          f"Whiteness: {w['test']}: {'white' if w['white'] else 'not white'}; smallest p-value {f(w['min_p'])}, "
+          (f"Whiteness: {w['test']}: {'white' if w['white'] else 'not white'}; smallest p-value {f(w['min_p'])}, "
           f"{f(w['fraction_rejected'], '.0%') if w['fraction_rejected'] is not None else 'n/a'} of the rod/dof series "
-          f"reject at 1 %, median Q / dof {f(w['median_Q_per_dof'])} (1 for white noise)."]
+          f"reject at 1 %, median Q / dof {f(w['median_Q_per_dof'])} (1 for white noise).")]
     ic = r["input_correlation"]
     for k, v in ic.items():
         if v.get("corr") is None:
@@ -724,16 +847,19 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
         else:
             L.append(f"- largest correlation with {k}: {v['corr']:+.3f} (rod {v['rod']} {v['dof']} with {v['input']})")
     L += ["", "## Candidate effects", "", f"Score: {r['score_rule']}.", "",
-          "| effect | score | parameters | best feature (corr) |", "|---|---|---|---|"]
+          "| effect | score | unexplained | alone | parameters | best feature (corr) |", "|---|---|---|---|---|---|"]
     for c in r["candidates"]:
         bf = f"{c['best_feature']} ({f(c['max_abs_corr'])})" if c["best_feature"] else "n/a"
-        L.append(f"| {c['name']} | {f(c['score'])} | {c['n_params']} | {bf} |")
+        if c.get("note"):
+            bf += f"; {c['note']}"
+        L.append(f"| {c['name']} | {f(c['score'], '.4f')} | {f(c['unexplained'])} | {f(c['score_alone'])} | "
+                 f"{c['n_params']} | {bf} |")
     for s in r["skipped"]:
-        L.append(f"| {s['name']} | skipped | | {s['reason']} |")
+        L.append(f"| {s['name']} | skipped | | | | {s['reason']} |")
     if r["candidates"]:
         top = r["candidates"][0]
-        L += ["", f"The best candidate is **{top['name']}**, explaining {f(top['score'], '.1%') if top['score'] is not None else 'n/a'} "
-                  f"of the residual's sum of squares."]
+        L += ["", (f"The best candidate is **{top['name']}**: adding it would remove "
+                  f"{f(top['score'], '.1%') if top['score'] is not None else 'n/a'} of the residual.")]
     if "feature" in figs:
         L += ["", f"![residual against its best-correlated feature]({figs['feature']})"]
     return "\n".join(L) + "\n"

@@ -116,6 +116,40 @@ def cmd_fit(args: argparse.Namespace) -> None:
           f"integrator {model.integrator}, effects: {added})")
 
 
+def cmd_diagnose(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+    from identified.diagnose import diagnose, write_report
+    from identified.fit.identify import check_compatible
+    from identified.model import load_model
+
+    model = load_model(args.identified)
+    data = load_dataset(args.data)
+    check_compatible(data, model.topology)
+    if args.horizon <= 0:
+        raise CommandError(f"--horizon {args.horizon}: must be a positive number of seconds")
+    if round(args.horizon / data.dt) > data.n_steps:
+        raise CommandError(f"--horizon {args.horizon} s is longer than the data's episodes "
+                           f"({data.n_steps * data.dt:g} s): record longer episodes or shorten --horizon")
+    mjcf = args.model
+    if mjcf is not None:
+        _check_readable(mjcf)
+    result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf)
+    paths = write_report(result, args.out) if args.out else []
+    if args.json:
+        keep = {k: v for k, v in result.items() if k != "plot_data"}
+        print(json.dumps(keep, indent=2, allow_nan=False))
+        return
+    fmt = lambda x: "diverged" if x is None else f"{x:.4g} m"  # noqa: E731
+    print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
+          f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
+    print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
+    for c in result["candidates"][:6]:
+        score = "n/a" if c["score"] is None else f"{c['score']:.3f}"
+        print(f"  candidate {c['name']:<16} score {score}  {c.get('note') or ''}".rstrip())
+    for p in paths:
+        print(f"wrote {p}")
+
+
 def cmd_predict(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
     from identified.model import load_model
@@ -223,6 +257,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
+
+    dg = sub.add_parser("diagnose", help="residual analysis: where the model is wrong and which effect explains it",
+                        description="One-step, k-step and free-run errors of an identified model on data (best "
+                        "data it was not fitted on), by rod, axis and region of state; residual whiteness "
+                        "(Ljung-Box); each effect of the library scored by the share of the residual it would "
+                        "remove; the error without and with the model's own effects.")
+    dg.add_argument("data", help="dataset .npz")
+    dg.add_argument("--identified", required=True, help="identified-model .json")
+    dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
+    dg.add_argument("--horizon", type=float, default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
+    dg.add_argument("--json", action="store_true", help="print the result as JSON")
+    dg.add_argument("--out", default=None, metavar="DIR", help="write a report (report.md and PNG plots) here")
+    dg.set_defaults(func=cmd_diagnose)
 
     pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
                         description="Roll the identified model from each recorded initial state with the "

@@ -213,25 +213,31 @@ class GroundContact(Effect):
         c, terms = self._linear_terms(state, ctx)
         return self._to_wrench(c, terms)
 
-    def contact_forces(self, state: Any, ctx: Any, theta: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
-        """The law with its clamps: forces per contact in (n, t1, t2) components, (..., R, 2, 3).
-
-        Both ends of a rod are solved together; an end whose normal force comes out pulling is
-        released and the rod solved again (once), then friction is capped at ``μ f_n``.
-        """
-        th = self.theta(state.pos) if theta is None else theta
+    def _unbounded(self, state: Any, ctx: Any, th: torch.Tensor) -> tuple[dict, torch.Tensor]:
+        """The law before the friction bound: per contact (..., R, 2, 3), both ends of a rod solved
+        together; an end whose normal force comes out pulling is released and the rod solved again."""
         c = self.contacts(state, ctx)
         g = (self._references(state, ctx, c) * th[:5, None]).sum(-2)  # (..., R, 2, 3)
-        active = c["active"]
-        raw = self._apply(self._inverse(c["A"], active), g)
-        active = active & (raw[..., 0] > 0)
-        raw = self._apply(self._inverse(c["A"], active), g)
+        raw = self._apply(self._inverse(c["A"], c["active"]), g)
+        released = c["active"] & ~(raw[..., 0] > 0)
+        if bool(released.any()):
+            raw = self._apply(self._inverse(c["A"], c["active"] & ~released), g)
+        return c, raw
+
+    @staticmethod
+    def _bound(raw: torch.Tensor, mu: torch.Tensor | float) -> torch.Tensor:
+        """``f_n >= 0`` and ``|f_t| <= μ f_n`` on unbounded contact forces (..., 3)."""
         fn = raw[..., 0].clamp_min(0.0)
         ft = raw[..., 1:]
-        cap = th[5] * fn
         norm = ft.norm(dim=-1).clamp_min(1e-12)
-        ft = ft * torch.clamp(cap / norm, max=1.0).unsqueeze(-1)
-        return c, torch.cat((fn.unsqueeze(-1), ft), -1)
+        ft = ft * torch.clamp(mu * fn / norm, max=1.0).unsqueeze(-1)
+        return torch.cat((fn.unsqueeze(-1), ft), -1)
+
+    def contact_forces(self, state: Any, ctx: Any, theta: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
+        """The law with its bounds: forces per contact in (n, t1, t2) components, (..., R, 2, 3)."""
+        th = self.theta(state.pos) if theta is None else theta
+        c, raw = self._unbounded(state, ctx, th)
+        return c, self._bound(raw, th[5])
 
     def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
         c, f = self.contact_forces(state, ctx)
@@ -254,10 +260,17 @@ class GroundContact(Effect):
         of each instant (cluster-robust standard errors).  Sets ``values``/``stderr`` and
         returns fit statistics.
         """
+        # only the instants where some rod touches: everything below runs on those
+        sel = rows & (self.contacts(state, ctx)["depth"] > 0).any(-1)
+        keep_t = sel.any(-1)
+        sub = lambda x: None if x is None else x[keep_t]  # noqa: E731
+        state = type(state)(*(sub(x) for x in state))
+        ctx = ctx._replace(rot=sub(ctx.rot), angvel_body=sub(ctx.angvel_body), base_lin_acc=sub(ctx.base_lin_acc),
+                           base_ang_acc_body=sub(ctx.base_ang_acc_body))
+        force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
         c, terms = self._linear_terms(state, ctx)
         F, T = self._to_wrench(c, terms)  # (N, R, 5, 3)
         scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
-        sel = rows & c["active"].any(-1)
         X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, 5).numpy()
         Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
         g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
@@ -266,16 +279,14 @@ class GroundContact(Effect):
         keep = np.ones(len(Y), dtype=bool)
         theta = np.linalg.lstsq(X, Y, rcond=None)[0]
         best = (np.inf, None, 1.0)
-        full = torch.zeros(6, dtype=torch.float64)
-        for mu in np.geomspace(0.05, 3.0, 40):
-            full[:5] = torch.as_tensor(theta)
-            full[5] = mu
-            cc, f = self.contact_forces(state, ctx, full)
-            Fm, Tm = self._to_wrench(cc, f)
-            r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
-            sse = float(r @ r)
-            if sse < best[0]:
-                best = (sse, r, mu)
+        with torch.no_grad():
+            cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0]])))
+            for mu in np.geomspace(0.05, 3.0, 40):
+                Fm, Tm = self._to_wrench(cc, self._bound(raw, float(mu)))
+                r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
+                sse = float(r @ r)
+                if sse < best[0]:
+                    best = (sse, r, mu)
         sse, r, mu = best
         cov = _cluster_cov(X[keep], Y[keep] - X[keep] @ theta, g[keep])
         self.values = np.concatenate([theta, [mu]])

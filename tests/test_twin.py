@@ -323,7 +323,7 @@ def test_effects_reach_the_engine(truth):
     np.testing.assert_allclose(lifted.states().vel - free.states().vel, np.tile([0, 0, 9.81e-3], (R, 1)),
                                atol=1e-12)
     m.effects = [{"name": "ground", "parameters": {}}]
-    with pytest.warns(UserWarning, match="does not build yet"):
+    with pytest.raises(ValueError, match="unknown effect 'ground'"):
         IdentifiedBackend(m)
 
 

@@ -13,16 +13,19 @@ with the acceleration ``a0`` that the contact point would have under every *othe
 gravity, pushes, other effects) this is, for one contact on a rod,
 
     f_n = max(0, m_n (κ d - β_n v_n - γ_n a0_n))                        (normal)
-    f_t = m_t (-β_t v_t - γ_t a0_t),   |f_t| <= μ f_n                    (friction, two axes)
+    f_a = m_a (-β_a v_a - γ_a a0_a),   f_p = m_p (-β_p v_p - γ_p a0_p)   (friction)
+    |(f_a, f_p)| <= μ f_n
 
 written here per direction for one contact: in full, the force in contact coordinates
-``(n, t1, t2)`` is ``A⁻¹ g`` with ``g`` the bracketed reference accelerations and
+``(n, a, p)`` is ``A⁻¹ g`` with ``g`` the bracketed reference accelerations and
 ``A_ab = δ_ab / M + (ρ×u_a)ᵀ I_w⁻¹ (ρ×u_b)`` the contact point's inverse effective-mass matrix from
 the rod's identified M and I (its off-diagonal terms are why a normal force at a tilted rod's end
 also moves the point sideways, which the friction must cancel to stick); ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
 (no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
 ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
-so none of them scales with the mass.  Given M, I and ``a0`` -- all from the jointly identified
+so none of them scales with the mass.  The friction axes are per rod: ``a`` along the rod's
+shadow on the ground, ``p`` across it (an end cap rolls across its rod more easily than it slides
+along it; on the robot γ_p ≈ 0.7 against γ_a ≈ 0.95).  Given M, I and ``a0`` -- all from the jointly identified
 spring-rod model -- the law is *linear* in ``(κ, β_n, γ_n, β_t, γ_t)``: it is fitted by least
 squares on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
 and the friction bound ``μ`` by a profile scan of the same residual.  Measured on the robot preset,
@@ -43,7 +46,8 @@ from identified.rotation import matrix_apply, matrix_apply_transpose
 __all__ = ["GroundContact", "read_contact_geometry"]
 
 REGULARISER = 1e-2  # relative, on the diagonal of the contact-space inverse mass
-LINEAR = ("kappa", "beta_n", "gamma_n", "beta_t", "gamma_t")
+LINEAR = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p")
+NL = len(LINEAR)
 
 
 class GeometryError(ValueError):
@@ -101,8 +105,10 @@ class GroundContact(Effect):
         ParamBlock("kappa", "global", mass_scaled=False, unit="1/s^2"),
         ParamBlock("beta_n", "global", mass_scaled=False, unit="1/s"),
         ParamBlock("gamma_n", "global", mass_scaled=False),
-        ParamBlock("beta_t", "global", mass_scaled=False, unit="1/s"),
-        ParamBlock("gamma_t", "global", mass_scaled=False),
+        ParamBlock("beta_a", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_a", "global", mass_scaled=False),
+        ParamBlock("beta_p", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_p", "global", mass_scaled=False),
         ParamBlock("mu", "global", mass_scaled=False),
     )
     stage = "residual"
@@ -140,10 +146,17 @@ class GroundContact(Effect):
         # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
         # small for the data to identify and which the plant's torsional friction holds still
         lever = centre - state.pos.unsqueeze(-2)
-        dirs = torch.stack((n, t1, t2))  # (3, 3)
+        # friction axes per rod: along the rod's shadow on the ground (a) and across it (p); an end
+        # cap rolls across its rod far more easily than it slides along it
+        axis = rot[..., :, 2]
+        along = axis - (axis * n).sum(-1, keepdim=True) * n
+        norm = along.norm(dim=-1, keepdim=True)
+        along = torch.where(norm > 1e-6, along / norm.clamp_min(1e-12), t1)
+        across = torch.linalg.cross(n.expand_as(along), along)
+        dirs = torch.stack((n.expand_as(along), along, across), -2).unsqueeze(-3).expand(lever.shape[:-1] + (3, 3))
         p = ctx.params
         inertia = p.inertia.unsqueeze(-2).unsqueeze(-2)
-        rxu = torch.linalg.cross(lever.unsqueeze(-2), dirs.expand(lever.shape[:-1] + (3, 3)))  # (..., R, 2, 3, 3)
+        rxu = torch.linalg.cross(lever.unsqueeze(-2).expand_as(dirs), dirs)  # (..., R, 2, 3, 3)
         body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
         B = body.reshape(body.shape[:-3] + (6, 3))
         eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
@@ -156,8 +169,8 @@ class GroundContact(Effect):
         vel = state.vel.unsqueeze(-2) + torch.linalg.cross(state.angvel.unsqueeze(-2).expand_as(lever), lever)
         alpha_w = matrix_apply(ctx.rot, ctx.base_ang_acc_body)
         acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2).expand_as(lever), lever)
-        dirs = c["dirs"]
-        return vel @ dirs.T, acc @ dirs.T
+        dirs = c["dirs"]  # (..., R, 2, 3, 3)
+        return (dirs @ vel.unsqueeze(-1)).squeeze(-1), (dirs @ acc.unsqueeze(-1)).squeeze(-1)
 
     @staticmethod
     def _inverse(A: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
@@ -172,15 +185,17 @@ class GroundContact(Effect):
         return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
 
     def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
-        """Reference accelerations per unit of each linear parameter, (..., R, 2, 5, 3) contact frame."""
+        """Reference accelerations per unit of each linear parameter, (..., R, 2, 7, 3) contact frame."""
         v, a0 = self._point_kinematics(state, ctx, c)
         zero = torch.zeros_like(v[..., 0])
         return torch.stack([
             torch.stack((c["depth"], zero, zero), -1),
             torch.stack((-v[..., 0], zero, zero), -1),
             torch.stack((-a0[..., 0], zero, zero), -1),
-            torch.stack((zero, -v[..., 1], -v[..., 2]), -1),
-            torch.stack((zero, -a0[..., 1], -a0[..., 2]), -1),
+            torch.stack((zero, -v[..., 1], zero), -1),
+            torch.stack((zero, -a0[..., 1], zero), -1),
+            torch.stack((zero, zero, -v[..., 2]), -1),
+            torch.stack((zero, zero, -a0[..., 2]), -1),
         ], -2)
 
     @staticmethod
@@ -194,22 +209,25 @@ class GroundContact(Effect):
 
     def _linear_terms(self, state: Any, ctx: Any) -> tuple[dict, torch.Tensor]:
         """Force per unit of each linear parameter, per contact, in (n, t1, t2) components:
-        (..., R, 2, 5, 3); zero where not in contact."""
+        (..., R, 2, 7, 3); zero where not in contact."""
         c = self.contacts(state, ctx)
         return c, self._apply(self._inverse(c["A"], c["active"]), self._references(state, ctx, c))
 
     def _to_wrench(self, c: dict, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Contact-frame forces, (..., R, 2, 3) or per parameter (..., R, 2, K, 3), to the rod force
         and WORLD torque about its centre of mass, (..., R, 3) or (..., R, K, 3)."""
-        world = local @ c["dirs"]
         lever = c["lever"]
+        if local.dim() == lever.dim():
+            world = (local.unsqueeze(-2) @ c["dirs"]).squeeze(-2)
+        else:
+            world = local @ c["dirs"]
         if local.dim() == lever.dim():
             return world.sum(-2), torch.linalg.cross(lever, world).sum(-2)
         torque = torch.linalg.cross(lever.unsqueeze(-2).expand_as(world), world)
         return world.sum(-3), torque.sum(-3)
 
     def features(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        """Force and torque per unit of the five linear parameters (..., R, 5, 3); μ unbounded."""
+        """Force and torque per unit of the seven linear parameters (..., R, 7, 3); μ unbounded."""
         c, terms = self._linear_terms(state, ctx)
         return self._to_wrench(c, terms)
 
@@ -217,7 +235,7 @@ class GroundContact(Effect):
         """The law before the friction bound: per contact (..., R, 2, 3), both ends of a rod solved
         together; an end whose normal force comes out pulling is released and the rod solved again."""
         c = self.contacts(state, ctx)
-        g = (self._references(state, ctx, c) * th[:5, None]).sum(-2)  # (..., R, 2, 3)
+        g = (self._references(state, ctx, c) * th[:NL, None]).sum(-2)  # (..., R, 2, 3)
         raw = self._apply(self._inverse(c["A"], c["active"]), g)
         released = c["active"] & ~(raw[..., 0] > 0)
         if bool(released.any()):
@@ -237,7 +255,7 @@ class GroundContact(Effect):
         """The law with its bounds: forces per contact in (n, t1, t2) components, (..., R, 2, 3)."""
         th = self.theta(state.pos) if theta is None else theta
         c, raw = self._unbounded(state, ctx, th)
-        return c, self._bound(raw, th[5])
+        return c, self._bound(raw, th[NL])
 
     def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
         c, f = self.contact_forces(state, ctx)
@@ -269,9 +287,9 @@ class GroundContact(Effect):
                            base_ang_acc_body=sub(ctx.base_ang_acc_body))
         force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
         c, terms = self._linear_terms(state, ctx)
-        F, T = self._to_wrench(c, terms)  # (N, R, 5, 3)
+        F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
         scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
-        X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, 5).numpy()
+        X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
         Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
         g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
         if X.shape[0] < 50:

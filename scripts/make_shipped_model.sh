@@ -30,8 +30,8 @@ mkdir -p "$WORK" identified/data
 
 echo "== 1. model: the ico/robot preset"
 $T model ico --preset robot --out "$WORK/robot.xml"
-echo "== 2. collect: 20 episodes x 1000 steps (1 s each), a push every 200 steps"
-$T collect --model "$WORK/robot.xml" --episodes 20 --steps 1000 --seed 0 --push-every 200 \
+echo "== 2. collect: 10 episodes x 3000 steps (3 s each: long enough for the random commands to roll it), a push every 200 steps"
+$T collect --model "$WORK/robot.xml" --episodes 10 --steps 3000 --seed 0 --push-every 200 \
     --out "$WORK/robot.npz"
 echo "== 3. fit: one K, c per cable and one M, I per rod, and the effects the data show"
 $T fit "$WORK/robot.npz" --model "$WORK/robot.xml" --effects auto --out "$WORK/robot.json" --quiet

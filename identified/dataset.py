@@ -196,7 +196,21 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
         raise DatasetError(f"'{p}' is not a readable .npz dataset (truncated or foreign): {exc}") from None
     except (OSError, zipfile.BadZipFile, EOFError) as exc:
         raise DatasetError(f"'{p}' is not a readable .npz dataset (truncated or foreign): {exc}") from None
-    d = Dataset(
+    try:
+        d = _from_arrays(arrays)
+    except (TypeError, ValueError, OverflowError) as exc:  # names not a list, dt or seed not a number
+        raise DatasetError(f"'{p}': a key has the wrong type ({exc})") from None
+    try:
+        return d.validate()
+    except DatasetError as exc:
+        raise DatasetError(f"'{p}': {exc}") from None
+
+
+def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
+    for k in ("rod_names", "tendon_names", "actuated_names"):
+        if np.ndim(arrays[k]) != 1:
+            raise TypeError(f"'{k}' must be a list of names, got an array of shape {np.shape(arrays[k])}")
+    return Dataset(
         dt=float(arrays["dt"]),
         gravity=np.asarray(arrays["gravity"], dtype=np.float64),
         rod_names=tuple(str(x) for x in arrays["rod_names"]),
@@ -206,7 +220,6 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
         seed=int(arrays.get("seed", -1)),
         **{k: np.asarray(arrays[k], dtype=np.float64) for k in (*_STATE_KEYS, *_STEP_KEYS)},
     )
-    return d.validate()
 
 
 def save_dataset(path: str | os.PathLike, d: Dataset) -> None:

@@ -181,7 +181,7 @@ class IdentifiedModel:
             )
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
             raise ModelFileError(f"malformed identified model: {type(exc).__name__}: {exc}") from None
         model.validate()
         return model

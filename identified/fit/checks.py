@@ -22,7 +22,8 @@ import numpy as np
 from identified.fit.regression import IdentifiabilityError, Solution
 
 __all__ = ["ADAM_TOLERANCE", "InsufficientDataError", "adam_convergence", "MIN_DOF_PER_PARAMETER", "check_enough_data", "constrain_inertias",
-           "apply_checks", "physical_warnings", "recheck_physics", "residual_dof", "INERTIA_FLOOR"]
+           "apply_checks", "overlap_factor", "physical_warnings", "recheck_physics",
+           "residual_dof", "widen_for_overlap", "INERTIA_FLOOR"]
 
 #: residual degrees of freedom per free parameter below which standard errors are not estimable
 MIN_DOF_PER_PARAMETER = 1.0
@@ -35,14 +36,38 @@ class InsufficientDataError(IdentifiabilityError):
     """Too few equations for the free parameters (no residual degrees of freedom)."""
 
 
-def residual_dof(rows: int, free: int, weak_window: int = 0) -> float:
-    """Equations minus free parameters, the rows of overlapping weak-form windows discounted.
+def overlap_factor(weak_window: int) -> float:
+    """How much overlapping weak-form windows inflate the variance of a sum of their rows.
 
-    Weak-form windows of ``w`` steps advance by ``max(1, w // 4)``
-    (:func:`identified.fit.derivatives.weak_form`): ``w / stride`` of them share every step.
+    Windows of ``w`` steps advance by ``max(1, w // 4)`` (:func:`identified.fit.derivatives.weak_form`)
+    and weigh the steps with a Hann bump ``phi``: rows ``k`` windows apart share noise with
+    correlation ``rho_k = sum phi(t) phi(t + k stride) / sum phi^2``, so a sum of rows has
+    ``1 + 2 sum_k rho_k`` times the variance of independent ones (2.68 for the default window).
     """
-    overlap = weak_window / max(1, weak_window // 4) if weak_window > 1 else 1.0
-    return rows / overlap - free
+    if weak_window <= 1:
+        return 1.0
+    w, stride = int(weak_window), max(1, int(weak_window) // 4)
+    phi = np.hanning(w + 2)[1:-1]
+    norm = float(phi @ phi)
+    return 1.0 + 2.0 * sum(float(phi[: w - k] @ phi[k:]) / norm for k in range(stride, w, stride))
+
+
+def residual_dof(rows: int, free: int, weak_window: int = 0) -> float:
+    """Equations minus free parameters, the rows of overlapping weak-form windows counted as the
+    independent rows they are worth (``rows / overlap_factor``)."""
+    return rows / overlap_factor(weak_window) - free
+
+
+def widen_for_overlap(sol: Solution, weak_window: int) -> Solution:
+    """The iid covariance (fewer episodes than the cluster-robust sandwich needs) treats overlapping
+    weak-form rows as independent: scale it by :func:`overlap_factor` (measured on 3-episode noisy
+    fits: z-scores against the truth with an RMS of 1.5-1.7 without, ~1 with)."""
+    f = overlap_factor(weak_window)
+    if sol.cov is not None and sol.covariance.startswith("iid") and f > 1:
+        sol.cov = sol.cov * f
+        sol.covariance = sol.covariance.replace("the overlap of weak-form windows is ignored",
+                                                f"variance x {f:.3g} for the overlap of weak-form windows")
+    return sol
 
 
 def check_enough_data(sol: Solution, steps: int, weak_window: int = 0, solver: str = "lstsq") -> str | None:

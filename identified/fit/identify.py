@@ -19,7 +19,8 @@ from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
 from identified.engine.integration import INTEGRATORS
-from identified.fit.checks import adam_convergence, apply_checks, check_enough_data, constrain_inertias
+from identified.fit.checks import (adam_convergence, apply_checks, check_enough_data, constrain_inertias,
+                                   widen_for_overlap)
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
@@ -181,6 +182,7 @@ def identify(
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
             sol, notes, held = constrain_inertias(sol, lambda f: solve(factors, layout, anchor, f),
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
+            sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve
 

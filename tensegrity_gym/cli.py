@@ -293,7 +293,9 @@ def _expected_errors() -> tuple[type[BaseException], ...]:
     from identified.model import ModelFileError
     from identified.topology import TopologyError
 
-    return (CommandError, DatasetError, TopologyError, ModelFileError, ValueError, OSError, RuntimeError)
+    # MemoryError: numpy's message names the size it could not allocate
+    return (CommandError, DatasetError, TopologyError, ModelFileError, ValueError, OSError, RuntimeError,
+            MemoryError)
 
 
 def _close_progress_bars() -> None:

@@ -101,7 +101,7 @@ def main() -> int:
             lp = r["loop"][0] if r["loop"] else {}
             ok = r["added"] == ([want] if want else [])
             bad += not ok
-            fmt = lambda x: "    -" if x is None else f"{x:9.3g}"  # noqa: E731
+            fmt = lambda x: "    -" if x is None else f"{x:9.3g}"
             print(f"{preset:<18} {kind:<14} {size:>6g} {seed:>4}  {','.join(r['added']) or 'nothing':<28} "
                   f"{fmt(lp.get('error_before')):>15} {fmt(lp.get('error_after'))}  {fmt(r['test_before']):>11} "
                   f"{fmt(r['test_after'])}  {'yes' if ok else 'NO':<3} {r['seconds']:5.1f}", flush=True)

@@ -123,6 +123,16 @@ class Topology:
     def from_mjcf(cls, source: str | os.PathLike) -> Topology:
         """Read the topology from an MJCF path or XML string (structure and geometry only)."""
         text = _read_text(source)
+        if not os.fspath(source).lstrip().startswith("<"):
+            try:  # name the user's file in every error
+                return cls._from_text(text)
+            except TopologyError as exc:
+                msg = str(exc)
+                raise TopologyError(msg if str(source) in msg else f"'{source}': {msg}") from None
+        return cls._from_text(text)
+
+    @classmethod
+    def _from_text(cls, text: str) -> Topology:
         try:
             root = ET.fromstring(text)
         except ET.ParseError as exc:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from identified.dataset import Dataset
+from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant, RodStates
 
 __all__ = ["CollectConfig", "axis_angle_quat", "collect", "perturb_states", "quat_multiply"]
@@ -54,6 +55,10 @@ class CollectConfig:
             raise ValueError(f"episodes and steps must be >= 1 (got {self.episodes}, {self.steps})")
         if self.push_every is not None and self.push_every < 1:
             raise ValueError(f"--push-every must be >= 1 step, got {self.push_every}")
+        if self.push_every is not None and self.push_duration < 1:
+            raise ValueError(f"--push-duration must be >= 1 step, got {self.push_duration} (no push would be recorded)")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"--seed must be a whole number in 0..2**63-1, got {self.seed}")
         for name in ("push_magnitude", "noise_pos", "noise_vel", "noise_quat", "noise_angvel",
                      "init_pos_std", "init_rot_std", "init_vel_std", "init_angvel_std"):
             v = getattr(self, name)
@@ -147,6 +152,10 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     rng = np.random.default_rng(cfg.seed)
     E, T, R, S = cfg.episodes, cfg.steps, len(plant.rod_names), len(plant.tendon_names)
     A = len(plant.actuated_names)
+    if R == 0 or S == 0:
+        raise ValueError(f"'{model}' has {R} rods (free bodies) and {S} spatial tendons: a spring-rod model "
+                         "needs both (see the MJCF conventions in DESIGN.md)")
+    check_memory(collect_bytes(E, T, R, S, A), f"--episodes {E} x --steps {T} ({R} rods, {S} tendons)")
     pos = np.empty((E, T + 1, R, 3))
     quat = np.empty((E, T + 1, R, 4))
     vel = np.empty((E, T + 1, R, 3))
@@ -163,6 +172,31 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
         from tqdm.auto import tqdm
 
         bar = tqdm(total=E * T, desc="collect", unit="step", mininterval=0.5)
+    try:
+        with MujocoWarnings() as caught:  # MuJoCo's instability warnings become an error (in _roll)
+            _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force,
+                  push_point, lo, hi, half, radii)
+    finally:
+        if bar is not None:
+            bar.close()
+    pos, quat, vel, angvel = _add_noise(rng, cfg, pos, quat, vel, angvel)
+    return Dataset(
+        dt=plant.dt,
+        gravity=np.array(plant.model.opt.gravity, dtype=float),
+        rod_names=tuple(plant.rod_names),
+        tendon_names=tuple(plant.tendon_names),
+        actuated_names=tuple(plant.actuated_names),
+        pos=pos, quat=quat, vel=vel, angvel=angvel,
+        command=command, rest_length=rest, push_force=push_force, push_point=push_point,
+        noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
+        seed=int(cfg.seed),
+    ).validate()
+
+
+def _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force, push_point,
+          lo, hi, half, radii) -> None:
+    """Fill the record episode by episode; raise naming the episode where MuJoCo warned or diverged."""
+    E, T, R, A = pos.shape[0], pos.shape[1] - 1, pos.shape[2], command.shape[2]
     for e in range(E):
         plant.reset()
         plant.set_states(perturb_states(plant.states(), rng, cfg.init_pos_std, cfg.init_rot_std,
@@ -177,23 +211,12 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
             pushing = push_force[e, t].any()
             plant.step(push_force[e, t] if pushing else None, push_point[e, t] if pushing else None)
             rest[e, t] = plant.rest_lengths()  # the rest lengths used during step t
+            if caught.messages:
+                raise RuntimeError(f"the plant became unstable in episode {e}, step {t} (MuJoCo: "
+                                   f"{caught.messages[0]}); lower --push-magnitude or the excitation")
         s = plant.states()
         pos[e, T], quat[e, T], vel[e, T], angvel[e, T] = s.pos, s.quat, s.vel, s.angvel
         if not np.all(np.isfinite(pos[e])):
             raise RuntimeError(f"the plant diverged in episode {e}; lower the excitation or the time step")
         if bar is not None:
             bar.update(T)
-    if bar is not None:
-        bar.close()
-    pos, quat, vel, angvel = _add_noise(rng, cfg, pos, quat, vel, angvel)
-    return Dataset(
-        dt=plant.dt,
-        gravity=np.array(plant.model.opt.gravity, dtype=float),
-        rod_names=tuple(plant.rod_names),
-        tendon_names=tuple(plant.tendon_names),
-        actuated_names=tuple(plant.actuated_names),
-        pos=pos, quat=quat, vel=vel, angvel=angvel,
-        command=command, rest_length=rest, push_force=push_force, push_point=push_point,
-        noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
-        seed=int(cfg.seed),
-    ).validate()

@@ -123,8 +123,10 @@ def _load(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
             raise ValueError(f"model file '{s}' does not exist")
         return mujoco.MjModel.from_xml_path(s)
     except ValueError as exc:
-        msg = str(exc).strip().splitlines()
-        raise ValueError(f"MuJoCo cannot load the model: {msg[0] if msg else exc}") from None
+        msg = [m.strip() for m in str(exc).strip().splitlines() if m.strip()]
+        where = f"'{s}'" if not s.lstrip().startswith("<") else "the model"
+        # every line of MuJoCo's detail (the XML element and line number), on one line
+        raise ValueError(f"MuJoCo cannot load {where}: {'; '.join(msg) if msg else exc}") from None
 
 
 class MujocoPlant:
@@ -165,7 +167,12 @@ class MujocoPlant:
                 )
             m.opt.integrator = _INTEGRATORS[key]
         self.data = mujoco.MjData(m)
-        self._validate_and_index()
+        try:
+            self._validate_and_index()
+        except ValueError as exc:  # name the user's file
+            if isinstance(model, mujoco.MjModel) or os.fspath(model).lstrip().startswith("<"):
+                raise
+            raise ValueError(f"'{os.fspath(model)}': {exc}") from None
         self.motor: MotorSpec = read_motor_spec(m)
         tid = {n: i for i, n in enumerate(self.tendon_names)}
         for n in self.motor.names:

@@ -61,7 +61,7 @@ def test_a_hidden_fluid_effect_is_found_and_removes_the_error(ico, tmp_path, opt
     model = fit_model(data, ico, effects="auto")  # the fit is given the clean MJCF: no viscosity, no density
     assert [e["name"] for e in model.effects] == [effect]
     step = model.loop[0]
-    inf = lambda x: np.inf if x is None else x  # noqa: E731  (None: the free run diverged)
+    inf = lambda x: np.inf if x is None else x
     assert step["added"] == effect and step["error_after"] * 5 <= inf(step["error_before"])
     test = _hidden(ico, tmp_path, option, seed + 100)[1]
     before, after = _fit_errors(model, test)

@@ -281,7 +281,7 @@ class GroundContact(Effect):
         # only the instants where some rod touches: everything below runs on those
         sel = rows & (self.contacts(state, ctx)["depth"] > 0).any(-1)
         keep_t = sel.any(-1)
-        sub = lambda x: None if x is None else x[keep_t]  # noqa: E731
+        sub = lambda x: None if x is None else x[keep_t]
         state = type(state)(*(sub(x) for x in state))
         ctx = ctx._replace(rot=sub(ctx.rot), angvel_body=sub(ctx.angvel_body), base_lin_acc=sub(ctx.base_lin_acc),
                            base_ang_acc_body=sub(ctx.base_ang_acc_body))

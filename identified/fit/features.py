@@ -41,8 +41,12 @@ from identified.engine.forces import (
     spring_geometry,
     spring_stretch,
 )
-from identified.engine.integration import RodState
-from identified.engine.integration import gyroscopic_derivative, implicit_rate_correction, spring_rate_rows
+from identified.engine.integration import (
+    RodState,
+    gyroscopic_derivative,
+    implicit_rate_correction,
+    spring_rate_rows,
+)
 from identified.fit.layout import ParameterLayout
 from identified.rotation import matrix_apply_transpose, quat_to_matrix
 from identified.topology import Topology

@@ -20,8 +20,14 @@ from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
-from identified.engine.integration import RodState
-from identified.engine.integration import INTEGRATORS
+from identified.engine.integration import INTEGRATORS, RodState
+from identified.fit.checks import (
+    adam_convergence,
+    apply_checks,
+    check_enough_data,
+    constrain_inertias,
+    widen_for_overlap,
+)
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
@@ -194,14 +200,22 @@ def identify(
         if solver == "lstsq":
             factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
             sol = solve(factors, layout, anchor, fixed)
+            not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
+            sol, notes, held = constrain_inertias(sol, lambda f: solve(factors, layout, anchor, f),
+                                                  layout.inertia, layout.n_rods, layout.rod_names, fixed)
+            sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve
 
             sol = adam_solve(rows, columns, layout, anchor, fixed)
+            not_estimable, held = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak), []
+            notes = adam_convergence(sol, solve(accumulate(runs(dataset, False), columns, layout.n_full),
+                                                layout, anchor, fixed))
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    apply_checks(model, sol, not_estimable, held, notes, weak)
     model.integrator = integrator
     if late:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)

@@ -101,7 +101,9 @@ def fit_model(
     if integ == "auto":
         from identified.fit.identify import select_integrator
 
-        integ, _ = select_integrator(data, topo, regressors, scale, weak_window)
+        integ, selection = select_integrator(data, topo, regressors, scale, weak_window)
+    else:
+        selection = None
     kw = dict(regressors=regressors, scale=scale, solver=solver, weak_window=weak_window, integrator=integ,
               scheme=scheme)
     loop: list[dict[str, Any]] = []
@@ -113,15 +115,20 @@ def fit_model(
     t0 = time.perf_counter()
     model = identify(data, topo, effects=_build(names, topo, mjcf), progress=progress, **kw)
     model.metrics["fit_seconds"] = round(time.perf_counter() - t0, 4)
+    if selection is not None:
+        model.metrics["integrator_selection"] = selection
     model.source_model = os.path.abspath(mjcf)
     model.loop = loop
     if spec == "auto":
         model.metrics["effect_search"] = {"explained": explained, "candidates": list(CANDIDATES),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
     if refine:
+        from identified.fit.checks import recheck_physics
         from identified.fit.refine import refine as refine_model
 
-        model = refine_model(model, data, progress=progress)
+        refined = refine_model(model, data, progress=progress)
+        recheck_physics(refined, model)
+        model = refined
     from identified.predict import attach_metrics
 
     attach_metrics(model, data)
@@ -242,7 +249,7 @@ def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int 
     if starts.size == 0:
         return float("inf")
     idx = starts[:, None] + np.arange(steps + 1)[None, :]
-    take = lambda a, n: a[:, idx[:, :n]].reshape((-1, n) + a.shape[2:])  # noqa: E731
+    take = lambda a, n: a[:, idx[:, :n]].reshape((-1, n) + a.shape[2:])
     eng = SpringRodEngine.from_model(model)
     s0 = eng.state(*(take(getattr(data, k), 1)[:, 0] for k in ("pos", "quat", "vel", "angvel")))
     with torch.no_grad():

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from identified.engine import Effect, RodState, SpringRodEngine
-from identified.model import IdentifiedModel, load_model
+from identified.model import IdentifiedModel, check_effect_objects, load_model, validate_fields
 from identified.topology import Topology
 from tensegrity_gym.backends.base import Backend, RodStates
 from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
@@ -392,7 +392,9 @@ class IdentifiedBackend(Backend):
             model = path
         self.model: IdentifiedModel = model if isinstance(model, IdentifiedModel) else load_model(model)
         m = self.model
+        validate_fields(m)  # dt > 0, finite gravity, positive masses and inertias, known effects
         effects = list(effects)  # extra plug-ins; the model's own effects the engine builds itself
+        check_effect_objects(effects)
         self.mjcf, self.mjcf_source = resolve_source_mjcf(m, mjcf)
         topo = m.topology
         self.rod_names = topo.rod_names

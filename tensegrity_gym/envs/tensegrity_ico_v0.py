@@ -300,10 +300,14 @@ class TensegrityIcoEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        if not (np.isfinite(reset_noise_scale) and reset_noise_scale >= 0):
-            raise ValueError(f"reset_noise_scale must be a finite number >= 0, got {reset_noise_scale}")
+        if not (np.isfinite(reset_noise_scale) and 0 <= reset_noise_scale <= 1):
+            # beyond 1 the reset perturbation (m, rad, m/s) throws the rods apart: no usable start
+            raise ValueError(f"reset_noise_scale must be a finite number in [0, 1], got {reset_noise_scale}")
+        for name, w in (("ctrl_cost_weight", ctrl_cost_weight), ("forward_reward_weight", forward_reward_weight)):
+            if not np.isfinite(w):  # a NaN weight would make every reward NaN
+                raise ValueError(f"{name} must be a finite number, got {w}")
         lo_z, hi_z = (float(v) for v in healthy_z_range)
-        if not lo_z < hi_z:
+        if not (np.isfinite(lo_z) and np.isfinite(hi_z) and lo_z < hi_z):
             raise ValueError(f"healthy_z_range must be (low, high) with low < high, got {healthy_z_range}")
 
         if isinstance(backend, Backend):

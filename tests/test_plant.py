@@ -13,7 +13,7 @@ import pytest
 
 from tensegrity_gym.cables import ROBOT_ROLL_SEQUENCE, scripted_roll_targets
 from tensegrity_gym.models import build_model, preset_parameters
-from tensegrity_gym.plant import MujocoPlant, RodStates, quat_to_mat
+from tensegrity_gym.plant import MujocoPlant, RodState, quat_to_mat
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def _simple(**overrides: float) -> tuple[MujocoPlant, dict]:
             preset_parameters("simple", "paper", overrides=overrides))
 
 
-def _perpendicular_spin(s: RodStates, rate: float) -> np.ndarray:
+def _perpendicular_spin(s: RodState, rate: float) -> np.ndarray:
     """(R, 3) world angular velocities perpendicular to each rod axis (no axial spin)."""
     axis = quat_to_mat(s.quat)[:, :, 2]
     w = np.cross(axis, [0.3, 0.5, 0.8])
@@ -39,7 +39,7 @@ def test_angular_velocity_world_body_round_trip() -> None:
     rng = np.random.default_rng(0)
     s = plant.states()
     q = rng.normal(size=(6, 4))
-    s = RodStates(s.pos + rng.normal(0, 0.1, (6, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+    s = RodState(s.pos + rng.normal(0, 0.1, (6, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
                   rng.normal(size=(6, 3)), rng.normal(size=(6, 3)))
     plant.set_states(s)
     back = plant.states()

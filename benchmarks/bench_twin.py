@@ -13,7 +13,8 @@ env step; resets on episode end count toward the time), every row measured side 
 * the batched twin: ``gym.make_vec(..., num_envs=N, backend="identified")`` for each N, defaults,
   and the same with torch's own thread setting (``num_threads=None``: 2 threads here) and eager;
 * each row twice: on the machine as it is ("quiet") and with ONE busy process beside it (a
-  ``python -c 'while True: pass'`` started by this script and killed at the end, whatever happens),
+  Python busy loop started by this script, killed at the end and ending by itself if the script
+  dies),
   the situation of a laptop with a browser open;
 * SB3 PPO training steps/s (``learn``: rollouts and updates) through
   :class:`~tensegrity_gym.envs.sb3.SB3VecEnvAdapter`, on the batched twin and on the plant
@@ -30,6 +31,7 @@ import argparse
 import contextlib
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -49,7 +51,8 @@ def busy_process(on: bool) -> Iterator[None]:
     if not on:
         yield
         return
-    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    # the busy loop ends by itself if this process dies (its parent changes)
+    proc = subprocess.Popen([sys.executable, "-c", "import os\np = os.getppid()\nwhile os.getppid() == p: pass"])
     try:
         time.sleep(0.5)
         yield
@@ -108,6 +111,7 @@ def ppo_rate(venv: gym.vector.VectorEnv, total: int, seed: int = 0) -> float:
 
 
 def main() -> None:
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the finally blocks (kill the load)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024], help="batch sizes N")
     ap.add_argument("--steps", type=int, default=200, help="env steps per single-env run")

@@ -27,7 +27,8 @@ with their neighbours into one loop (a matrix product would stay a separate libr
 from __future__ import annotations
 
 import math
-from typing import TypeVar
+from collections.abc import Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -37,6 +38,7 @@ Array = TypeVar("Array", torch.Tensor, np.ndarray)
 __all__ = [
     "matrix_apply",
     "matrix_apply_transpose",
+    "matrix_to_quat",
     "quat_conjugate",
     "quat_exp",
     "quat_integrate",
@@ -45,7 +47,6 @@ __all__ = [
     "quat_rotate",
     "quat_rotate_inverse",
     "quat_to_matrix",
-    "matrix_to_quat",
 ]
 
 # Below this squared angle the exponential map uses its Taylor series (relative error ~ |θ|^4/400,
@@ -75,7 +76,8 @@ def quat_multiply(q1: Array, q2: Array) -> Array:
     return outer @ _constant("mul", q1)
 
 
-def _hamilton(a, b):  # noqa: ANN001, ANN202 - components of either kind
+def _hamilton(a: Sequence[Any], b: Sequence[Any]) -> tuple[Any, Any, Any, Any]:
+    """The four components of the Hamilton product from the components of each factor."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
     return (aw * bw - ax * bx - ay * by - az * bz,

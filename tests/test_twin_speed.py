@@ -15,7 +15,12 @@ from identified.rotation import quat_to_matrix
 from identified.topology import Topology
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend
 from tensegrity_gym.backends.mujoco_backend import default_robot_xml
-from tensegrity_gym.backends.twin_physics import TwinPhysics, compiler_available, resolve_threads, torch_threads
+from tensegrity_gym.backends.twin_physics import (
+    TwinPhysics,
+    compiler_available,
+    resolve_threads,
+    torch_threads,
+)
 from tensegrity_gym.envs.tensegrity_ico_v0 import action_to_rest, perturb_start
 from tensegrity_gym.models import preset_parameters
 

@@ -39,6 +39,7 @@ Shapes: ``R`` rods, ``S`` springs, ``...`` leading batch dimensions.
 from __future__ import annotations
 
 from collections.abc import Callable
+
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph

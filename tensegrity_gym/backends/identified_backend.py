@@ -38,7 +38,6 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from importlib import resources
-from typing import Any
 
 import numpy as np
 import torch

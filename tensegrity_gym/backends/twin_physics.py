@@ -94,7 +94,7 @@ def _wants_compile(compile: bool | str, device: torch.device) -> bool:
             return False
         return device.type != "cpu" or compiler_available()
     if not isinstance(compile, bool):
-        raise ValueError(f"compile must be 'auto', True or False, got {compile!r}")
+        raise ValueError(f"compile must be 'auto', True or False, got {compile!r}")  # noqa: TRY004
     return compile
 
 

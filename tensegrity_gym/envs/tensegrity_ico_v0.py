@@ -18,9 +18,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from tensegrity_gym.backends import Backend, make_backend
 from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
 from identified.state import RodState
+from tensegrity_gym.backends import Backend, make_backend
 
 __all__ = [
     "TensegrityIcoEnv",

@@ -135,6 +135,30 @@ def test_failed_compilation_warns_and_runs_eagerly(floating, monkeypatch):
     assert not b.physics.compiled
     np.testing.assert_array_equal(b.states().pos, e.states().pos)
 
+    # a compilation that fails later (a new shape, a push): the step is redone eagerly
+    def flaky(fn, **kwargs):
+        calls = []
+
+        def compiled(*args):
+            calls.append(1)
+            if len(calls) > 2:
+                raise RuntimeError("recompilation failed")
+            return fn(*args)
+
+        return compiled
+
+    monkeypatch.setattr(torch, "compile", flaky)
+    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=True)
+    b.reset(e.nominal_states(), e.nominal_rest_lengths())
+    e.reset(e.nominal_states(), e.nominal_rest_lengths())
+    b.step(hold, 2)  # the two calls that work
+    assert b.physics.compiled
+    with pytest.warns(UserWarning, match="runs eagerly"):
+        b.step(hold, 3)
+    e.step(hold, 5)
+    assert not b.physics.compiled
+    np.testing.assert_array_equal(b.states().pos, e.states().pos)
+
 
 def test_thread_policy_is_scoped_and_overridable(floating):
     """The twin steps under its own thread count and gives the caller's back afterwards."""

@@ -214,15 +214,31 @@ class TwinPhysics:
                  target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
                  ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
         """``n`` substeps (motors, then one engine step) of a block of copies."""
-        pos, quat, vel, angvel = state
         if self._first_call:
             self._first_call = False
             if self.compiled:
                 return self._compile_and_advance(n, state, rest, rest_act, target, pf, pp)
         sub = self._substep
-        for _ in range(n):
-            pos, quat, vel, angvel, rest, rest_act = sub(pos, quat, vel, angvel, rest, rest_act, target, pf, pp)
-        return RodState(pos, quat, vel, angvel), rest, rest_act
+        pos, quat, vel, angvel = state
+        r, ra = rest, rest_act
+        try:
+            for _ in range(n):
+                pos, quat, vel, angvel, r, ra = sub(pos, quat, vel, angvel, r, ra, target, pf, pp)
+        except Exception as exc:
+            if sub is self._eager_substep:
+                raise
+            # a later compilation (a push, a new block shape) failed: eager from the same inputs
+            self._fall_back(exc)
+            return self._advance(n, state, rest, rest_act, target, pf, pp)
+        return RodState(pos, quat, vel, angvel), r, ra
+
+    def _fall_back(self, exc: Exception) -> None:
+        """Stop compiling (warn once) and step eagerly from now on."""
+        self.compiled = False
+        self._substep = self._eager_substep
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        warnings.warn(f"torch.compile of the twin's substep failed ({type(exc).__name__}: {msg}); the twin "
+                      "runs eagerly (compile=False silences this)", stacklevel=5)
 
     def _eager_substep(self, pos: torch.Tensor, quat: torch.Tensor, vel: torch.Tensor, angvel: torch.Tensor,
                        rest: torch.Tensor, rest_act: torch.Tensor, target: torch.Tensor,
@@ -245,10 +261,7 @@ class TwinPhysics:
             fn = torch.compile(self._eager_substep, dynamic=False)
             out = fn(*state, rest, rest_act, target, pf, pp)
         except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
-            self.compiled = False
-            warnings.warn(f"torch.compile of the twin's substep failed ({type(exc).__name__}: "
-                          f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); the twin runs "
-                          f"eagerly (compile=False silences this)", stacklevel=4)
+            self._fall_back(exc)
             return self._advance(n, state, rest, rest_act, target, pf, pp)
         self.compile_seconds = time.perf_counter() - t0
         self._substep = self._compiled_substep = fn

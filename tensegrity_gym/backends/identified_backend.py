@@ -74,7 +74,6 @@ PRESET_PREFIX = "preset:"
 _FALLBACK = ("ico", "robot")
 #: Former names, kept for existing callers: the MJCF readers now live in :mod:`identified.mjcf`.
 nominal_pose_from_mjcf = nominal_pose
-_springlengths = spring_lengths
 _DTYPES = {"float64": torch.float64, "double": torch.float64,
            "float32": torch.float32, "float": torch.float32}
 

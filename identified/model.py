@@ -1,6 +1,6 @@
 """The identified model: physical parameters a person reads, stored as JSON.
 
-Keys (DESIGN.md): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, damping,
+Keys (README, "Identified model"): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, damping,
 rest_length), ``control_scale`` (h), ``effects`` (name and parameters of every added effect),
 ``metrics`` (fit error, data used).  Besides these, ``topology`` stores the geometry the engine
 needs (rod attachment points, which sites each spring joins), so that the twin stands on its own,

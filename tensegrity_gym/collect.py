@@ -23,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from identified.dataset import Dataset
+from identified.rotation import quat_exp, quat_multiply
+from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
-from tensegrity_gym.plant import MujocoPlant, RodStates
+from tensegrity_gym.plant import MujocoPlant
 
 __all__ = ["CollectConfig", "axis_angle_quat", "collect", "perturb_states", "quat_multiply"]
 
@@ -66,30 +68,17 @@ class CollectConfig:
                 raise ValueError(f"{name.replace('_', '-')} must be a finite number >= 0, got {v}")
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of w-x-y-z quaternions, broadcast over leading dims."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [aw * bw - ax * bx - ay * by - az * bz,
-         aw * bx + ax * bw + ay * bz - az * by,
-         aw * by - ax * bz + ay * bw + az * bx,
-         aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+#: Former names, kept for existing callers: :func:`identified.rotation.quat_multiply` and
+#: :func:`identified.rotation.quat_exp` (the quaternion of a rotation vector), numpy path.
+axis_angle_quat = quat_exp
 
 
-def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
-    """Quaternion of a rotation vector (..., 3)."""
-    ang = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = np.divide(rotvec, ang, out=np.zeros_like(rotvec), where=ang > 0)
-    return np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * axis], axis=-1)
-
-
-def perturb_states(s: RodStates, rng: np.random.Generator, pos_std: float, rot_std: float,
-                   vel_std: float, angvel_std: float) -> RodStates:
+def perturb_states(s: RodState, rng: np.random.Generator, pos_std: float, rot_std: float,
+                   vel_std: float, angvel_std: float) -> RodState:
     """Random initial state: every rod moved, turned and set moving independently."""
     R = s.pos.shape[0]
-    q = quat_multiply(axis_angle_quat(rng.normal(0, rot_std, (R, 3))), s.quat)
-    return RodStates(
+    q = quat_multiply(quat_exp(rng.normal(0, rot_std, (R, 3))), s.quat)
+    return RodState(
         pos=s.pos + rng.normal(0, pos_std, (R, 3)),
         quat=q / np.linalg.norm(q, axis=-1, keepdims=True),
         vel=s.vel + rng.normal(0, vel_std, (R, 3)),
@@ -140,7 +129,7 @@ def _add_noise(rng: np.random.Generator, cfg: CollectConfig, pos, quat, vel, ang
     if cfg.noise_angvel:
         angvel = angvel + rng.normal(0, cfg.noise_angvel, angvel.shape)
     if cfg.noise_quat:
-        quat = quat_multiply(axis_angle_quat(rng.normal(0, cfg.noise_quat, quat.shape[:-1] + (3,))), quat)
+        quat = quat_multiply(quat_exp(rng.normal(0, cfg.noise_quat, quat.shape[:-1] + (3,))), quat)
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     return pos, quat, vel, angvel
 

@@ -2,7 +2,7 @@
 
 Commands run in-process through :func:`tensegrity_gym.cli.main` (stdout/stderr captured by
 ``capsys``); one test runs the real console script in a subprocess to prove that what the user
-sees on a failure is one line and no traceback.  The contract (DESIGN.md, "Commands"): on bad
+sees on a failure is one line and no traceback.  The contract (docs/ARCHITECTURE.md, "Contracts"): on bad
 input exit status 2, exactly one line ``tensegrity: error: ...`` on stderr, no traceback, and no
 output file (nor a temporary ``.tmp-*`` file) left behind.
 """

@@ -60,10 +60,10 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
     Returns ``{"radius": [R], "segment": [R][2][3] rod frame, "ground_height": h, "normal": [3]}``.
     Raises :class:`GeometryError` (one line) when there is no ground plane or a rod has no capsule.
     """
-    from identified.topology import _frame, _read_text, _vec
+    from identified.mjcf import parse_mjcf, read_mjcf_text
+    from identified.topology import _frame, _vec
 
-    text = _read_text(mjcf)
-    root = ET.fromstring(text)
+    root = parse_mjcf(read_mjcf_text(mjcf, GeometryError), GeometryError)
     world = root.find("worldbody")
     planes = [g for g in world.iter("geom") if g.get("type") == "plane"] if world is not None else []
     if not planes:

@@ -35,9 +35,23 @@ from identified.fit.identify import identify  # noqa: E402
 from identified.model import save_model  # noqa: E402
 from tensegrity_gym.collect import CollectConfig, collect  # noqa: E402
 from tensegrity_gym.models import preset_parameters, write_model  # noqa: E402
-from tests._fuzz import (BAD_FLAGS, BAD_FLOATS, DATASET_KEYS, DATASET_KINDS, FILE_KINDS, MODEL_FIELDS,  # noqa: E402
-                         MODEL_KINDS, check_outcome, corrupt_dataset, corrupt_file, corrupt_model, digest,
-                         finite, flag_argv, run_cli)
+from tests._fuzz import (  # noqa: E402
+    BAD_FLAGS,
+    BAD_FLOATS,
+    DATASET_KEYS,
+    DATASET_KINDS,
+    FILE_KINDS,
+    MODEL_FIELDS,
+    MODEL_KINDS,
+    check_outcome,
+    corrupt_dataset,
+    corrupt_file,
+    corrupt_model,
+    digest,
+    finite,
+    flag_argv,
+    run_cli,
+)
 
 
 def classify(problems: list[str]) -> list[str]:

@@ -48,7 +48,8 @@ class IdentifiedModel:
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     stderr: dict[str, np.ndarray] = field(default_factory=dict)  # same keys/shapes as the values
     scale: dict[str, Any] = field(default_factory=dict)
-    effects: list[dict[str, Any]] = field(default_factory=list)
+    effects: list[dict[str, Any]] = field(default_factory=list)  # {name, parameters, stderr, options}
+    loop: list[dict[str, Any]] = field(default_factory=list)  # effect search: added, error before/after
     metrics: dict[str, Any] = field(default_factory=dict)
     source_model: str | None = None
     integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
@@ -69,8 +70,16 @@ class IdentifiedModel:
         lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")
+        from identified.effects import effect_from_json
+
         for e in self.effects:
-            lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+            try:
+                lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe())
+            except ValueError:
+                lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+        for step in self.loop:
+            lines.append(f"loop: added {step.get('added')}: held-out error {step.get('error_before'):.4g} m -> "
+                         f"{step.get('error_after'):.4g} m")
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ JSON
@@ -111,6 +120,7 @@ class IdentifiedModel:
             ],
             "control_scale": {"value": float(self.control_scale), "stderr": err("control_scale", None)},
             "effects": self.effects,
+            "loop": self.loop,
             "metrics": self.metrics,
             "scale": self.scale,
             "dt": float(self.dt),
@@ -175,6 +185,7 @@ class IdentifiedModel:
                 stderr=stderr,
                 scale=dict(obj.get("scale", {})),
                 effects=list(obj.get("effects", [])),
+                loop=list(obj.get("loop", [])),
                 metrics=dict(obj.get("metrics", {})),
                 source_model=obj.get("source_model"),
                 integrator=str(obj.get("integrator", "euler")),
@@ -200,6 +211,15 @@ class IdentifiedModel:
             raise ModelFileError(f"'integrator' is '{self.integrator}', expected one of {', '.join(INTEGRATORS)}")
         if np.any(self.mass <= 0) or np.any(self.inertia[:, :2] <= 0):
             raise ModelFileError("rod masses and transverse inertias must be positive")
+        from identified.effects import effect_from_json
+
+        for e in self.effects:
+            if not isinstance(e, dict):
+                raise ModelFileError("'effects' must hold objects {name, parameters, stderr, options}")
+            try:
+                effect_from_json(e, R, S)
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ModelFileError(f"effect '{e.get('name')}': {exc}") from None
 
 
 def _pm(se: np.ndarray | None, idx) -> str:

@@ -93,42 +93,24 @@ def _integrator(name: str) -> str:
 
 def cmd_fit(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
-    from identified.fit.identify import ScaleSpec, identify
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.checks import refresh_physics
+    from identified.fit.pipeline import fit_model, parse_effects
     from identified.model import save_model
-    from identified.topology import Topology
 
-    if args.effects != "none":
-        raise CommandError(f"--effects {args.effects}: the effect search is not in this version yet "
-                           "(fit the spring-rod model with --effects none)")
+    parse_effects(args.effects)  # a bad name fails before anything is read
+    _check_readable(args.model)
     _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
     data = load_dataset(args.data)
-    topo = Topology.from_mjcf(args.model)
-    if args.refine:
-        from identified.fit.refine import check_refinable
-
-        check_refinable(data)  # before the fit: a dataset the refinement refuses fails at once
-    # --refine is for plants whose integrator may differ from the engine's: without an explicit
-    # --integrator it first picks the one whose equations fit the data (refining the wrong
-    # integrator's model cannot remove its O(dt) bias)
-    integrator = args.integrator or ("auto" if args.refine else "euler")
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
     weak = "auto" if args.weak_window is None else args.weak_window
-    model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     weak_window=weak, integrator=_integrator(integrator), scheme=args.scheme,
-                     progress=not args.quiet)
-    model.source_model = os.path.abspath(args.model)
-    if args.refine:
-        from identified.fit.refine import refine
-
-        from identified.fit.checks import recheck_physics
-
-        refined = refine(model, data, progress=not args.quiet)
-        recheck_physics(refined, model)
-        model = refined
-    from identified.predict import attach_metrics
-
-    attach_metrics(model, data)
+    # --refine is for plants whose integrator may differ from the engine's: without an explicit
+    # --integrator it first picks the one whose equations fit the data (fit_model)
+    model = fit_model(data, args.model, effects=args.effects, regressors=args.regressors, scale=scale,
+                      solver=args.solver, weak_window=weak, integrator=args.integrator, scheme=args.scheme,
+                      refine=args.refine, progress=not args.quiet)
+    refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
@@ -136,8 +118,43 @@ def cmd_fit(args: argparse.Namespace) -> None:
         print(f"tensegrity: warning: {w}", file=sys.stderr)
     refined = model.metrics.get("refine")
     extra = f", refine {refined['seconds']:.3g} s" if refined else ""
+    added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
-          f"integrator {model.integrator})")
+          f"integrator {model.integrator}, effects: {added})")
+
+
+def cmd_diagnose(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+    from identified.diagnose import diagnose, write_report
+    from identified.fit.identify import check_compatible
+    from identified.model import load_model
+
+    model = load_model(args.identified)
+    data = load_dataset(args.data)
+    check_compatible(data, model.topology)
+    if args.horizon <= 0:
+        raise CommandError(f"--horizon {args.horizon}: must be a positive number of seconds")
+    if round(args.horizon / data.dt) > data.n_steps:
+        raise CommandError(f"--horizon {args.horizon} s is longer than the data's episodes "
+                           f"({data.n_steps * data.dt:g} s): record longer episodes or shorten --horizon")
+    mjcf = args.model
+    if mjcf is not None:
+        _check_readable(mjcf)
+    result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf)
+    paths = write_report(result, args.out) if args.out else []
+    if args.json:
+        keep = {k: v for k, v in result.items() if k != "plot_data"}
+        print(json.dumps(json_safe(keep), indent=2, allow_nan=False))
+        return
+    fmt = lambda x: "diverged" if x is None else f"{x:.4g} m"  # noqa: E731
+    print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
+          f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
+    print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
+    for c in result["candidates"][:6]:
+        score = "n/a" if c["score"] is None else f"{c['score']:.3f}"
+        print(f"  candidate {c['name']:<16} score {score}  {c.get('note') or ''}".rstrip())
+    for p in paths:
+        print(f"wrote {p}")
 
 
 def cmd_predict(args: argparse.Namespace) -> None:
@@ -241,11 +258,25 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--refine", action="store_true",
                    help="refine by multi-step simulation error (picks the integrator from the data unless "
                    "--integrator is given)")
-    f.add_argument("--effects", choices=("none", "auto"), default="none",
-                   help="none: the spring-rod model alone (auto, the search for missing effects, is not in "
-                   "this version yet)")
+    f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
+                   help="none: the spring-rod model alone (default); auto: search the effect library for what "
+                   "the data show (held-out free-run error, see the README); or effect names: ground_contact, "
+                   "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
+
+    dg = sub.add_parser("diagnose", help="residual analysis: where the model is wrong and which effect explains it",
+                        description="One-step, k-step and free-run errors of an identified model on data (best "
+                        "data it was not fitted on), by rod, axis and region of state; residual whiteness "
+                        "(Ljung-Box); each effect of the library scored by the share of the residual it would "
+                        "remove; the error without and with the model's own effects.")
+    dg.add_argument("data", help="dataset .npz")
+    dg.add_argument("--identified", required=True, help="identified-model .json")
+    dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
+    dg.add_argument("--horizon", type=finite_float(0.0, 1e6, "s", True), default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
+    dg.add_argument("--json", action="store_true", help="print the result as JSON")
+    dg.add_argument("--out", default=None, metavar="DIR", help="write a report (report.md and PNG plots) here")
+    dg.set_defaults(func=cmd_diagnose)
 
     pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
                         description="Roll the identified model from each recorded initial state with the "

@@ -23,8 +23,13 @@ from hypothesis import strategies as st
 import tensegrity_gym  # noqa: F401  (registers the env)
 from identified import Topology
 from identified.dataset import DatasetError, load_dataset, save_dataset
-from identified.fit.checks import (InsufficientDataError, constrain_inertias, overlap_factor,
-                                   physical_warnings, residual_dof)
+from identified.fit.checks import (
+    InsufficientDataError,
+    constrain_inertias,
+    overlap_factor,
+    physical_warnings,
+    residual_dof,
+)
 from identified.fit.identify import identify
 from identified.fit.regression import BlockFactors
 from identified.fit.uncertainty import LinearSolve, covariance
@@ -33,9 +38,24 @@ from identified.model import ModelFileError, load_model, save_model
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.limits import MemoryLimitError, check_memory, collect_bytes
 from tensegrity_gym.models import preset_parameters, write_model
-from tests._fuzz import (BAD_FLAGS, BAD_FLOATS, DATASET_KEYS, DATASET_KINDS, FILE_KINDS, MODEL_FIELDS,
-                         MODEL_KINDS, check_outcome, corrupt_dataset, corrupt_file, corrupt_model, digest,
-                         finite, finite_json, flag_argv, run_cli)
+from tests._fuzz import (
+    BAD_FLAGS,
+    BAD_FLOATS,
+    DATASET_KEYS,
+    DATASET_KINDS,
+    FILE_KINDS,
+    MODEL_FIELDS,
+    MODEL_KINDS,
+    check_outcome,
+    corrupt_dataset,
+    corrupt_file,
+    corrupt_model,
+    digest,
+    finite,
+    finite_json,
+    flag_argv,
+    run_cli,
+)
 
 FUZZ = settings(max_examples=int(os.environ.get("TENSEGRITY_FUZZ_EXAMPLES", "12")), deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

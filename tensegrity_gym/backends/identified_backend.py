@@ -357,8 +357,8 @@ class IdentifiedBackend(Backend):
         dtype: engine precision, ``torch.float64`` (default) or ``torch.float32`` (or their names).
         device: torch device of the engine (``"cpu"``, ``"cuda"``).
         effects: engine :class:`~identified.engine.Effect` plug-ins (forces the spring-rod model
-            lacks, e.g. ground contact) passed to the engine. The effects a model lists in
-            ``model.effects`` are not built here yet; a model that lists some and gets none warns.
+            lacks) added after the effects the model lists in ``model.effects``, which the engine
+            builds from the model file (:func:`identified.effects.effects_from_model`).
         mjcf: the MJCF (path or text) to take motors, keyframe and drawing from, instead of
             ``model.source_model`` (see :func:`resolve_source_mjcf`).
 
@@ -393,12 +393,8 @@ class IdentifiedBackend(Backend):
         self.model: IdentifiedModel = model if isinstance(model, IdentifiedModel) else load_model(model)
         m = self.model
         validate_fields(m)  # dt > 0, finite gravity, positive masses and inertias, known effects
-        effects = list(effects)
-        check_effect_objects(effects)
-        if m.effects and not effects:
-            names = [e.get("name") for e in m.effects]
-            warnings.warn(f"the identified model lists effects {names} that the twin does not build yet; "
-                          "pass them as effects=[...] (backend_kwargs={'effects': [...]})", stacklevel=2)
+        effects = list(effects)  # extra plug-ins; the model's own effects the engine builds itself
+        check_effect_objects(effects)  # a name or a number fails here, not at the first step
         self.mjcf, self.mjcf_source = resolve_source_mjcf(m, mjcf)
         topo = m.topology
         self.rod_names = topo.rod_names

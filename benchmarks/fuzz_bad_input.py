@@ -28,14 +28,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 
-import tensegrity_gym  # noqa: F401
-from identified import Topology
-from identified.dataset import save_dataset
-from identified.fit.identify import identify
-from identified.model import save_model
-from tensegrity_gym.collect import CollectConfig, collect
-from tensegrity_gym.models import preset_parameters, write_model
-from tests._fuzz import (
+import tensegrity_gym  # noqa: E402,F401
+from identified import Topology  # noqa: E402
+from identified.dataset import save_dataset  # noqa: E402
+from identified.fit.identify import identify  # noqa: E402
+from identified.model import save_model  # noqa: E402
+from tensegrity_gym.collect import CollectConfig, collect  # noqa: E402
+from tensegrity_gym.models import preset_parameters, write_model  # noqa: E402
+from tests._fuzz import (  # noqa: E402
     BAD_FLAGS,
     BAD_FLOATS,
     DATASET_KEYS,

@@ -93,8 +93,8 @@ def cmd_fit(args: argparse.Namespace) -> None:
     from identified.model import save_model
 
     parse_effects(args.effects)  # a bad name fails before anything is read
-    _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
     _check_readable(args.model)
+    _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
     data = load_dataset(args.data)
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
@@ -137,7 +137,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     paths = write_report(result, args.out) if args.out else []
     if args.json:
         keep = {k: v for k, v in result.items() if k != "plot_data"}
-        print(json.dumps(keep, indent=2, allow_nan=False))
+        print(json.dumps(json_safe(keep), indent=2, allow_nan=False))
         return
     fmt = lambda x: "diverged" if x is None else f"{x:.4g} m"
     print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
@@ -266,7 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("data", help="dataset .npz")
     dg.add_argument("--identified", required=True, help="identified-model .json")
     dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
-    dg.add_argument("--horizon", type=float, default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
+    dg.add_argument("--horizon", type=finite_float(0.0, 1e6, "s", True), default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
     dg.add_argument("--json", action="store_true", help="print the result as JSON")
     dg.add_argument("--out", default=None, metavar="DIR", help="write a report (report.md and PNG plots) here")
     dg.set_defaults(func=cmd_diagnose)

@@ -21,21 +21,9 @@ import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
 
-__all__ = [
-    "ADAM_TOLERANCE",
-    "INERTIA_FLOOR",
-    "MIN_DOF_PER_PARAMETER",
-    "InsufficientDataError",
-    "adam_convergence",
-    "apply_checks",
-    "check_enough_data",
-    "constrain_inertias",
-    "overlap_factor",
-    "physical_warnings",
-    "recheck_physics",
-    "residual_dof",
-    "widen_for_overlap",
-]
+__all__ = ["ADAM_TOLERANCE", "InsufficientDataError", "adam_convergence", "MIN_DOF_PER_PARAMETER", "check_enough_data", "constrain_inertias",
+           "apply_checks", "overlap_factor", "physical_warnings", "refresh_physics",
+           "residual_dof", "widen_for_overlap", "INERTIA_FLOOR"]
 
 #: residual degrees of freedom per free parameter below which standard errors are not estimable
 MIN_DOF_PER_PARAMETER = 1.0
@@ -199,6 +187,9 @@ def apply_checks(model, sol: Solution, not_estimable: str | None, held: list[tup
     if not_estimable:
         warnings.insert(0, not_estimable)
         model.stderr = {k: np.full(np.shape(v), np.nan) for k, v in model.stderr.items()}
+        for e in model.effects:  # the joint effects' error bars came from the same regression
+            if isinstance(e, dict) and e.get("stderr") is not None:
+                e["stderr"] = json_safe_nan(e["stderr"])
     if "inertia" in model.stderr:
         for i, a in held:
             model.stderr["inertia"][i, a] = np.nan
@@ -232,15 +223,28 @@ def adam_convergence(sol: Solution, reference: Solution) -> list[str]:
     return []
 
 
-def recheck_physics(model, before) -> list[str]:
-    """After a step that changed the parameters (refinement): replace ``before``'s physical
-    warnings by those of ``model``, keep its other warnings; returns them."""
-    def phys(m) -> list[str]:
-        t = m.topology
-        return physical_warnings(t.rod_names, t.spring_names, m.mass, m.inertia, m.stiffness, m.damping,
-                                 m.stderr.get("inertia"))
+def _is_physical(warning: str) -> bool:
+    """Whether a warning line is one of :func:`physical_warnings`' (not a fit note)."""
+    return (warning.endswith(" is not positive") or warning.endswith(" is negative")
+            or warning.endswith("no rigid body has these moments"))
 
-    old = set(phys(before))
-    kept = [w for w in before.metrics.get("warnings", []) if w not in old]
-    model.metrics["warnings"] = kept + phys(model)
+
+def refresh_physics(model) -> list[str]:
+    """After a step that changed the parameters (refinement, the effect search): replace the
+    physical warnings in ``model.metrics["warnings"]`` by those of its final values, keep the
+    fit's other notes; returns the warnings."""
+    t = model.topology
+    kept = [w for w in model.metrics.get("warnings", []) if not _is_physical(w)]
+    model.metrics["warnings"] = kept + physical_warnings(t.rod_names, t.spring_names, model.mass, model.inertia,
+                                                         model.stiffness, model.damping,
+                                                         model.stderr.get("inertia"))
     return model.metrics["warnings"]
+
+
+def json_safe_nan(tree):
+    """``tree`` (nested dicts/lists of numbers) with every number replaced by NaN (not estimable)."""
+    if isinstance(tree, dict):
+        return {k: json_safe_nan(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple, np.ndarray)):
+        return [json_safe_nan(v) for v in tree]
+    return float("nan") if isinstance(tree, (int, float, np.number)) and not isinstance(tree, bool) else tree

@@ -215,10 +215,10 @@ def identify(
         bar.close()
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
-    apply_checks(model, sol, not_estimable, held, notes, weak)
     model.integrator = integrator
     if late:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
+    apply_checks(model, sol, not_estimable, held, notes, weak)
     model.metrics["weak_window"] = weak if weak > 1 else None
     model.metrics["scheme"] = scheme
     model.metrics["integrator"] = integrator

@@ -123,14 +123,13 @@ def fit_model(
         model.metrics["effect_search"] = {"explained": explained, "candidates": list(CANDIDATES),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
     if refine:
-        from identified.fit.checks import recheck_physics
         from identified.fit.refine import refine as refine_model
 
-        refined = refine_model(model, data, progress=progress)
-        recheck_physics(refined, model)
-        model = refined
+        model = refine_model(model, data, progress=progress)
+    from identified.fit.checks import refresh_physics
     from identified.predict import attach_metrics
 
+    refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     attach_metrics(model, data)
     return model
 

@@ -198,7 +198,7 @@ class IdentifiedBackend(Backend):
         m = self.model
         validate_fields(m)  # dt > 0, finite gravity, positive masses and inertias, known effects
         effects = list(effects)  # extra plug-ins; the model's own effects the engine builds itself
-        check_effect_objects(effects)
+        check_effect_objects(effects)  # a name or a number fails here, not at the first step
         self.mjcf, self.mjcf_source = resolve_source_mjcf(m, mjcf)
         topo = m.topology
         self.rod_names = topo.rod_names

@@ -72,7 +72,7 @@ def test_free_oscillation_conserves_energy_without_damping() -> None:
     plant, pp = _simple(damping_scale=0.0)
     s = plant.states()
     s.vel[0] = [0.3, -0.5, 0.4]
-    s.angvel = _perpendicular_spin(s, 0.9)
+    s = s._replace(angvel=_perpendicular_spin(s, 0.9))
     plant.set_states(s)
     E0 = _simple_energy(plant, pp)
     E = []
@@ -128,7 +128,7 @@ def test_one_step_is_semi_implicit_euler_with_paper_forces() -> None:
     s = plant.states()
     s.pos[0] += [0.05, -0.08, 0.03]
     s.vel[0] = [0.4, 0.2, -0.3]
-    s.angvel = _perpendicular_spin(s, 0.7)  # no axial spin: the gyroscopic term vanishes
+    s = s._replace(angvel=_perpendicular_spin(s, 0.7))  # no axial spin: the gyroscopic term vanishes
     plant.set_states(s)
     R = quat_to_matrix(s.quat[0])
     F, tau = np.zeros(3), np.zeros(3)
@@ -271,9 +271,9 @@ def test_robot_rolls_with_scripted_cables(robot_xml: str, perturb: int) -> None:
     if perturb:  # a small random perturbation of the initial state
         rng = np.random.default_rng(perturb)
         s = plant.states()
-        s.pos += rng.normal(0, 0.01, s.pos.shape)
-        s.vel += rng.normal(0, 0.05, s.vel.shape)
-        s.angvel += rng.normal(0, 0.1, s.angvel.shape)
+        s.pos[...] += rng.normal(0, 0.01, s.pos.shape)
+        s.vel[...] += rng.normal(0, 0.05, s.vel.shape)
+        s.angvel[...] += rng.normal(0, 0.1, s.angvel.shape)
         plant.set_states(s)
     com0 = plant.states().pos.mean(axis=0)
     feet0 = _ground_ends(plant)

@@ -60,12 +60,28 @@ def test_a_hidden_fluid_effect_is_found_and_removes_the_error(ico, tmp_path, opt
     _, data = _hidden(ico, tmp_path, option, seed)
     model = fit_model(data, ico, effects="auto")  # the fit is given the clean MJCF: no viscosity, no density
     assert [e["name"] for e in model.effects] == [effect]
+    assert not model.effects[0]["options"].get("implicit", False)  # fluid drag is explicit
     step = model.loop[0]
     inf = lambda x: np.inf if x is None else x
     assert step["added"] == effect and step["error_after"] * 5 <= inf(step["error_before"])
     test = _hidden(ico, tmp_path, option, seed + 100)[1]
     before, after = _fit_errors(model, test)
     assert after * 5 <= before, (before, after)
+
+
+def test_free_joint_damping_is_an_implicit_linear_drag(ico, tmp_path):
+    """MuJoCo's Euler takes joint damping implicitly: the search picks the implicit variant and
+    recovers the damping itself."""
+    text = ico.read_text().replace("<freejoint", '<joint type="free" damping="1.5"')
+    plant = tmp_path / "damped.xml"
+    plant.write_text(text)
+    data = collect(plant, CollectConfig(episodes=4, steps=600, seed=12, push_every=100))
+    model = fit_model(data, ico, effects="auto")
+    assert [(e["name"], e["options"]) for e in model.effects] == [("linear_drag", {"implicit": True})]
+    p = model.effects[0]["parameters"]
+    np.testing.assert_allclose(p["b_lin"], 1.5, rtol=1e-8)
+    np.testing.assert_allclose(p["b_rot"], 1.5, rtol=1e-8)
+    assert model.loop[0]["error_after"] < 1e-9 < model.loop[0]["error_before"]
 
 
 def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_path):

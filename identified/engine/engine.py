@@ -164,7 +164,9 @@ class StepContext(NamedTuple):
     ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None;
     ``base_lin_acc`` (..., R, 3) world / ``base_ang_acc_body`` (..., R, 3) rod frame: the
     accelerations under every force but the constraint-like effects (ground contact), given to
-    those effects only (``needs_base_acceleration``).
+    those effects only (``needs_base_acceleration``); ``recorded_lin_acc`` /
+    ``recorded_ang_acc_body``: in the fit only, the recorded accelerations of the step (an effect
+    the integrator treats implicitly evaluates its force at the step's end velocity from them).
     """
 
     params: SpringRodParams
@@ -180,6 +182,8 @@ class StepContext(NamedTuple):
     push_point: torch.Tensor | None
     base_lin_acc: torch.Tensor | None = None
     base_ang_acc_body: torch.Tensor | None = None
+    recorded_lin_acc: torch.Tensor | None = None
+    recorded_ang_acc_body: torch.Tensor | None = None
 
 
 @runtime_checkable
@@ -322,17 +326,34 @@ class SpringRodEngine:
                 force = force + ef
             if et is not None:
                 torque = torque + et
-        lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
+        lin_acc, ang_acc_b = self._implicit_damping(
+            *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity))
         if late:  # constraint-like effects see the accelerations under every other force
             ctx = ctx._replace(base_lin_acc=lin_acc, base_ang_acc_body=ang_acc_b)
             for effect in late:
                 ef, et = effect(state, ctx)
                 force, torque = force + ef, torque + et
-            lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
+            lin_acc, ang_acc_b = self._implicit_damping(
+                *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity))
         if self.integrator == "implicit":
             lin_acc, ang_acc_b = implicit_accelerations(self.graph, geom.unit, ends.lever, rot, w_b, lin_acc,
                                                         ang_acc_b, p.mass, p.inertia, p.damping, self.dt)
         return StepTerms(ctx, force, torque, lin_acc, ang_acc_b)
+
+    def _implicit_damping(self, lin_acc: torch.Tensor, ang_acc_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Damping effects the integrator takes implicitly (MuJoCo's Euler does so for joint damping):
+        ``(M + dt b) a = F - b v`` and ``(I + dt b_rot) α_b = ...``, i.e. the explicit accelerations
+        scaled by ``M / (M + dt b)`` and ``I / (I + dt b_rot)`` (each effect's velocity derivative)."""
+        for effect in self.effects:
+            damping = getattr(effect, "implicit_damping", None)
+            d = damping(lin_acc) if damping is not None else None
+            if d is None:
+                continue
+            b_lin, b_rot = d
+            m, inertia = self.params.mass, self.params.inertia
+            lin_acc = lin_acc * (m / (m + self.dt * b_lin)).unsqueeze(-1)
+            ang_acc_b = ang_acc_b * inertia / (inertia + self.dt * b_rot.unsqueeze(-1))
+        return lin_acc, ang_acc_b
 
     def step(
         self,

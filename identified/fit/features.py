@@ -139,6 +139,7 @@ def equation_rows(
     gravity: torch.Tensor,
     implicit_dt: float | None = None,
     effects: Sequence[Effect] = (),
+    dt: float = 0.0,
 ) -> torch.Tensor:
     """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5 + E).
 
@@ -197,7 +198,7 @@ def equation_rows(
     A[:, 0:3, :, 2 * D + 4] = -chunk.push_force.transpose(1, 2)
     A[:, 3:6, :, 2 * D + 4] = -chunk.push_torque_body.transpose(1, 2)
     if effects:
-        ctx = step_context(topology, chunk, rot, ends, SpringGeometry(length, rate, unit))
+        ctx = step_context(topology, chunk, rot, ends, SpringGeometry(length, rate, unit), dt=dt)
         state = RodState(chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
         for eff, c0 in zip(effects, columns.effect_start):
             _effect_columns(A, eff, c0, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
@@ -208,11 +209,13 @@ def equation_rows(
 
 
 def step_context(topology: Topology, chunk: Chunk, rot: torch.Tensor, ends: Any,
-                 geometry: SpringGeometry, params: Any = None) -> StepContext:
+                 geometry: SpringGeometry, params: Any = None, dt: float = 0.0) -> StepContext:
     """The engine's :class:`~identified.engine.StepContext` built from recorded states (no tension,
-    no pushes): what an effect's features read in the fit and in the engine alike."""
+    no pushes, the recorded accelerations): what an effect's features read in the fit and in the
+    engine alike."""
     graph = SpringGraph.from_topology(topology, dtype=chunk.pos.dtype, device=chunk.pos.device)
-    return StepContext(params, 0.0, graph, rot, chunk.angvel_body, ends, geometry, None, chunk.rest, None, None)
+    return StepContext(params, dt, graph, rot, chunk.angvel_body, ends, geometry, None, chunk.rest, None, None,
+                       recorded_lin_acc=chunk.acc, recorded_ang_acc_body=chunk.alpha_body)
 
 
 def _effect_columns(A: torch.Tensor, eff: Effect, c0: int, state: RodState, ctx: StepContext, rot: torch.Tensor,

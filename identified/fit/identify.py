@@ -185,7 +185,7 @@ def identify(
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 keep = ~_affected(late, topology, ch)
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
-            A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint)
+            A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint, dt=dataset.dt)
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
             if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])

@@ -43,7 +43,10 @@ from identified.topology import Topology
 __all__ = ["CANDIDATES", "fit_model", "parse_effects", "select_effects"]
 
 #: the library's effects the search tries, in this order
-CANDIDATES = ("ground_contact", "linear_drag", "quadratic_drag", "cable_friction", "cable_slack", "constant_force")
+CANDIDATES = ("ground_contact", "linear_drag", "linear_drag:implicit", "quadratic_drag", "cable_friction",
+              "cable_slack", "constant_force")
+#: variants a name may carry after a colon: options of the effect
+VARIANTS = {"linear_drag:implicit": {"implicit": True}}
 
 
 def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
@@ -58,6 +61,8 @@ def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
     if not names:
         raise ValueError("--effects: give none, auto or effect names separated by commas")
     for n in names:
+        if n in VARIANTS:
+            continue
         if n == "actuator_lag":
             raise ValueError("--effects actuator_lag: not available (the dataset records the cables' actual rest "
                              "lengths, so a motor lag is already in the data)")
@@ -140,7 +145,12 @@ def _metric(horizon_s: float) -> str:
 
 
 def _build(names: Sequence[str], topo: Topology, mjcf: str) -> list[Effect]:
-    return [make_effect(n, topo, mjcf) for n in names]
+    out = []
+    for label in names:
+        eff = make_effect(label.split(":")[0], topo, mjcf)
+        eff.options.update(VARIANTS.get(label, {}))
+        out.append(eff)
+    return out
 
 
 def select_effects(
@@ -169,7 +179,7 @@ def select_effects(
     candidates = []
     for name in CANDIDATES:
         try:
-            make_effect(name, topo, mjcf)
+            make_effect(name.split(":")[0], topo, mjcf)
         except GeometryError:
             continue  # e.g. no ground plane: ground contact cannot be there
         candidates.append(name)
@@ -208,7 +218,7 @@ def select_effects(
         # held-out free-run error by min_gain
         fits, screens = {}, {}
         for name in candidates:
-            if name in chosen:
+            if name.split(":")[0] in {c.split(":")[0] for c in chosen}:
                 continue
             fits[name] = fit(chosen + [name])
             screens[name] = screen(fits[name])

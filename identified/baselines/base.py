@@ -30,7 +30,8 @@ class ParameterProblem:
     """Estimate ``names`` from one reference trajectory.
 
     ``x0`` (P,) initial guess; ``bounds`` (P, 2) box for the searching solvers; ``objective``
-    maps theta (P,) to the trajectory error of a simulator run with it (None: not available);
+    maps theta (P,) to the trajectory error of a simulator run with it (None: not available), and
+    ``residual`` to the vector whose squared sum it is (for least-squares solvers);
     ``dataset``/``topology`` the recorded data for solvers that read states; ``known`` parameters
     that are given, not estimated (e.g. ``{"M": 10.0}``, appendix A).
     """
@@ -39,6 +40,7 @@ class ParameterProblem:
     x0: np.ndarray
     bounds: np.ndarray
     objective: Callable[[np.ndarray], float] | None = None
+    residual: Callable[[np.ndarray], np.ndarray] | None = None
     dataset: Dataset | None = None
     topology: Topology | None = None
     known: Mapping[str, float] = field(default_factory=dict)

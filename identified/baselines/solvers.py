@@ -119,8 +119,6 @@ class ClosedForm:
         self.name = "Ours" if solver == "lstsq" else f"Ours ({solver})"
 
     def estimate(self, problem: ParameterProblem) -> Estimate:
-        import torch
-
         from identified.fit.identify import ScaleSpec, identify
 
         if problem.dataset is None or problem.topology is None:
@@ -128,9 +126,8 @@ class ClosedForm:
         rod = problem.topology.rod_names[0]
         scale = ScaleSpec(masses=((rod, float(problem.known["M"])),)) if "M" in problem.known else ScaleSpec()
         t0 = time.perf_counter()
-        with torch.no_grad():
-            model = identify(problem.dataset, problem.topology, regressors=self.regressors, scale=scale,
-                             solver=self.solver, weak_window=None)
+        model = identify(problem.dataset, problem.topology, regressors=self.regressors, scale=scale,
+                         solver=self.solver, weak_window=None)
         sec = time.perf_counter() - t0
         allv = {"K": float(np.mean(model.stiffness)), "c": float(np.mean(model.damping)),
                 "M": float(np.mean(model.mass))}

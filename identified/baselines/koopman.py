@@ -35,7 +35,7 @@ from identified.topology import Topology
 
 __all__ = ["KoopmanInt", "monomial_pairs"]
 
-RIDGES = (0.0, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
+RIDGES = (0.0, 1e-12, 1e-10, 1e-8, 1e-6, 1e-4, 1e-2, 1.0)
 
 
 def monomial_pairs(n: int, degree: int = 2) -> list[tuple[tuple[int, int], ...]]:
@@ -132,8 +132,9 @@ class KoopmanInt:
         best_err = np.full(6, np.inf)
         best_lam = np.zeros(6)
         coef_best = None
+        svds = [self._svd(tri[g], np.sqrt(sq[g]), F) for g in range(groups)]
         for lam in RIDGES:
-            coef = np.stack([self._solve(tri[g], np.sqrt(sq[g]), lam, F) for g in range(groups)])
+            coef = np.stack([self._coef(svd, lam) for svd in svds])
             coef = coef[0] if self.aggregate else coef
             err, count = np.zeros(6), 0
             for phi, y in val_rows:
@@ -155,19 +156,28 @@ class KoopmanInt:
         return self
 
     @staticmethod
-    def _solve(tri: np.ndarray, d: np.ndarray, lam: float, F: int) -> np.ndarray:
-        """Least squares from the triangular factor ``[R_Φ | z]``: columns scaled to unit norm
-        ``d``, ridge ``lam`` on that scale, minimum-norm where the basis is rank deficient."""
+    def _svd(tri: np.ndarray, d: np.ndarray, F: int) -> tuple[np.ndarray, ...]:
+        """SVD of the column-scaled triangular factor ``R_Φ / d`` and the rotated targets ``z``:
+        every ridge then costs one product (filter factors ``s / (s² + λ)``)."""
         d = np.where(d > 0, d, 1.0)
-        Rs = tri[:F, :F] / d[None, :]
-        z = tri[:F, F:]
-        if tri.shape[0] < F:  # fewer rows than features (tiny data): pad
-            Rs = np.vstack([Rs, np.zeros((F - tri.shape[0], F))])
-            z = np.vstack([z, np.zeros((F - tri.shape[0], z.shape[1]))])
+        k = min(tri.shape[0], F)
+        Rs = tri[:k, :F] / d[None, :]
+        z = tri[:k, F:]
+        U, sv, Vt = scipy.linalg.svd(Rs, full_matrices=False, check_finite=False, lapack_driver="gesdd")
+        return U, sv, Vt, z, d
+
+    @staticmethod
+    def _coef(svd: tuple[np.ndarray, ...], lam: float, rcond: float = 1e-12) -> np.ndarray:
+        """Ridge (``lam`` on the unit-norm column scale) or, for 0, minimum-norm least squares with
+        singular values below ``rcond`` of the largest dropped (the basis is rank deficient, e.g.
+        ``|r|² = const``)."""
+        U, sv, Vt, z, d = svd
         if lam > 0:
-            Rs = np.vstack([Rs, np.sqrt(lam) * np.eye(F)])
-            z = np.vstack([z, np.zeros((F, z.shape[1]))])
-        w = scipy.linalg.lstsq(Rs, z, cond=1e-12, lapack_driver="gelsd", check_finite=False)[0]
+            f = sv / (sv ** 2 + lam)
+        else:
+            keep = sv > rcond * (sv[0] if sv.size else 0.0)
+            f = np.where(keep, 1.0 / np.where(keep, sv, 1.0), 0.0)
+        w = Vt.T @ (f[:, None] * (U.T @ z))
         return w / d[:, None]
 
     def _apply(self, coef: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:

@@ -151,11 +151,11 @@ def physics_sizes(quick: bool) -> dict[str, int]:
 
 def neural_budget(quick: bool, seed: int) -> Budget:
     """The budget every neural baseline gets: the same learning-rate grid, early stopping on the
-    validation loss (patience 5 epochs), a wall-clock cap per learning rate."""
+    validation loss (patience 10 epochs), a wall-clock cap per learning rate."""
     if quick:
-        return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=40, patience=5, batch=256, max_seconds_per_lr=8.0,
+        return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=60, patience=10, batch=256, max_seconds_per_lr=10.0,
                       seed=seed)
-    return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=100, patience=5, batch=1024, max_seconds_per_lr=3600.0,
+    return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=100, patience=10, batch=1024, max_seconds_per_lr=3600.0,
                   seed=seed)
 
 

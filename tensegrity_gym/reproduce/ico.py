@@ -108,8 +108,9 @@ def ico_uniform(ctx: Context) -> Result:
     return res
 
 
-def _data_note(sz: dict[str, int]) -> str:
-    return (f"data: {sz['train']} training, {sz['val']} validation trajectories of {sz['steps']} steps, "
+def _data_note(sz: dict[str, int], val: bool = True) -> str:
+    v = f", {sz['val']} validation" if val else ""
+    return (f"data: {sz['train']} training{v} trajectories of {sz['steps']} steps, "
             f"{sz['test']} test trajectories of {sz['test_steps']} steps (errors: free runs, mean over test)")
 
 
@@ -127,7 +128,7 @@ def ico_nonuniform(ctx: Context) -> Result:
             model, sec = _fit(tr, topo, truth, reg)
             row, curves[name] = _ours_row(name, model, sec, te, truth)
             rows.append(row)
-    notes = [_data_note(sz) + "; no validation set is needed (a closed-form fit has no hyperparameter)",
+    notes = [_data_note(sz, val=False) + "; no validation set: a closed-form fit has no hyperparameter",
              "param_max_rel_error: largest relative error over the 54 K, c, M; the scale from the known total "
              f"rod mass; the non-uniform draw is the preset's with seed {ctx.seed}"]
     res = Result("ico-nonuniform", rows, sz, curves=curves, notes=notes)
@@ -296,7 +297,8 @@ def generalization(ctx: Context) -> Result:
                 ctx.log(f"generalization: {name} on {n} x {T} steps")
                 errs = rollout_errors(SpringRodEngine.from_model(replace(model, control_scale=hv)).step, te)
                 rows.append({"method": name, "test_steps": T, "test_trajectories": n, **error_row(errs),
-                             "h": hv, "h_x_mean_mass": hv * mean_mass, "fit_seconds": fit_sec,
+                             "h": hv, "h_x_mean_mass": hv * mean_mass,
+                             "h_rel_error": abs(hv * mean_mass - 1.0) if hv else None, "fit_seconds": fit_sec,
                              "h_seconds": h_sec if hv else None})
                 curves[f"{name}, {T} steps"] = errs["per_step"]
     notes = [f"trained on {sz['train']} x {sz['steps']} steps without pushes; the model is normalised (mean "

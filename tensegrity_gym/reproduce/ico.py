@@ -156,11 +156,14 @@ def random_steps(data: Dataset, n: int, rng: np.random.Generator) -> Dataset:
                    push_force=one(data.push_force), push_point=one(data.push_point))
 
 
+def efficiency_sizes(quick: bool) -> dict[str, int]:
+    """As :func:`sizes`, with a smaller quick training pool (Koopman's per-rod basis is large)."""
+    return dict(sizes(quick), train=10) if quick else sizes(quick)
+
+
 def data_efficiency(ctx: Context) -> Result:
     """Ours and Koopman+Int (per-rod regressors, appendix C) on fractions of the training steps."""
-    sz = sizes(ctx.quick)
-    if ctx.quick:
-        sz = dict(sz, train=10)
+    sz = efficiency_sizes(ctx.quick)
     tr, topo, _ = generate(ctx, "ico", "paper-nonuniform", "train", sz["train"], sz["steps"], model_seed=ctx.seed)
     va, _, _ = generate(ctx, "ico", "paper-nonuniform", "val", sz["val"], sz["steps"], model_seed=ctx.seed)
     te, _, _ = generate(ctx, "ico", "paper-nonuniform", "test", sz["test"], sz["test_steps"], model_seed=ctx.seed)
@@ -270,13 +273,18 @@ def fit_control_scale(model: IdentifiedModel, data: Dataset) -> float:
     return float((x @ y) / (x @ x))
 
 
+def generalization_sizes(quick: bool) -> tuple[tuple[int, int], ...]:
+    """(trajectories, steps) of the long test set, the 4,000-step test set and the pushed tuning set."""
+    if quick:
+        return (3, 20000), (5, 4000), (2, 2000)
+    return (100, 20000), (100, 4000), (20, 2000)
+
+
 def generalization(ctx: Context) -> Result:
     """Trained without pushes; h fitted on separate pushed tuning data with the rest frozen; tested
     on long trajectories with a random push on a random rod every 100 steps."""
     sz = sizes(ctx.quick)
-    long_n, long_T = (3, 20000) if ctx.quick else (100, 20000)
-    mid_n, mid_T = (5, 4000) if ctx.quick else (100, 4000)
-    tune_n, tune_T = (2, 2000) if ctx.quick else (20, 2000)
+    (long_n, long_T), (mid_n, mid_T), (tune_n, tune_T) = generalization_sizes(ctx.quick)
     tr, topo, _ = generate(ctx, "ico", "paper-nonuniform", "train", sz["train"], sz["steps"], model_seed=ctx.seed)
     tune, _, _ = generate(ctx, "ico", "paper-nonuniform", "tune", tune_n, tune_T, model_seed=ctx.seed, push_every=100)
     truth = truth_of("paper-nonuniform", ctx.seed)

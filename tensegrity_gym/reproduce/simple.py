@@ -45,12 +45,17 @@ def _truth() -> dict[str, float]:
     return {"K": p["springs"][0]["stiffness"], "c": p["springs"][0]["damping"], "M": p["rods"][0]["mass"]}
 
 
+def blackbox_sizes(quick: bool) -> tuple[int, int, int]:
+    """Reference trajectories, their steps, and the iteration budget of the searching solvers
+    (the paper: 100 trajectories of 2000 steps; its table after 30 iterations)."""
+    return (6, 2000, 100) if quick else (100, 2000, 100)
+
+
 def simple_blackbox(ctx: Context) -> Result:
     """LS, CMA-ES, mujoco.sysid and ours on the simple system, M unknown (ratios) and M known."""
     from tensegrity_gym.reproduce.blackbox import MujocoSysId, TrajectorySimulator, sysid_available
 
-    n_traj, steps = (6, 2000) if ctx.quick else (100, 2000)
-    max_iter = 100
+    n_traj, steps, max_iter = blackbox_sizes(ctx.quick)
     data, topo, xml = generate(ctx, "simple", "paper", "test", n_traj, steps)
     truth = _truth()
     ok, why = sysid_available()

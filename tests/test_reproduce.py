@@ -113,7 +113,7 @@ def test_koopman_recovers_the_linear_acceleration_exactly(simple):
 
 
 def test_closed_form_solver_recovers_the_ratios(simple):
-    xml, topo, tr, _ = simple
+    _, topo, tr, _ = simple
     ref = tr.select(episodes=slice(0, 1))
     p = ParameterProblem(("K", "c", "M"), np.ones(3), np.tile([0.1, 1000.0], (3, 1)), dataset=ref, topology=topo)
     est = ClosedForm().estimate(p)
@@ -155,7 +155,8 @@ def test_trajectory_simulator_reproduces_the_plant_at_the_truth(simple):
 def tiny(monkeypatch):
     """Every experiment's sizes and budgets shrunk to seconds."""
     from identified.baselines import Budget as B
-    from tensegrity_gym.reproduce import ico, simple as sim
+    from tensegrity_gym.reproduce import ico
+    from tensegrity_gym.reproduce import simple as sim
 
     monkeypatch.setattr(sim, "blackbox_sizes", lambda quick: (1, 300, 15))
     monkeypatch.setattr(sim, "physics_sizes",

@@ -99,7 +99,7 @@ class KoopmanInt:
         per = max(1, chunk // max(data.n_steps, 1))
         for e0 in range(0, data.n_episodes, per):
             sl = slice(e0, e0 + per)
-            flat = lambda a, k: t(a[sl, k].reshape(-1, *a.shape[2:]))
+            flat = lambda a, k, sl=sl: t(a[sl, k].reshape(-1, *a.shape[2:]))
             s0 = RodState(*(flat(getattr(data, n), slice(0, -1)) for n in ("pos", "quat", "vel", "angvel")))
             s1 = RodState(*(flat(getattr(data, n), slice(1, None)) for n in ("pos", "quat", "vel", "angvel")))
             rest = flat(data.rest_length, slice(None))

@@ -17,7 +17,7 @@ import numpy as np
 
 from identified.baselines.base import Estimate, ParameterProblem
 
-__all__ = ["CMAES", "ClosedForm", "LBFGSB", "safe_objective"]
+__all__ = ["CMAES", "LBFGSB", "ClosedForm", "safe_objective"]
 
 BIG = 1e6  # objective value given to a simulation that diverged (NaN/inf): a finite "very bad"
 

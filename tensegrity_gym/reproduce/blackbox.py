@@ -94,7 +94,7 @@ class TrajectorySimulator:
 def sysid_available() -> tuple[bool, str]:
     """Whether ``mujoco.sysid`` can be used here, and why not."""
     try:
-        import mujoco.sysid as sysid
+        from mujoco import sysid
     except ImportError as exc:  # pragma: no cover - depends on the installed mujoco
         return False, f"mujoco {mujoco.__version__} has no sysid module ({exc})"
     if not hasattr(sysid, "optimize"):
@@ -114,8 +114,8 @@ class MujocoSysId:
         self.max_iter, self.optimizer = max_iter, optimizer
 
     def estimate(self, problem: ParameterProblem) -> Estimate:
-        import mujoco.sysid as sysid
         from absl import logging as absl_logging
+        from mujoco import sysid
 
         if problem.residual is None:
             raise ValueError("mujoco.sysid needs a residual function; the problem has none")

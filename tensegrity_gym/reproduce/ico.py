@@ -97,10 +97,10 @@ def ico_uniform(ctx: Context) -> Result:
         model, sec = _fit(tr, topo, truth, "single")
         row, curves["Ours"] = _ours_row("Ours", model, sec, te, truth)
         rows.append(row)
-    notes = [_data_note(sz), "Ours: a single regressor (one K, c, M, I for all), as the paper for uniform "
-             "parameters; scale from the known total mass (free runs do not depend on it)",
-             "Koopman+Int: the paper's Q = 2 basis on r and the springs summed per rod end, one operator "
-             "shared by the six rods, ridge per output chosen on the validation set"]
+    notes = [_data_note(sz), ("Ours: a single regressor (one K, c, M, I for all), as the paper for uniform "
+             "parameters; scale from the known total mass (free runs do not depend on it)"),
+             ("Koopman+Int: the paper's Q = 2 basis on r and the springs summed per rod end, one operator "
+             "shared by the six rods, ridge per output chosen on the validation set")]
     res = Result("ico-uniform", rows, sz, curves=curves, notes=notes)
     if ctx.out:
         res.figures.append(curves_figure(figure_path(ctx.out, "ico-uniform"),
@@ -129,8 +129,8 @@ def ico_nonuniform(ctx: Context) -> Result:
             row, curves[name] = _ours_row(name, model, sec, te, truth)
             rows.append(row)
     notes = [_data_note(sz, val=False) + "; no validation set: a closed-form fit has no hyperparameter",
-             "param_max_rel_error: largest relative error over the 54 K, c, M; the scale from the known total "
-             f"rod mass; the non-uniform draw is the preset's with seed {ctx.seed}"]
+             ("param_max_rel_error: largest relative error over the 54 K, c, M; the scale from the known total "
+             f"rod mass; the non-uniform draw is the preset's with seed {ctx.seed}")]
     res = Result("ico-nonuniform", rows, sz, curves=curves, notes=notes)
     if ctx.out:
         res.figures.append(curves_figure(figure_path(ctx.out, "ico-nonuniform"),
@@ -174,7 +174,7 @@ def data_efficiency(ctx: Context) -> Result:
     koop_x, koop_y, ours_x, ours_y = [], [], [], []
     with single_thread():
         for frac in (1.0,) + FRACTIONS:
-            n = max(1, int(round(frac * pool)))
+            n = max(1, round(frac * pool))
             sub = tr if frac == 1.0 else random_steps(tr, n, rng)
             label = f"{frac:.2%}".replace(".00%", "%")
             ctx.log(f"data-efficiency: Ours on {label} ({n} steps)")
@@ -224,11 +224,11 @@ def data_efficiency(ctx: Context) -> Result:
                      "param_max_rel_error": tried[-1]["worst_param_max_rel_error"] if tried else None,
                      "note": f"fewest random steps with every K, c, M within {TARGET:g} in 3 of 3 draws"})
     notes = [_data_note(sz) + f"; training pool {pool} steps",
-             "each fraction is drawn at random from all training steps; every drawn step is kept as a "
-             "one-step episode (the paper: 'we randomly select 10%, 1%, 0.1%, 0.01% of the time steps')",
-             "Koopman+Int: the paper's basis with one slot per attached spring and one regressor per rod "
+             ("each fraction is drawn at random from all training steps; every drawn step is kept as a "
+             "one-step episode (the paper: 'we randomly select 10%, 1%, 0.1%, 0.01% of the time steps')"),
+             ("Koopman+Int: the paper's basis with one slot per attached spring and one regressor per rod "
              "(appendix C), ridge per output chosen on the validation set; rows with fewer steps than "
-             "basis functions are minimum-norm/ridge solutions",
+             "basis functions are minimum-norm/ridge solutions"),
              f"smallest-amount search tried: {tried}"]
     res = Result("data-efficiency", rows, {**sz, "pool_steps": pool, "fractions": list(FRACTIONS)},
                  curves=curves, notes=notes)
@@ -309,11 +309,11 @@ def generalization(ctx: Context) -> Result:
                              "h_rel_error": abs(hv * mean_mass - 1.0) if hv else None, "fit_seconds": fit_sec,
                              "h_seconds": h_sec if hv else None})
                 curves[f"{name}, {T} steps"] = errs["per_step"]
-    notes = [f"trained on {sz['train']} x {sz['steps']} steps without pushes; the model is normalised (mean "
+    notes = [(f"trained on {sz['train']} x {sz['steps']} steps without pushes; the model is normalised (mean "
              "rod mass 1 kg: states alone fix only ratios), so the pushes, recorded in newtons, need "
-             f"h = 1 / mean mass = {1 / mean_mass:.6g}; h_x_mean_mass = 1 means h recovers the truth",
-             f"h fitted in closed form on {tune_n} x {tune_T} separate pushed steps (not the test data) with "
-             "every other parameter frozen",
+             f"h = 1 / mean mass = {1 / mean_mass:.6g}; h_x_mean_mass = 1 means h recovers the truth"),
+             (f"h fitted in closed form on {tune_n} x {tune_T} separate pushed steps (not the test data) with "
+             "every other parameter frozen"),
              "pushes: a random rod, random direction, 50 N for 10 steps, every 100 steps"]
     res = Result("generalization", rows, {**sz, "test_long": [long_n, long_T], "test_4000": [mid_n, mid_T],
                                           "tune": [tune_n, tune_T], "push_every": 100}, curves=curves, notes=notes)

@@ -104,13 +104,13 @@ def simple_blackbox(ctx: Context) -> Result:
     if not ok:
         rows.append({"method": "mujoco.sysid", "variant": "-", "note": why})
     notes += [
-        f"truth: K = {truth['K']}, c = {truth['c']}, M = {truth['M']}; success: every estimated parameter "
+        (f"truth: K = {truth['K']}, c = {truth['c']}, M = {truth['M']}; success: every estimated parameter "
         f"within {TOL:.0%}; LS, CMA-ES and mujoco.sysid start at {X0} inside {list(BOUNDS)} and simulate "
-        f"each candidate in MuJoCo; at most {max_iter} iterations each (the paper reports 30)",
+        f"each candidate in MuJoCo; at most {max_iter} iterations each (the paper reports 30)"),
         "CMA-ES tolerance 1 is cma's tolx = 1 (parameter units); sigma0 = a quarter of the range",
-        "Ours reads the recorded states only (no simulator): one closed-form solve (Ours) or the paper's "
+        ("Ours reads the recorded states only (no simulator): one closed-form solve (Ours) or the paper's "
         "30 Adam epochs on the same rows (Ours (adam)); with M unknown it is normalised (M = 1) and "
-        "reports the ratios",
+        "reports the ratios"),
     ]
     res = Result("simple-blackbox", rows, {"trajectories": n_traj, "steps": steps, "bounds": list(BOUNDS),
                                            "x0": X0, "max_iter": max_iter, "success_tol": TOL}, notes=notes)
@@ -204,16 +204,16 @@ def simple_physics(ctx: Context) -> Result:
                      "parameters": int(2 * topo.n_springs + 4 * topo.n_rods)})
         curves["Ours"] = errs["per_step"]
     notes = [
-        "all methods see the same (S_t, S_t+1) pairs; errors are free runs from the test initial states "
-        f"over {sz['test_steps']} steps, mean over {sz['test']} test trajectories",
-        f"neural budget: Adam, lr grid {list(budget.lrs)} chosen on validation loss, early stopping "
+        ("all methods see the same (S_t, S_t+1) pairs; errors are free runs from the test initial states "
+        f"over {sz['test_steps']} steps, mean over {sz['test']} test trajectories"),
+        (f"neural budget: Adam, lr grid {list(budget.lrs)} chosen on validation loss, early stopping "
         f"(patience {budget.patience} epochs, best weights kept), at most {budget.max_epochs} epochs and "
         f"{budget.max_seconds_per_lr:g} s per lr, batch {budget.batch}; SiLU activations; MLP 6 x 30 "
-        "(paper), interaction MLPs 4 x 30",
-        "MLP and Interaction predict S_t+1 as S_t + net(S_t) (standardised); the +Int variants predict "
-        "the accelerations and integrate them (semi-implicit Euler)",
-        "Koopman+Int: the paper's basis (Q = 2) regressed on accelerations; it lacks the gyroscopic term "
-        "of a spinning rod (our initial states spin about the rod axis too), so its α is approximate",
+        "(paper), interaction MLPs 4 x 30"),
+        ("MLP and Interaction predict S_t+1 as S_t + net(S_t) (standardised); the +Int variants predict "
+        "the accelerations and integrate them (semi-implicit Euler)"),
+        ("Koopman+Int: the paper's basis (Q = 2) regressed on accelerations; it lacks the gyroscopic term "
+        "of a spinning rod (our initial states spin about the rod axis too), so its α is approximate"),
     ]
     res = Result("simple-physics", rows, {**sz, "budget": budget.__dict__}, curves=curves, notes=notes)
     if ctx.out:

@@ -172,7 +172,9 @@ def scratch() -> tempfile.TemporaryDirectory:
     return tempfile.TemporaryDirectory(prefix="tensegrity-reproduce-")
 
 
-def error_row(errs: dict[str, Any]) -> dict[str, float]:
-    """The free-run metrics of a row: mean and final position (m) and quaternion error."""
+def error_row(errs: dict[str, Any]) -> dict[str, Any]:
+    """The free-run metrics of a row: mean and final position (m) and quaternion error, and
+    ``diverged`` (a free run left the finite numbers: the errors are then null in the JSON)."""
     return {"pos_mean": errs["pos_mean"], "pos_final": errs["pos_final"],
-            "quat_mean": errs["quat_mean"], "quat_final": errs["quat_final"]}
+            "quat_mean": errs["quat_mean"], "quat_final": errs["quat_final"],
+            "diverged": not bool(np.isfinite(errs["pos_mean"]) and np.isfinite(errs["quat_mean"]))}

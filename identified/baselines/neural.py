@@ -262,7 +262,7 @@ def train(factory, train_set: Pairs, val_set: Pairs, budget: Budget = Budget(), 
         gen = torch.Generator().manual_seed(budget.seed)
         best_val, best_state, best_epoch, stale = float("inf"), None, 0, 0
         t0 = time.perf_counter()
-        epoch = 0
+        epoch, stop = 0, "max_epochs"
         for epoch in range(1, budget.max_epochs + 1):
             perm = torch.randperm(len(train_set), generator=gen)
             for i in range(0, len(perm), budget.batch):
@@ -277,11 +277,15 @@ def train(factory, train_set: Pairs, val_set: Pairs, budget: Budget = Budget(), 
                 best_val, best_state, best_epoch, stale = v, copy.deepcopy(model.state_dict()), epoch, 0
             else:
                 stale += 1
-            if stale >= budget.patience or time.perf_counter() - t0 > budget.max_seconds_per_lr:
+            if stale >= budget.patience:
+                stop = "patience"
+                break
+            if time.perf_counter() - t0 > budget.max_seconds_per_lr:
+                stop = "time"
                 break
         if best_state is not None:
             model.load_state_dict(best_state)
-        per_lr[lr] = {"val_loss": best_val, "best_epoch": best_epoch, "epochs": epoch,
+        per_lr[lr] = {"val_loss": best_val, "best_epoch": best_epoch, "epochs": epoch, "stopped_by": stop,
                       "seconds": round(time.perf_counter() - t0, 2)}
         if best is None or best_val < best.val_loss:
             best = TrainResult(model, lr, best_val, best_epoch, 0.0)

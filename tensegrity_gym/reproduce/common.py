@@ -150,7 +150,8 @@ def format_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -
     if not rows:
         return "(no rows)"
     cols = columns or list(dict.fromkeys(k for r in rows for k in r))
-    cols = [c for c in cols if not (c.endswith("_std") and c[:-4] in cols)]
+    cols = [c for c in cols if not (c.endswith("_std") and c[:-4] in cols)
+            and not any(isinstance(r.get(c), dict) for r in rows)]  # details (per-lr logs) stay in the JSON
     cells = [[c for c in cols]]
     for r in rows:
         line = []

@@ -186,7 +186,8 @@ def simple_physics(ctx: Context) -> Result:
             errs = rollout_errors(tr.model.step, test_d)
             n_par = sum(p.numel() for p in tr.model.parameters())
             rows.append({"method": name, **error_row(errs), "train_seconds": tr.seconds, "lr": tr.lr,
-                         "best_epoch": tr.epochs, "val_loss": tr.val_loss, "parameters": n_par})
+                         "best_epoch": tr.epochs, "val_loss": tr.val_loss, "parameters": n_par,
+                         "stopped_by": tr.per_lr[tr.lr]["stopped_by"], "per_lr": tr.per_lr})
             curves[name] = errs["per_step"]
         ctx.log("simple-physics: Koopman+Int")
         t0 = time.perf_counter()

@@ -171,6 +171,24 @@ def cmd_predict(args: argparse.Namespace) -> None:
               f"(final {errs['quat_final']:.3g})")
 
 
+def cmd_reproduce(args: argparse.Namespace) -> None:
+    from tensegrity_gym.reproduce import run
+
+    if args.seed < 0:
+        raise CommandError(f"--seed must be >= 0, got {args.seed}")
+    if args.json:
+        _check_writable(args.json)
+    if args.out:
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            raise CommandError(f"--out '{args.out}' exists and is not a folder")
+        parent = os.path.dirname(os.path.abspath(args.out))
+        target = args.out if os.path.isdir(args.out) else parent
+        if not os.path.isdir(target) or not os.access(target, os.W_OK):
+            raise CommandError(f"--out '{args.out}': cannot write there (folder missing or not writable)")
+    run(args.experiment, quick=args.quick, seed=args.seed, out=args.out, json_path=args.json,
+        progress=not args.quiet)
+
+
 # ---------------------------------------------------------------------- parser
 class _Parser(argparse.ArgumentParser):
     """argparse with the project's one-line error format (no usage dump)."""
@@ -280,6 +298,21 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--plot", default=None, help="write an error-vs-step PNG here")
     pr.add_argument("--json", action="store_true", help="machine-readable output")
     pr.set_defaults(func=cmd_predict)
+
+    from tensegrity_gym.reproduce import EXPERIMENTS
+
+    rp = sub.add_parser("reproduce", help="rerun one experiment of the paper: every method a row",
+                        description="Rerun one experiment of the paper (Wang et al., L4DC 2020) on data from the "
+                        "plant: print its table, write its figures (--out) and rows (--json). Paper-scale data "
+                        "by default; --quick scales them down to a few minutes on two cores.")
+    rp.add_argument("experiment", choices=tuple(EXPERIMENTS), metavar="EXPERIMENT",
+                    help="one of: " + ", ".join(EXPERIMENTS))
+    rp.add_argument("--quick", action="store_true", help="small data and budgets (minutes, not hours)")
+    rp.add_argument("--seed", type=int, default=0, help="seed of the data and the training (default 0)")
+    rp.add_argument("--json", default=None, metavar="OUT", help='write {"experiment", "rows": [...]} here')
+    rp.add_argument("--out", default=None, metavar="DIR", help="write the PNG figures into this folder")
+    rp.add_argument("--quiet", action="store_true", help="no progress lines")
+    rp.set_defaults(func=cmd_reproduce)
     return p
 
 

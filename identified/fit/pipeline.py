@@ -193,7 +193,8 @@ def select_effects(
     def free_run(m: IdentifiedModel | None) -> float:
         if m is None:
             return float("inf")
-        err = rollout_errors(m, held, horizon=H)["pos_mean"]
+        with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
+            err = rollout_errors(m, held, horizon=H)["pos_mean"]
         return float(err) if np.isfinite(err) else float("inf")
 
     def screen(m: IdentifiedModel | None) -> float:
@@ -263,7 +264,8 @@ def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int 
     s0 = eng.state(*(take(getattr(data, k), 1)[:, 0] for k in ("pos", "quat", "vel", "angvel")))
     with torch.no_grad():
         out = eng.rollout(s0, take(data.rest_length, steps), take(data.push_force, steps), take(data.push_point, steps))
-    err = np.linalg.norm(out.pos.numpy() - take(data.pos, steps + 1), axis=-1).mean()
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverged run is inf, not a warning
+        err = np.linalg.norm(out.pos.numpy() - take(data.pos, steps + 1), axis=-1).mean()
     return float(err) if np.isfinite(err) else float("inf")
 
 

@@ -45,7 +45,9 @@ from identified.rotation import matrix_apply, matrix_apply_transpose
 
 __all__ = ["GroundContact", "read_contact_geometry"]
 
-REGULARISER = 1e-2  # relative, on the diagonal of the contact-space inverse mass
+#: the regulariser ε (relative, on the diagonal of the contact-space inverse mass) is identified
+#: by a profile scan over these values; MuJoCo's own is (1 - d) / d ≈ 0.05 at its default impedance
+EPSILONS = (0.003, 0.01, 0.02, 0.05, 0.1, 0.2)
 LINEAR = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p")
 NL = len(LINEAR)
 
@@ -110,6 +112,7 @@ class GroundContact(Effect):
         ParamBlock("beta_p", "global", mass_scaled=False, unit="1/s"),
         ParamBlock("gamma_p", "global", mass_scaled=False),
         ParamBlock("mu", "global", mass_scaled=False),
+        ParamBlock("epsilon", "global", mass_scaled=False),
     )
     stage = "residual"
     needs_base_acceleration = True
@@ -173,14 +176,14 @@ class GroundContact(Effect):
         return (dirs @ vel.unsqueeze(-1)).squeeze(-1), (dirs @ acc.unsqueeze(-1)).squeeze(-1)
 
     @staticmethod
-    def _inverse(A: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+    def _inverse(A: torch.Tensor, active: torch.Tensor, eps: float | torch.Tensor) -> torch.Tensor:
         """``(A + ε diag A)⁻¹`` restricted to the active contacts of each rod (zero rows and columns
         elsewhere).  Two point contacts on one rod leave its spin about the line through them free:
-        ``A`` is then singular, and the small regulariser ``ε = REGULARISER`` (as MuJoCo's own
+        ``A`` is then singular, and the small regulariser ``ε`` (identified; as MuJoCo's own
         ``R``) picks the least-force solution."""
         m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
         m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
-        A = A + REGULARISER * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
+        A = A + eps * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
         Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
         return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
 
@@ -207,11 +210,13 @@ class GroundContact(Effect):
         flat = g.transpose(-2, -3).reshape(g.shape[:-3] + (K, 6))  # (..., R, K, 6)
         return (flat @ Ainv.transpose(-1, -2)).reshape(g.shape[:-3] + (K, 2, 3)).transpose(-2, -3)
 
-    def _linear_terms(self, state: Any, ctx: Any) -> tuple[dict, torch.Tensor]:
+    def _linear_terms(self, state: Any, ctx: Any, eps: float | None = None) -> tuple[dict, torch.Tensor]:
         """Force per unit of each linear parameter, per contact, in (n, t1, t2) components:
         (..., R, 2, 7, 3); zero where not in contact."""
         c = self.contacts(state, ctx)
-        return c, self._apply(self._inverse(c["A"], c["active"]), self._references(state, ctx, c))
+        if eps is None:  # an unfitted law (a candidate's features): MuJoCo's default regulariser
+            eps = self.theta(state.pos)[NL + 1] if self.values is not None else 0.05
+        return c, self._apply(self._inverse(c["A"], c["active"], eps), self._references(state, ctx, c))
 
     def _to_wrench(self, c: dict, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Contact-frame forces, (..., R, 2, 3) or per parameter (..., R, 2, K, 3), to the rod force
@@ -236,10 +241,10 @@ class GroundContact(Effect):
         together; an end whose normal force comes out pulling is released and the rod solved again."""
         c = self.contacts(state, ctx)
         g = (self._references(state, ctx, c) * th[:NL, None]).sum(-2)  # (..., R, 2, 3)
-        raw = self._apply(self._inverse(c["A"], c["active"]), g)
+        raw = self._apply(self._inverse(c["A"], c["active"], th[NL + 1]), g)
         released = c["active"] & ~(raw[..., 0] > 0)
         if bool(released.any()):
-            raw = self._apply(self._inverse(c["A"], c["active"] & ~released), g)
+            raw = self._apply(self._inverse(c["A"], c["active"] & ~released, th[NL + 1]), g)
         return c, raw
 
     @staticmethod
@@ -286,31 +291,32 @@ class GroundContact(Effect):
         ctx = ctx._replace(rot=sub(ctx.rot), angvel_body=sub(ctx.angvel_body), base_lin_acc=sub(ctx.base_lin_acc),
                            base_ang_acc_body=sub(ctx.base_ang_acc_body))
         force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
-        c, terms = self._linear_terms(state, ctx)
-        F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
         scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
-        X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
         Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
         g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
-        if X.shape[0] < 50:
+        if Y.shape[0] < 50 * 6:
             raise ValueError("too few contact rows to identify ground_contact")
-        keep = np.ones(len(Y), dtype=bool)
-        theta = np.linalg.lstsq(X, Y, rcond=None)[0]
-        best = (np.inf, None, 1.0)
+        best = (np.inf, None, None, None, None)
         with torch.no_grad():
-            cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0]])))
-            for mu in np.geomspace(0.05, 3.0, 40):
-                Fm, Tm = self._to_wrench(cc, self._bound(raw, float(mu)))
-                r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
-                sse = float(r @ r)
-                if sse < best[0]:
-                    best = (sse, r, mu)
-        sse, r, mu = best
-        cov = _cluster_cov(X[keep], Y[keep] - X[keep] @ theta, g[keep])
-        self.values = np.concatenate([theta, [mu]])
-        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan]])  # μ: profile scan
+            for eps in EPSILONS:  # profile over the regulariser: a linear fit and a μ scan for each
+                c, terms = self._linear_terms(state, ctx, eps)
+                F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
+                X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
+                theta = np.linalg.lstsq(X, Y, rcond=None)[0]
+                cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0, eps]])))
+                for mu in np.geomspace(0.05, 3.0, 40):
+                    Fm, Tm = self._to_wrench(cc, self._bound(raw, float(mu)))
+                    r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
+                    sse = float(r @ r)
+                    if sse < best[0]:
+                        best = (sse, theta, mu, eps, X)
+        sse, theta, mu, eps, X = best
+        cov = _cluster_cov(X, Y - X @ theta, g)
+        self.values = np.concatenate([theta, [mu, eps]])
+        # μ and ε: profile scans, no standard error (null in the JSON)
+        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan]])
         return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
-                "mu_profile": "scan over 0.05..3 (no standard error)"}
+                "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(EPSILONS)} (no standard errors)"}
 
 
 def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:

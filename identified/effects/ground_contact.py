@@ -298,7 +298,8 @@ class GroundContact(Effect):
             raise ValueError("too few contact rows to identify ground_contact")
         best = (np.inf, None, None, None, None)
         with torch.no_grad():
-            for eps in EPSILONS:  # profile over the regulariser: a linear fit and a μ scan for each
+            grid = [float(self.options["epsilon"])] if "epsilon" in self.options else EPSILONS
+            for eps in grid:  # profile over the regulariser: a linear fit and a μ scan for each
                 c, terms = self._linear_terms(state, ctx, eps)
                 F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
                 X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
@@ -316,7 +317,7 @@ class GroundContact(Effect):
         # μ and ε: profile scans, no standard error (null in the JSON)
         self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan]])
         return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
-                "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(EPSILONS)} (no standard errors)"}
+                "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(grid)} (no standard errors)"}
 
 
 def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:

@@ -144,11 +144,14 @@ def _metric(horizon_s: float) -> str:
             "from every held-out episode's recorded initial state")
 
 
-def _build(names: Sequence[str], topo: Topology, mjcf: str) -> list[Effect]:
+def _build(names: Sequence[str], topo: Topology, mjcf: str,
+           fixed: dict[str, dict[str, Any]] | None = None) -> list[Effect]:
+    """Unfitted effects by label (``name`` or ``name:variant``), with options ``fixed`` per label."""
     out = []
     for label in names:
         eff = make_effect(label.split(":")[0], topo, mjcf)
         eff.options.update(VARIANTS.get(label, {}))
+        eff.options.update((fixed or {}).get(label, {}))
         out.append(eff)
     return out
 
@@ -184,9 +187,13 @@ def select_effects(
             continue  # e.g. no ground plane: ground contact cannot be there
         candidates.append(name)
 
+    # settings of a chosen effect found by its own profile scan (the contact regulariser) are kept
+    # for the later rounds' refits
+    fixed: dict[str, dict[str, Any]] = {}
+
     def fit(names: list[str]) -> IdentifiedModel | None:
         try:
-            return identify(train, topo, effects=_build(names, topo, mjcf), **fit_kwargs)
+            return identify(train, topo, effects=_build(names, topo, mjcf, fixed), **fit_kwargs)
         except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
             return None
 
@@ -237,6 +244,9 @@ def select_effects(
                      "screen": f"held-out error over {max(1, H // 10)}-step windows (m)"})
         chosen.append(best)
         base_err, base_model = err, fits[best]
+        for e in base_model.effects:
+            if e["name"] == "ground_contact" and e["parameters"].get("epsilon") is not None:
+                fixed[best] = {"epsilon": e["parameters"]["epsilon"]}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
     if bar is not None:

@@ -11,7 +11,9 @@ arrays.  Either way the fields are the same four, world frame, SI units:
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -20,13 +22,34 @@ __all__ = ["RodState"]
 _WIDTHS = (("pos", 3), ("quat", 4), ("vel", 3), ("angvel", 3))
 
 
-class RodState(NamedTuple):
-    """Rod states (see the module docstring): numpy arrays or torch tensors, (..., R, ·) each."""
+@dataclass(eq=False)
+class RodState:
+    """Rod states (see the module docstring): numpy arrays or torch tensors, (..., R, ·) each.
+
+    A mutable record (``s.angvel = ...``, ``s.pos += noise``) that also behaves as the 4-tuple
+    ``(pos, quat, vel, angvel)``: it unpacks, iterates, indexes and has ``_replace``, as the
+    engine's named tuple did.
+    """
 
     pos: Any
     quat: Any
     vel: Any
     angvel: Any
+
+    _fields = ("pos", "quat", "vel", "angvel")
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter((self.pos, self.quat, self.vel, self.angvel))
+
+    def __len__(self) -> int:
+        return 4
+
+    def __getitem__(self, i: int) -> Any:
+        return (self.pos, self.quat, self.vel, self.angvel)[i]
+
+    def _replace(self, **changes: Any) -> RodState:
+        """A new state with the given fields replaced (the named-tuple spelling of ``dataclasses.replace``)."""
+        return replace(self, **changes)
 
     def copy(self) -> RodState:
         """A copy whose arrays (or tensors) the caller may change."""
@@ -46,3 +69,5 @@ class RodState(NamedTuple):
         if np.any(np.linalg.norm(out[1], axis=-1) < 1e-9):
             raise ValueError("RodState.quat has a zero quaternion")
         return RodState(*out)
+
+

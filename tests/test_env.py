@@ -65,7 +65,7 @@ class FakeBackend(Backend):
         self.targets.append(np.array(target_rest))
         self.substeps.append(n_substeps)
         self._n += 1
-        self._s = self._s._replace(pos=self._s.pos + n_substeps * self.drift)
+        self._s.pos = self._s.pos + n_substeps * self.drift
         self._s.vel[:] = self.drift / self.dt
         self._rest[self.actuated_index] = target_rest  # an infinitely fast motor
 

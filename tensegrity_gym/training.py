@@ -163,7 +163,8 @@ class TrainConfig:
 
 @dataclass
 class TrainResult:
-    """What a training run did: where the policy went, how long, and the last episodes' figures."""
+    """What a training run did: where the policy went, how long, and the last episodes' figures;
+    ``model`` (the SB3 algorithm) and ``vecnormalize`` (its observation normaliser) in memory."""
 
     path: str
     timesteps: int
@@ -173,6 +174,8 @@ class TrainResult:
     mean_progress_m: float | None
     env_steps_per_s: float
     config: dict[str, Any]
+    model: Any = field(default=None, repr=False)
+    vecnormalize: Any = field(default=None, repr=False)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -483,6 +486,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         mean_progress_m=float(np.mean(prog)) if prog else None,
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
+        model=model, vecnormalize=venv,
     )
 
 

@@ -329,7 +329,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--envs", type=int, default=None, metavar="K",
                    help="envs stepped in parallel (default: ppo 32 on the twin, 8 on the plant; sac 8 / 4)")
     t.add_argument("--rollout", type=int, default=16_384, metavar="N",
-                   help="ppo: transitions per update over all envs (default 16384 = 2048 x 8)")
+                   help="ppo: transitions per update over all envs (default 16384 = 2048 x 8; a shorter run "
+                   "makes one rollout of its length)")
     t.add_argument("--episode-steps", type=int, default=1000, metavar="T",
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")

@@ -106,7 +106,8 @@ class TrainConfig:
             ``plant=True`` it only names the plant (the MJCF it was fitted against).
         plant: train on the MuJoCo plant instead (SubprocVecEnv).
         envs: envs stepped in parallel (``None``: 32 twins or 8 plants for PPO, 8 or 4 for SAC).
-        rollout: PPO transitions per update over all envs (rounded up to a multiple of ``envs``).
+        rollout: PPO transitions per update over all envs (rounded up to a multiple of ``envs``; a
+            run of fewer ``timesteps`` makes one rollout of that many).
         episode_steps: time limit of an episode in control steps (the registration's 1000).
         threads: torch intra-op threads while training (restored afterwards).
         tensorboard: folder for TensorBoard logs (needs the ``tensorboard`` package).
@@ -150,7 +151,8 @@ class TrainConfig:
         """The algorithm's keyword arguments: the defaults above, the rollout, the overrides."""
         if self.algo == "ppo":
             hp = dict(PPO_HYPERPARAMETERS)
-            hp["n_steps"] = -(-int(self.rollout) // self.n_envs)  # ceil: at least the rollout
+            # ceil: at least the rollout; a run shorter than one rollout is one rollout of its length
+            hp["n_steps"] = -(-min(int(self.rollout), int(self.timesteps)) // self.n_envs)
             hp.update(self.hyperparameters)
             hp["batch_size"] = min(int(hp["batch_size"]), hp["n_steps"] * self.n_envs)
         else:

@@ -93,19 +93,17 @@ def test_train_on_twin_end_to_end_never_steps_mujoco(robot, tmp_path, monkeypatc
         plant.step(plant.action_space.sample())
 
 
-def test_training_is_deterministic_with_a_seed(robot, trained, tmp_path):
-    def params(model):
-        return [p.detach().numpy().copy() for p in model.policy.parameters()]
+def test_training_is_deterministic_with_a_seed(robot, tmp_path):
+    def run(seed, name):
+        cfg = TrainConfig(timesteps=64, seed=seed, identified=str(robot["twin"]), envs=2, rollout=32)
+        r = train(cfg, tmp_path / name, progress=False)
+        return [p.detach().numpy().copy() for p in r.model.policy.parameters()], r.vecnormalize.obs_rms.mean
 
-    cfg = TrainConfig(timesteps=256, seed=3, identified=str(robot["twin"]), envs=4, rollout=128)
-    again = train(cfg, tmp_path / "again.zip", progress=False)
-    for a, b in zip(params(trained.model), params(again.model), strict=True):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(trained.vecnormalize.obs_rms.mean, again.vecnormalize.obs_rms.mean)
-    cfg.seed = 4
-    other = train(cfg, tmp_path / "other.zip", progress=False)
-    assert any(not np.array_equal(a, b) for a, b in
-               zip(params(trained.model), params(other.model), strict=True))
+    (a, mean_a), (b, mean_b), (c, _) = run(3, "a.zip"), run(3, "b.zip"), run(4, "c.zip")
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(mean_a, mean_b)
+    assert any(not np.array_equal(x, z) for x, z in zip(a, c, strict=True))
 
 
 def test_saved_and_loaded_policy_gives_the_same_actions(trained, robot):
@@ -249,3 +247,41 @@ def test_interrupt_keeps_the_last_complete_checkpoint(robot, tmp_path, monkeypat
     assert f"checkpoint (step 256) is {ckpt}" in err
     assert not out.exists() and load_policy(ckpt).meta["timesteps"] == 256
     assert sorted(os.listdir(tmp_path)) == ["P.ckpt.zip"]
+
+
+# ---------------------------------------------------------------------- videos
+_VIDEO_SCRIPT = """
+import json, os, sys
+import imageio_ffmpeg
+from tensegrity_gym import gap
+policy, twin, folder = sys.argv[1:4]
+gap.VIDEO_SIZE = 64
+try:
+    r = gap.measure_gap(policy, twin, 1, episode_steps=4, video_dir=folder, progress=False)
+except RuntimeError as exc:
+    if "offscreen rendering is not available" in str(exc):
+        print(json.dumps({"unavailable": str(exc)})); raise SystemExit(0)
+    raise
+out = {}
+for name, path in r["videos"].items():
+    with open(path, "rb") as fh:
+        head = fh.read(12)
+    reader = imageio_ffmpeg.read_frames(path)
+    meta = next(reader)
+    out[name] = {"ftyp": head[4:8].decode("latin-1"), "frames": sum(1 for _ in reader), "size": meta["size"]}
+print(json.dumps({"videos": out, "files": sorted(os.listdir(folder))}))
+"""
+
+
+def test_gap_writes_an_mp4_of_each(trained, robot, tmp_path):
+
+    from tests._render import render_in_subprocess
+
+    folder = tmp_path / "videos"
+    script = f"import sys; sys.argv = ['x', {trained.path!r}, {str(robot['twin'])!r}, {str(folder)!r}]\n"
+    r = render_in_subprocess(script + _VIDEO_SCRIPT)
+    assert r["files"] == ["plant.mp4", "random_plant.mp4", "twin.mp4"]  # nothing temporary left
+    for name in ("twin", "plant", "random_plant"):
+        v = r["videos"][name]
+        assert v["ftyp"] == "ftyp" and v["size"] == [64, 64]
+        assert v["frames"] == 3  # reset, then every 2nd of 4 steps

@@ -429,6 +429,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
             venv = _make_twin_venv(cfg)
             dt = float(venv.venv.dt)
             spaces = (venv.observation_space, venv.action_space)
+        base = venv
         try:
             venv = VecMonitor(venv)
             venv = VecNormalize(venv, norm_obs=True, norm_reward=cfg.algo == "ppo", gamma=hp["gamma"],
@@ -480,7 +481,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         finally:
             # SubprocVecEnv workers must not outlive the run, even on an interrupt
             with _ignore_sigint():
-                venv.close()
+                _close(venv, base)
     rets, prog = list(callback.returns), list(callback.progress)
     return TrainResult(
         path=out, timesteps=int(model.num_timesteps), wall_s=wall, episodes=callback.episodes,
@@ -490,6 +491,18 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
         model=model, vecnormalize=venv,
     )
+
+
+def _close(venv: Any, base: Any) -> None:
+    """Close the env stack; SubprocVecEnv workers that a Ctrl-C already ended (a closed pipe) are
+    terminated instead."""
+    try:
+        venv.close()
+    except (OSError, EOFError):
+        for proc in getattr(base, "processes", []):
+            if proc.is_alive():
+                proc.terminate()
+            proc.join(timeout=5)
 
 
 @contextmanager

@@ -285,3 +285,19 @@ def test_gap_writes_an_mp4_of_each(trained, robot, tmp_path):
         v = r["videos"][name]
         assert v["ftyp"] == "ftyp" and v["size"] == [64, 64]
         assert v["frames"] == 3  # reset, then every 2nd of 4 steps
+
+
+@pytest.mark.parametrize("command,options", [
+    ("train", ["--identified", "--algo", "--timesteps", "--seed", "--out", "--plant", "--envs", "--rollout",
+               "--episode-steps", "--threads", "--tensorboard", "--quiet"]),
+    ("gap", ["--identified", "--policy", "--episodes", "--seed", "--episode-steps", "--json", "--video",
+             "--threads", "--quiet"]),
+])
+def test_help_lists_options(command, options, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([command, "--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"usage: tensegrity {command}")
+    for opt in options:
+        assert opt in text

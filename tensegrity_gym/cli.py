@@ -184,6 +184,8 @@ def cmd_gap(args: argparse.Namespace) -> None:
     _check_readable(args.identified)
     _check_readable(args.policy)
     if args.video is not None:
+        if os.path.exists(args.video) and not os.path.isdir(args.video):
+            raise CommandError(f"--video {args.video}: not a folder")
         _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
     r = measure_gap(args.policy, args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,

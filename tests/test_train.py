@@ -224,6 +224,8 @@ def test_bad_inputs_fail_with_one_line(robot, trained, tmp_path, capsys):
     assert "not a zip" in one_error_line(capsys)
     assert main([*gap, "--policy", trained.path, "--episodes", "0"]) == 2
     assert "--episodes" in one_error_line(capsys)
+    assert main([*gap, "--policy", trained.path, "--video", str(not_zip)]) == 2
+    assert "not a folder" in one_error_line(capsys)
     assert sorted(os.listdir(tmp_path)) == ["junk.zip", "other_space.zip", "pendulum.zip"]
 
 

@@ -30,9 +30,10 @@ import mujoco
 import numpy as np
 import scipy.linalg as sla
 
-from tensegrity_gym.collect import CollectConfig, axis_angle_quat, collect, quat_multiply
+from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
+from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.models import build_model, preset_parameters
-from tensegrity_gym.plant import MujocoPlant, quat_to_mat
+from tensegrity_gym.plant import MujocoPlant
 
 SIGMA = np.repeat([1e-3, 1e-3, 1e-2, 1e-2], 3)  # pos m, orientation rad, vel m/s, angvel rad/s
 
@@ -67,7 +68,7 @@ class Replay:
         qi, vi = self.qadr[:, None] + np.arange(7), self.vadr[:, None] + np.arange(6)
         d.qpos[qi] = x0[:, :7]
         d.qvel[vi[:, :3]] = x0[:, 7:10]
-        d.qvel[vi[:, 3:]] = np.einsum("rji,rj->ri", quat_to_mat(x0[:, 3:7]), x0[:, 10:13])
+        d.qvel[vi[:, 3:]] = np.einsum("rji,rj->ri", quat_to_matrix(x0[:, 3:7]), x0[:, 10:13])
         T = rec.rest_length.shape[1]
         qpos, qvel = np.empty((T + 1,) + qi.shape), np.empty((T + 1,) + vi.shape)
         qpos[0], qvel[0] = d.qpos[qi], d.qvel[vi]
@@ -78,14 +79,14 @@ class Replay:
             f, p = rec.push_force[self.e, t], rec.push_point[self.e, t]
             on = np.flatnonzero(f.any(-1))
             if on.size:
-                lever = np.einsum("rij,rj->ri", quat_to_mat(d.qpos[qi[on, 3:]]), p[on])
+                lever = np.einsum("rij,rj->ri", quat_to_matrix(d.qpos[qi[on, 3:]]), p[on])
                 wrench = np.concatenate([f[on], np.cross(lever, f[on])], -1)
                 d.xfrc_applied[np.array(self.bodies)[on]] = wrench
             mujoco.mj_step(m, d)
             d.xfrc_applied[:] = 0.0
             qpos[t + 1], qvel[t + 1] = d.qpos[qi], d.qvel[vi]
         quat = qpos[..., 3:] / np.linalg.norm(qpos[..., 3:], axis=-1, keepdims=True)
-        angvel = np.einsum("trij,trj->tri", quat_to_mat(quat), qvel[..., 3:])
+        angvel = np.einsum("trij,trj->tri", quat_to_matrix(quat), qvel[..., 3:])
         return np.concatenate([qpos[..., :3], quat, qvel[..., :3], angvel], -1)
 
 
@@ -117,7 +118,7 @@ def episode_factor(rep: Replay, x0: np.ndarray) -> np.ndarray:
                 for s in (1.0, -1.0):
                     x = x0.copy()
                     if kind == 1:
-                        x[i, 3:7] = quat_multiply(axis_angle_quat(s * h * np.eye(3)[a]), x[i, 3:7])
+                        x[i, 3:7] = quat_multiply(quat_exp(s * h * np.eye(3)[a]), x[i, 3:7])
                     else:
                         x[i, {0: 0, 2: 7, 3: 10}[kind] + a] += s * h
                     ys.append(whitened(rep.run(x), ref))

@@ -1,145 +1,182 @@
-"""Twin throughput: TensegrityIco-v0 on the identified engine, single and batched, beside the plant.
+"""Twin throughput: TensegrityIco-v0 on the identified engine beside the MuJoCo plant, quiet and loaded.
 
-    python benchmarks/bench_twin.py [--steps 200] [--batched-steps 20] [--sizes 64 1024]
-                                    [--device cpu] [--repeats 2]
+    python benchmarks/bench_twin.py [--sizes 256 1024] [--steps 200] [--repeats 2] [--no-load]
+                                    [--no-ppo] [--ppo-steps 8192] [--device cpu]
 
-One run, one table (env steps per second; random actions, frame_skip 20, i.e. 20 physics steps
-per env step; resets on episode end count toward the time):
+One run, one table of env steps per second (random actions, frame_skip 20: 20 physics steps per
+env step; resets on episode end count toward the time), every row measured side by side:
 
 * the plant: ``gym.make("TensegrityIco-v0")`` (MuJoCo), single env;
-* the twin: ``gym.make("TensegrityIco-v0", backend="identified")`` with the shipped model, single
-  env, engine in float64 and in float32;
-* the batched twin: ``gym.make_vec(..., num_envs=N, backend="identified")`` for each N, float64
-  and float32: env steps/s = N x batched steps/s (autoreset included); for N > ``--chunk`` also
-  with ``chunk_size=CHUNK`` (blocks of CHUNK envs per engine call);
-* for the batched env, where the time goes: the engine alone (N copies, 20 substeps) and the
-  observation/termination/reward of N envs with the batched functions vs a Python loop over the
-  single-env functions (the choice made in ``tensegrity_gym.envs.vector``).
+* the single twin: ``gym.make("TensegrityIco-v0", backend="identified")`` with the shipped model
+  and the defaults (float32, one intra-op thread, the substep compiled), and the same eager
+  (``compile=False``);
+* the batched twin: ``gym.make_vec(..., num_envs=N, backend="identified")`` for each N, defaults,
+  and the same with torch's own thread setting (``num_threads=None``: 2 threads here) and eager;
+* each row twice: on the machine as it is ("quiet") and with ONE busy process beside it (a
+  Python busy loop started by this script, killed at the end and ending by itself if the script
+  dies),
+  the situation of a laptop with a browser open;
+* SB3 PPO training steps/s (``learn``: rollouts and updates) through
+  :class:`~tensegrity_gym.envs.sb3.SB3VecEnvAdapter`, on the batched twin and on the plant
+  (``gym.make_vec`` of single plants), same PPO settings.
 
-The best of ``--repeats`` runs is reported. Figures depend on the machine and on its load: read
-them side by side, from one run.
+Compilation happens while the envs are built (timed, printed): inductor caches its work on disk, so
+a second run compiles faster. The best of ``--repeats`` runs is reported. The machine's load average
+is printed: on a shared machine the figures move with it; read the ratios, within one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import platform
+import signal
+import subprocess
+import sys
 import time
 import warnings
+from collections.abc import Callable, Iterator
 
 import gymnasium as gym
 import numpy as np
 import torch
 
 import tensegrity_gym  # noqa: F401  (registers the env)
-from tensegrity_gym.envs.tensegrity_ico_v0 import observation, reward_terms, termination_reason
-from tensegrity_gym.envs.vector import batch_observation, batch_reward_terms, batch_termination_reason
-from tensegrity_gym.plant import RodStates
 
 
-def bench_single(steps: int, seed: int = 0, **make_kwargs) -> float:
-    env = gym.make("TensegrityIco-v0", **make_kwargs)
+@contextlib.contextmanager
+def busy_process(on: bool) -> Iterator[None]:
+    """One CPU-bound process beside the benchmark while the block runs (killed after, always)."""
+    if not on:
+        yield
+        return
+    # the busy loop ends by itself if this process dies (its parent changes)
+    proc = subprocess.Popen([sys.executable, "-c", "import os\np = os.getppid()\nwhile os.getppid() == p: pass"])
+    try:
+        time.sleep(0.5)
+        yield
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def single_runner(env: gym.Env, steps: int, seed: int = 0) -> Callable[[], float]:
     rng = np.random.default_rng(seed)
     actions = rng.uniform(-1, 1, (steps,) + env.action_space.shape).astype(np.float32)
     env.reset(seed=seed)
-    env.step(actions[0])  # warm-up
-    t0 = time.perf_counter()
-    for a in actions:
-        _, _, terminated, truncated, _ = env.step(a)
-        if terminated or truncated:
-            env.reset()
-    elapsed = time.perf_counter() - t0
-    env.close()
-    return steps / elapsed
+    env.step(actions[0])  # warm-up (and compilation)
+
+    def run() -> float:
+        env.reset(seed=seed)
+        t0 = time.perf_counter()
+        for a in actions:
+            _, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                env.reset()
+        return steps / (time.perf_counter() - t0)
+
+    return run
 
 
-def bench_batched(n: int, steps: int, dtype: str, device: str, seed: int = 0,
-                  chunk_size: int | None = None) -> float:
-    venv = gym.make_vec("TensegrityIco-v0", num_envs=n, backend="identified", chunk_size=chunk_size,
-                        backend_kwargs={"dtype": dtype, "device": device})
+def batched_runner(venv: gym.vector.VectorEnv, steps: int, seed: int = 0) -> Callable[[], float]:
     rng = np.random.default_rng(seed)
     actions = rng.uniform(-1, 1, (steps,) + venv.action_space.shape).astype(np.float32)
     venv.reset(seed=seed)
-    venv.step(actions[0])  # warm-up
-    t0 = time.perf_counter()
-    for a in actions:
-        venv.step(a)
-    elapsed = time.perf_counter() - t0
-    venv.close()
-    return n * steps / elapsed
+    venv.step(actions[0])  # warm-up (and compilation)
+
+    def run() -> float:
+        venv.reset(seed=seed)
+        t0 = time.perf_counter()
+        for a in actions:
+            venv.step(a)
+        return venv.num_envs * steps / (time.perf_counter() - t0)
+
+    return run
 
 
-def bench_parts(n: int, dtype: str, device: str, seed: int = 0) -> dict[str, float]:
-    """Seconds per batched env step spent in the engine, and in obs/termination/reward batched vs looped."""
-    venv = gym.make_vec("TensegrityIco-v0", num_envs=n, backend="identified",
-                        backend_kwargs={"dtype": dtype, "device": device})
-    venv.reset(seed=seed)
-    e, ph = venv.env, venv.physics
-    ph.step(1)
+def ppo_rate(venv: gym.vector.VectorEnv, total: int, seed: int = 0) -> float:
+    """SB3 PPO ``learn`` steps/s (env steps collected and trained on, per wall second)."""
+    from stable_baselines3 import PPO
+
+    from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
+
+    n = venv.num_envs
+    model = PPO("MlpPolicy", SB3VecEnvAdapter(venv), n_steps=max(8, 1024 // n), batch_size=256,
+                n_epochs=2, seed=seed, device="cpu", verbose=0)
+    model.learn(total_timesteps=n * max(8, 1024 // n))  # warm-up: one rollout and update
     t0 = time.perf_counter()
-    ph.step(e.frame_skip)
-    if device != "cpu":
-        torch.cuda.synchronize()
-    engine = time.perf_counter() - t0
-    pos, quat, vel, angvel = ph.states_numpy()
-    rest = ph.rest_numpy()
-    a = np.random.default_rng(seed).uniform(-1, 1, (n, e.action_space.shape[0]))
-    com0 = pos.mean(axis=1)
-    args = (e.actuated_index, e.rest_min, e.rest_max, e.exclude_current_positions)
-    t0 = time.perf_counter()
-    batch_observation(pos, quat, vel, angvel, rest, *args)
-    batch_termination_reason(pos, quat, vel, angvel, rest, e.healthy_z_range)
-    batch_reward_terms(com0, com0, a, e.dt, e.forward_reward_weight, e.ctrl_cost_weight)
-    batched = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for i in range(n):
-        s = RodStates(pos[i], quat[i], vel[i], angvel[i])
-        observation(s, rest[i], *args)
-        termination_reason(s, rest[i], e.healthy_z_range)
-        reward_terms(com0[i], com0[i], a[i], e.dt, e.forward_reward_weight, e.ctrl_cost_weight)
-    looped = time.perf_counter() - t0
-    venv.close()
-    return {"engine": engine, "batched": batched, "looped": looped}
+    model.learn(total_timesteps=total, reset_num_timesteps=True)
+    return model.num_timesteps / (time.perf_counter() - t0)
 
 
 def main() -> None:
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the finally blocks (kill the load)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 1024], help="batch sizes N")
     ap.add_argument("--steps", type=int, default=200, help="env steps per single-env run")
-    ap.add_argument("--batched-steps", type=int, default=20, help="vector steps per batched run (N=64)")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 1024], help="batch sizes N")
+    ap.add_argument("--batched-steps", type=int, default=2048,
+                    help="env steps (N x vector steps) per batched run, at least 2 vector steps")
+    ap.add_argument("--repeats", type=int, default=2, help="runs per row; the best is reported")
     ap.add_argument("--device", default="cpu", help="torch device of the twin engine (cpu, cuda)")
-    ap.add_argument("--chunk", type=int, default=64,
-                    help="also time N > CHUNK in blocks of CHUNK envs (chunk_size; 0: skip)")
-    ap.add_argument("--repeats", type=int, default=2, help="runs; the best is reported")
+    ap.add_argument("--no-load", action="store_true", help="skip the rows with a busy process")
+    ap.add_argument("--no-ppo", action="store_true", help="skip SB3 PPO")
+    ap.add_argument("--ppo-steps", type=int, default=8192, help="PPO timesteps per measurement")
+    ap.add_argument("--ppo-envs", type=int, default=64, help="batched twin envs for PPO (plant: 8)")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
+    dev = args.device
+    kw = {"dtype": "float32", "device": dev}
 
-    def best(fn, *a, **k) -> float:
-        return max(fn(*a, **k) for _ in range(args.repeats))
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average "
+          f"{os.getloadavg()[0]:.1f}; python {platform.python_version()}, torch {torch.__version__} "
+          f"(global threads {torch.get_num_threads()}), device {dev}")
+    cases: list[tuple[str, Callable[[], float]]] = []
+    t0 = time.perf_counter()
+    cases.append(("plant (MuJoCo), single", single_runner(gym.make("TensegrityIco-v0"), args.steps * 2)))
+    twin = gym.make("TensegrityIco-v0", backend="identified", backend_kwargs=kw)
+    cases.append(("twin, single (defaults)", single_runner(twin, args.steps)))
+    ph = twin.unwrapped.backend.physics
+    print(f"single twin: compiled {ph.compiled}, compile {ph.compile_seconds:.1f} s, threads {ph.num_threads}")
+    cases.append(("twin, single, eager", single_runner(gym.make(
+        "TensegrityIco-v0", backend="identified", backend_kwargs={**kw, "compile": False}), args.steps)))
+    for n in args.sizes:
+        steps = max(2, args.batched_steps // n)
+        for label, extra in (("defaults", {}), ("torch's threads", {"num_threads": None}),
+                             ("eager", {"compile": False})):
+            venv = gym.make_vec("TensegrityIco-v0", num_envs=n, backend="identified",
+                                backend_kwargs={**kw, **extra})
+            cases.append((f"twin, batched N={n}, {label}", batched_runner(venv, steps)))
+            if label == "defaults":
+                print(f"N={n}: compile {venv.physics.compile_seconds:.1f} s")
+    print(f"set-up (env builds, compilation, warm-up): {time.perf_counter() - t0:.0f} s")
 
-    print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}, "
-          f"torch {torch.__version__} ({torch.get_num_threads()} threads), device {args.device}")
-    rows = [("plant (MuJoCo), single", best(bench_single, args.steps * 4))]
-    for dtype in ("float64", "float32"):
-        rows.append((f"twin {dtype}, single",
-                     best(bench_single, args.steps, backend="identified",
-                          backend_kwargs={"dtype": dtype, "device": args.device})))
-    for n in args.sizes:
-        steps = max(2, args.batched_steps * 64 // n)
-        for dtype in ("float64", "float32"):
-            rows.append((f"twin {dtype}, batched N={n}", best(bench_batched, n, steps, dtype, args.device)))
-        if args.chunk and n > args.chunk:
-            rows.append((f"twin float64, batched N={n}, chunks of {args.chunk}",
-                         best(bench_batched, n, steps, "float64", args.device, chunk_size=args.chunk)))
-    plant = rows[0][1]
-    print(f"{'TensegrityIco-v0 (frame_skip 20)':46s} {'env steps/s':>12s} {'vs plant':>9s}")
-    for name, sps in rows:
-        print(f"{name:46s} {sps:12,.0f} {sps / plant:8.2f}x")
-    for n in args.sizes:
-        p = bench_parts(n, "float64", args.device)
-        print(f"N={n} float64, per batched step: engine (20 substeps) {p['engine'] * 1e3:,.1f} ms; "
-              f"obs+termination+reward batched {p['batched'] * 1e3:,.2f} ms, looped over N "
-              f"{p['looped'] * 1e3:,.1f} ms")
+    conditions = ["quiet"] + ([] if args.no_load else ["1 busy process"])
+    table: dict[str, dict[str, float]] = {name: {} for name, _ in cases}
+    for cond in conditions:
+        with busy_process(cond != "quiet"):
+            load = os.getloadavg()[0]
+            for name, run in cases:
+                table[name][cond] = max(run() for _ in range(args.repeats))
+        print(f"{cond}: load average {load:.1f} at the start")
+
+    head = f"{'TensegrityIco-v0, env steps/s':40s}" + "".join(f"{c:>16s} {'vs plant':>9s}" for c in conditions)
+    print(head)
+    plant = table[cases[0][0]]
+    for name, _ in cases:
+        row = table[name]
+        print(f"{name:40s}" + "".join(f"{row[c]:16,.0f} {row[c] / plant[c]:8.2f}x" for c in conditions))
+
+    if not args.no_ppo:
+        for cond in conditions:
+            with busy_process(cond != "quiet"):
+                twin_v = gym.make_vec("TensegrityIco-v0", num_envs=args.ppo_envs, backend="identified",
+                                      backend_kwargs=kw)
+                plant_v = gym.make_vec("TensegrityIco-v0", num_envs=8)
+                r_twin = ppo_rate(twin_v, args.ppo_steps)
+                r_plant = ppo_rate(plant_v, args.ppo_steps)
+            print(f"SB3 PPO learn, {cond}: twin (batched, N={args.ppo_envs}) {r_twin:,.0f} steps/s; "
+                  f"plant (8 envs, SyncVectorEnv) {r_plant:,.0f} steps/s; ratio {r_twin / r_plant:.2f}x")
 
 
 if __name__ == "__main__":

@@ -108,21 +108,26 @@ class Dataset:
         return self
 
 
+#: largest magnitude (SI units) a recorded value may have: beyond it a fit can only fail numerically
+PLAUSIBLE = {"pos": 1e6, "quat": 2.0, "vel": 1e6, "angvel": 1e6, "command": 1e6, "rest_length": 1e6,
+             "push_force": 1e9, "push_point": 1e6}
 _STATE_KEYS = ("pos", "quat", "vel", "angvel")
 _STEP_KEYS = ("command", "rest_length", "push_force", "push_point")
 
 
 def _validate(d: Dataset) -> None:
-    if not (np.isfinite(d.dt) and d.dt > 0):
-        raise DatasetError(f"'dt' must be a positive finite time step, got {d.dt}")
-    if np.shape(d.gravity) != (3,) or not np.all(np.isfinite(d.gravity)):
-        raise DatasetError(f"'gravity' must be 3 finite numbers, got {d.gravity}")
+    if not (np.isfinite(d.dt) and 0 < d.dt <= 10):
+        raise DatasetError(f"'dt' must be a positive finite time step (at most 10 s), got {d.dt}")
+    if np.shape(d.gravity) != (3,) or not np.all(np.abs(d.gravity) <= 1e3):
+        raise DatasetError(f"'gravity' must be 3 finite numbers (at most 1e3 m/s^2), got {d.gravity}")
     if d.pos.ndim != 4:
         raise DatasetError(f"'pos' must have shape (E, T+1, R, 3), got {d.pos.shape}")
     E, T1, R, _ = d.pos.shape
     S, A = len(d.tendon_names), len(d.actuated_names)
     if T1 < 2:
         raise DatasetError("the dataset holds fewer than 2 instants per episode: no step to learn from")
+    if E < 1 or R < 1:
+        raise DatasetError(f"the dataset holds {E} episodes of {R} rods: nothing to learn from")
     if R != len(d.rod_names):
         raise DatasetError(f"'pos' has {R} rods but 'rod_names' names {len(d.rod_names)}")
     if not set(d.actuated_names) <= set(d.tendon_names):
@@ -145,6 +150,15 @@ def _validate(d: Dataset) -> None:
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             raise DatasetError(f"'{key}' holds a non-finite value ({arr[idx]}) at index {idx}")
+        big = np.abs(arr) > PLAUSIBLE[key]
+        if big.any():
+            idx = tuple(int(i) for i in np.argwhere(big)[0])
+            raise DatasetError(f"'{key}' holds {arr[idx]:.3g} at index {idx}: beyond any plausible value "
+                               f"(|x| <= {PLAUSIBLE[key]:g} in SI units)")
+    noise = np.asarray(d.noise, dtype=float)
+    if noise.shape != (4,) or not np.all(np.isfinite(noise)) or np.any(noise < 0) or noise[2] > np.pi:
+        raise DatasetError(f"'noise' must be 4 finite standard deviations >= 0 (pos, vel, quat <= pi, angvel), "
+                           f"got {noise.tolist()}")
     norm = np.linalg.norm(d.quat, axis=-1)
     tol = max(QUAT_TOL, 6.0 * float(d.noise[2]))
     off = np.abs(norm - 1.0) > tol
@@ -176,9 +190,27 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
         raise
     except FileNotFoundError:
         raise DatasetError(f"dataset '{p}' does not exist") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except ValueError as exc:
+        if "pickle" in str(exc):  # numpy's advice to load it unsafely as a pickle is not for a dataset
+            raise DatasetError(f"'{p}' is not an .npz dataset (neither a zip archive nor a numpy array)") from None
         raise DatasetError(f"'{p}' is not a readable .npz dataset (truncated or foreign): {exc}") from None
-    d = Dataset(
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise DatasetError(f"'{p}' is not a readable .npz dataset (truncated or foreign): {exc}") from None
+    try:
+        d = _from_arrays(arrays)
+    except (TypeError, ValueError, OverflowError) as exc:  # names not a list, dt or seed not a number
+        raise DatasetError(f"'{p}': a key has the wrong type ({exc})") from None
+    try:
+        return d.validate()
+    except DatasetError as exc:
+        raise DatasetError(f"'{p}': {exc}") from None
+
+
+def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
+    for k in ("rod_names", "tendon_names", "actuated_names"):
+        if np.ndim(arrays[k]) != 1:
+            raise TypeError(f"'{k}' must be a list of names, got an array of shape {np.shape(arrays[k])}")
+    return Dataset(
         dt=float(arrays["dt"]),
         gravity=np.asarray(arrays["gravity"], dtype=np.float64),
         rod_names=tuple(str(x) for x in arrays["rod_names"]),
@@ -188,7 +220,6 @@ def load_dataset(path: str | os.PathLike) -> Dataset:
         seed=int(arrays.get("seed", -1)),
         **{k: np.asarray(arrays[k], dtype=np.float64) for k in (*_STATE_KEYS, *_STEP_KEYS)},
     )
-    return d.validate()
 
 
 def save_dataset(path: str | os.PathLike, d: Dataset) -> None:
@@ -216,7 +247,10 @@ def atomic_write(path: str | os.PathLike, writer, binary: bool = False) -> None:
     folder = os.path.dirname(p)
     if not os.path.isdir(folder):
         raise OSError(f"cannot write '{path}': folder '{folder}' does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(p), dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(p), dir=folder)
+    except OSError as exc:  # name the user's path, not the temporary file's
+        raise OSError(f"cannot write '{path}': {exc.strerror or exc}") from None
     try:
         umask = os.umask(0)
         os.umask(umask)
@@ -224,9 +258,11 @@ def atomic_write(path: str | os.PathLike, writer, binary: bool = False) -> None:
         with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"encoding": "utf-8"})) as fh:
             writer(fh)
         os.replace(tmp, p)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(exc, OSError) and tmp in str(exc):
+            raise OSError(f"cannot write '{path}': {exc.strerror or exc}") from None
         raise

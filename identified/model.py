@@ -1,6 +1,6 @@
 """The identified model: physical parameters a person reads, stored as JSON.
 
-Keys (DESIGN.md): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, damping,
+Keys (README, "Identified model"): ``rods`` (name, mass, inertia), ``springs`` (name, stiffness, damping,
 rest_length), ``control_scale`` (h), ``effects`` (name and parameters of every added effect),
 ``metrics`` (fit error, data used).  Besides these, ``topology`` stores the geometry the engine
 needs (rod attachment points, which sites each spring joins), so that the twin stands on its own,
@@ -19,9 +19,11 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import atomic_write
+from identified.jsonsafe import json_safe
 from identified.topology import Rod, Spring, Topology
 
-__all__ = ["IdentifiedModel", "ModelFileError", "load_model", "save_model"]
+__all__ = ["KNOWN_EFFECTS", "IdentifiedModel", "ModelFileError", "check_effect_objects", "load_model", "save_model",
+           "validate_fields"]
 
 FORMAT = "tensegrity-identified/1"
 INTEGRATORS = ("euler", "implicit", "rk4")  # as identified.engine.integration.INTEGRATORS
@@ -46,7 +48,8 @@ class IdentifiedModel:
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     stderr: dict[str, np.ndarray] = field(default_factory=dict)  # same keys/shapes as the values
     scale: dict[str, Any] = field(default_factory=dict)
-    effects: list[dict[str, Any]] = field(default_factory=list)
+    effects: list[dict[str, Any]] = field(default_factory=list)  # {name, parameters, stderr, options}
+    loop: list[dict[str, Any]] = field(default_factory=list)  # effect search: added, error before/after
     metrics: dict[str, Any] = field(default_factory=dict)
     source_model: str | None = None
     integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
@@ -67,8 +70,16 @@ class IdentifiedModel:
         lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")
+        from identified.effects import effect_from_json
+
         for e in self.effects:
-            lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+            try:
+                lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe())
+            except ValueError:
+                lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+        for step in self.loop:
+            lines.append(f"loop: added {step.get('added')}: held-out error {step.get('error_before'):.4g} m -> "
+                         f"{step.get('error_after'):.4g} m")
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ JSON
@@ -109,6 +120,7 @@ class IdentifiedModel:
             ],
             "control_scale": {"value": float(self.control_scale), "stderr": err("control_scale", None)},
             "effects": self.effects,
+            "loop": self.loop,
             "metrics": self.metrics,
             "scale": self.scale,
             "dt": float(self.dt),
@@ -173,13 +185,14 @@ class IdentifiedModel:
                 stderr=stderr,
                 scale=dict(obj.get("scale", {})),
                 effects=list(obj.get("effects", [])),
+                loop=list(obj.get("loop", [])),
                 metrics=dict(obj.get("metrics", {})),
                 source_model=obj.get("source_model"),
                 integrator=str(obj.get("integrator", "euler")),
             )
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
             raise ModelFileError(f"malformed identified model: {type(exc).__name__}: {exc}") from None
         model.validate()
         return model
@@ -198,18 +211,27 @@ class IdentifiedModel:
             raise ModelFileError(f"'integrator' is '{self.integrator}', expected one of {', '.join(INTEGRATORS)}")
         if np.any(self.mass <= 0) or np.any(self.inertia[:, :2] <= 0):
             raise ModelFileError("rod masses and transverse inertias must be positive")
+        from identified.effects import effect_from_json
+
+        for e in self.effects:
+            if not isinstance(e, dict):
+                raise ModelFileError("'effects' must hold objects {name, parameters, stderr, options}")
+            try:
+                effect_from_json(e, R, S)
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ModelFileError(f"effect '{e.get('name')}': {exc}") from None
 
 
 def _pm(se: np.ndarray | None, idx) -> str:
     if se is None:
         return ""
     v = np.asarray(se)[idx] if idx is not None else np.asarray(se)
-    return f" ± {float(v):.2g}"
+    return f" ± {float(v):.2g}" if np.all(np.isfinite(v)) else " ± not estimable"
 
 
 def save_model(path: str | os.PathLike, model: IdentifiedModel) -> None:
     """Write the model as JSON atomically."""
-    text = json.dumps(model.to_json(), indent=2, allow_nan=False)
+    text = json.dumps(json_safe(model.to_json()), indent=2, allow_nan=False)
     atomic_write(path, lambda fh: fh.write(text + "\n"))
 
 
@@ -226,6 +248,55 @@ def load_model(path: str | os.PathLike) -> IdentifiedModel:
     if not isinstance(obj, dict):
         raise ModelFileError(f"'{p}' is not an identified model (top level is not an object)")
     try:
-        return IdentifiedModel.from_json(obj)
+        model = IdentifiedModel.from_json(obj)
+        validate_fields(model)
     except ModelFileError as exc:
         raise ModelFileError(f"'{p}': {exc}") from None
+    return model
+
+
+#: the effects an identified model may list (DESIGN.md, "Files")
+KNOWN_EFFECTS = ("ground_contact", "linear_drag", "quadratic_drag", "cable_friction", "cable_slack",
+                 "constant_force", "actuator_lag")
+
+
+def validate_fields(model: IdentifiedModel) -> None:
+    """Check the values a loaded model steps with; raise ModelFileError naming the field.
+
+    ``dt`` positive and finite, ``gravity`` three finite numbers, every mass and moment of inertia
+    positive, stiffness, damping, rest lengths and the control scale finite (rest lengths >= 0),
+    every effect a known name.
+    """
+    if not (np.isfinite(model.dt) and model.dt > 0):
+        raise ModelFileError(f"'dt' must be a positive, finite time step, got {model.dt}")
+    g = np.asarray(model.gravity, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ModelFileError(f"'gravity' must be 3 finite numbers, got {g.tolist()}")
+    if not np.isfinite(model.control_scale):
+        raise ModelFileError(f"'control_scale' must be finite, got {model.control_scale}")
+    for i, r in enumerate(model.topology.rods):
+        if not model.mass[i] > 0:
+            raise ModelFileError(f"rod '{r.name}': mass {model.mass[i]:.4g} kg is not positive")
+        for a, axis in enumerate(("x", "y", "z")):
+            if not model.inertia[i, a] > 0:
+                raise ModelFileError(f"rod '{r.name}': inertia about {axis} {model.inertia[i, a]:.4g} kg m^2 "
+                                     "is not positive")
+    if np.any(model.rest_length < 0):
+        raise ModelFileError("'rest_length' holds a negative value")
+    if not isinstance(model.effects, list):
+        raise ModelFileError("'effects' must be a list")
+    for e in model.effects:
+        name = e.get("name") if isinstance(e, dict) else None
+        if name not in KNOWN_EFFECTS:
+            raise ModelFileError(f"unknown effect {name!r} (known: {', '.join(KNOWN_EFFECTS)})")
+
+
+def check_effect_objects(effects: list) -> None:
+    """Raise ValueError for an engine effect that is not one (a name, a number): before any step."""
+    for k, e in enumerate(effects):
+        if isinstance(e, str):
+            why = ("an effect's name: pass the effect object" if e in KNOWN_EFFECTS
+                   else f"an unknown name (known effects: {', '.join(KNOWN_EFFECTS)})")
+            raise ValueError(f"effects[{k}] = {e!r} is {why}")
+        if not callable(e):
+            raise ValueError(f"effects[{k}] = {e!r} is not an effect (a callable (state, ctx) -> (force, torque))")

@@ -6,7 +6,7 @@ dead-band ``springlength="0 L"``) and which cables are actuated.  The physical p
 in the file (stiffness, damping, masses, inertias, rest lengths) are never read: identification
 must find them from data.
 
-MJCF conventions (see DESIGN.md):
+MJCF conventions (:mod:`identified.mjcf`, which parses the file for this module):
 
 * every rod is a top-level ``<body>`` with a ``<freejoint>``; its centre of mass is the body origin;
 * rod end points are ``<site>`` elements of the rod body;
@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Rod", "Spring", "Topology", "TopologyError"]
+from identified.mjcf import ACTUATED_KEY, custom_entries, is_free_body, parse_mjcf, read_mjcf_text
+from identified.rotation import quat_to_matrix
 
-ACTUATED_KEY = "tensegrity_actuated"
+__all__ = ["Rod", "Spring", "Topology", "TopologyError"]
 
 
 class TopologyError(ValueError):
@@ -122,11 +123,18 @@ class Topology:
     @classmethod
     def from_mjcf(cls, source: str | os.PathLike) -> Topology:
         """Read the topology from an MJCF path or XML string (structure and geometry only)."""
-        text = _read_text(source)
-        try:
-            root = ET.fromstring(text)
-        except ET.ParseError as exc:
-            raise TopologyError(f"not a valid MJCF/XML file: {exc}") from None
+        text = read_mjcf_text(source, TopologyError)
+        if not os.fspath(source).lstrip().startswith("<"):
+            try:  # name the user's file in every error
+                return cls._from_text(text)
+            except TopologyError as exc:
+                msg = str(exc)
+                raise TopologyError(msg if str(source) in msg else f"'{source}': {msg}") from None
+        return cls._from_text(text)
+
+    @classmethod
+    def _from_text(cls, text: str) -> Topology:
+        root = parse_mjcf(text, TopologyError)
         if root.tag != "mujoco":
             raise TopologyError(f"not an MJCF file: root element is <{root.tag}>, expected <mujoco>")
         world = root.find("worldbody")
@@ -137,11 +145,7 @@ class Topology:
         site_where: dict[str, tuple[int, np.ndarray]] = {}  # site -> (rod index or -1, offset)
         _collect_world_sites(world, np.zeros(3), np.eye(3), site_where)
         for body in world.findall("body"):
-            free = body.find("freejoint")
-            if free is None:
-                joint = body.find("joint")
-                free = joint if joint is not None and joint.get("type") == "free" else None
-            if free is None:
+            if not is_free_body(body):
                 _collect_world_sites(body, *_frame(body), site_where, static=True)
                 continue
             name = body.get("name")
@@ -203,17 +207,6 @@ class Topology:
 
 
 # ---------------------------------------------------------------------- XML helpers
-def _read_text(source: str | os.PathLike) -> str:
-    s = os.fspath(source)
-    if s.lstrip().startswith("<"):
-        return s
-    try:
-        with open(s, encoding="utf-8") as fh:
-            return fh.read()
-    except OSError as exc:
-        raise TopologyError(f"cannot read model file '{s}': {exc.strerror}") from None
-
-
 def _vec(text: str | None, n: int) -> np.ndarray:
     if text is None:
         return np.zeros(n)
@@ -229,15 +222,7 @@ def _frame(body: ET.Element) -> tuple[np.ndarray, np.ndarray]:
     q = _vec(body.get("quat"), 4) if body.get("quat") else np.array([1.0, 0, 0, 0])
     if any(body.get(k) for k in ("euler", "axisangle", "xyaxes", "zaxis")):
         raise TopologyError(f"static body '{body.get('name')}' must give its orientation as quat")
-    w, x, y, z = q / np.linalg.norm(q)
-    rot = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    return pos, rot
+    return pos, quat_to_matrix(q)
 
 
 def _collect_world_sites(
@@ -269,10 +254,5 @@ def _is_deadband(t: ET.Element, name: str) -> bool:
 
 
 def _actuated_names(root: ET.Element) -> set[str]:
-    custom = root.find("custom")
-    if custom is None:
-        return set()
-    for t in custom.findall("text"):
-        if t.get("name") == ACTUATED_KEY:
-            return set((t.get("data") or "").split())
-    return set()
+    texts, _ = custom_entries(root)
+    return set(texts.get(ACTUATED_KEY, "").split())

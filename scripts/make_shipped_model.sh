@@ -14,18 +14,11 @@
 # (tensegrity_gym.models.build_model("ico", "robot"); used for geometry, motors, the nominal
 # keyframe and drawing only, never for parameters).
 #
-# KNOWN BIAS (until ground contact is an engine effect, a later issue): the robot stands and rolls
-# on the ground, and most of the recorded motion is in contact with it. The spring-rod model has no
-# ground, so the fit explains the ground's reaction forces with cable, mass and push parameters:
-# the shipped parameters are biased (stiffness and damping several times too low, axial inertias
-# near zero or negative, the push scale h well below 1; `tensegrity diagnose` shows the residual).
-# Without a ground the twin also falls through the floor and the env ends the episode
-# ("collapsed") after about 0.25 s. It is the model of the plant this data supports today, shipped
-# so that the twin works out of the box; rerun this script once the fit has a contact effect.
-#
-# Scale: the fit fixes the global scale with the robot's total mass (6 rods x 3.5 kg = 21 kg, what
-# one weighs on the real robot) instead of trusting the push magnitudes in newtons, because the
-# ground takes up a good part of every push and would bias that anchor most (masses of grams).
+# The fit runs the effect search (--effects auto): on the robot's data it adds ground_contact (the
+# rods' capsules on the ground plane, identified from the data, never read from the MJCF), which
+# leaves the spring-rod parameters exact (the equations of rods away from the ground are
+# contact-free) and lets the twin stand and roll. The scale comes from the pushes, recorded in
+# newtons.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -37,11 +30,11 @@ mkdir -p "$WORK" identified/data
 
 echo "== 1. model: the ico/robot preset"
 $T model ico --preset robot --out "$WORK/robot.xml"
-echo "== 2. collect: 10 episodes x 2000 steps (2 s each), a push every 200 steps"
-$T collect --model "$WORK/robot.xml" --episodes 10 --steps 2000 --seed 0 --push-every 200 \
+echo "== 2. collect: 10 episodes x 3000 steps (3 s each: long enough for the random commands to roll it), a push every 200 steps"
+$T collect --model "$WORK/robot.xml" --episodes 10 --steps 3000 --seed 0 --push-every 200 \
     --out "$WORK/robot.npz"
-echo "== 3. fit: one K, c per cable and one M, I per rod; scale from the total mass"
-$T fit "$WORK/robot.npz" --model "$WORK/robot.xml" --total-mass 21 --out "$WORK/robot.json" --quiet
+echo "== 3. fit: one K, c per cable and one M, I per rod, and the effects the data show"
+$T fit "$WORK/robot.npz" --model "$WORK/robot.xml" --effects auto --out "$WORK/robot.json" --quiet
 echo "== 4. source_model -> preset:ico/robot (resolves on a fresh clone)"
 $PY - "$WORK/robot.json" "$OUT" <<'EOF'
 import sys

@@ -6,7 +6,8 @@ within bounds (per step of length dt):
     rest' = clip(rest + clip(target - rest, -v dt, +v dt), rest_min, rest_max)
 
 The motor specification (which tendons are actuated, v, rest_min, rest_max) is read from the MJCF
-``<custom>`` section, from the XML text alone (no MuJoCo needed) or from a compiled ``MjModel``:
+``<custom>`` section, from the XML text alone (no MuJoCo needed; parsed by :mod:`identified.mjcf`)
+or from a compiled ``MjModel``:
 
     <text    name="tensegrity_actuated"    data="cable0 cable3 ..."/>
     <numeric name="tensegrity_motor_speed" data="v"/>            (m/s)
@@ -20,11 +21,12 @@ rolls the ``ico/robot`` preset over to a neighbouring face (pure numpy, so the t
 from __future__ import annotations
 
 import os
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from identified.mjcf import ACTUATED_KEY, custom_entries, parse_mjcf, read_mjcf_text
 
 __all__ = [
     "ACTUATED_KEY",
@@ -38,7 +40,6 @@ __all__ = [
     "scripted_roll_targets",
 ]
 
-ACTUATED_KEY = "tensegrity_actuated"
 SPEED_KEY = "tensegrity_motor_speed"
 REST_MIN_KEY = "tensegrity_rest_min"
 REST_MAX_KEY = "tensegrity_rest_max"
@@ -111,20 +112,8 @@ class MotorSpec:
 
 
 def _spec_from_xml(text: str) -> MotorSpec:
-    try:
-        root = ET.fromstring(text)
-    except ET.ParseError as exc:
-        raise ValueError(f"not a valid MJCF/XML text: {exc}") from None
-    custom = root.find("custom")
-    names: list[str] = []
-    numeric: dict[str, np.ndarray] = {}
-    if custom is not None:
-        for t in custom.findall("text"):
-            if t.get("name") == ACTUATED_KEY:
-                names = (t.get("data") or "").split()
-        for nm in custom.findall("numeric"):
-            numeric[nm.get("name", "")] = np.array([float(x) for x in (nm.get("data") or "").split()])
-    return _assemble(names, numeric)
+    texts, numeric = custom_entries(parse_mjcf(text))
+    return _assemble(texts.get(ACTUATED_KEY, "").split(), numeric)
 
 
 def _spec_from_mjmodel(model: Any) -> MotorSpec:
@@ -166,14 +155,7 @@ def read_motor_spec(source: str | os.PathLike | Any) -> MotorSpec:
     """
     if not isinstance(source, (str, os.PathLike)):
         return _spec_from_mjmodel(source)
-    s = os.fspath(source)
-    if not s.lstrip().startswith("<"):
-        try:
-            with open(s, encoding="utf-8") as fh:
-                s = fh.read()
-        except OSError as exc:
-            raise ValueError(f"cannot read model file '{source}': {exc.strerror}") from None
-    return _spec_from_xml(s)
+    return _spec_from_xml(read_mjcf_text(source))
 
 
 #: Cables of the ``ico/robot`` preset reeled in, one per roll, by :func:`scripted_roll_targets`.

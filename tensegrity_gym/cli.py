@@ -15,6 +15,9 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from identified.jsonsafe import json_safe
+from tensegrity_gym.options import count, finite_float, noise, seed
+
 __all__ = ["build_parser", "main"]
 
 
@@ -36,7 +39,7 @@ def cmd_collect(args: argparse.Namespace) -> None:
     from tensegrity_gym.collect import CollectConfig, collect
 
     _check_readable(args.model)
-    _check_writable(args.out)
+    _check_writable(args.out, inputs={"--model": args.model})
     cfg = CollectConfig(
         episodes=args.episodes, steps=args.steps, seed=args.seed, push_every=args.push_every,
         push_magnitude=args.push_magnitude, push_duration=args.push_duration,
@@ -72,7 +75,7 @@ def cmd_summary(args: argparse.Namespace) -> None:
         "noise": d.noise.tolist(),
     }
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(json.dumps(json_safe(info), indent=2, allow_nan=False))
         return
     print(f"{args.data}: {d.n_episodes} episodes x {d.n_steps} steps of {d.dt * 1e3:g} ms "
           f"({info['duration_s']:.3g} s each), {d.n_rods} rods, {d.n_tendons} tendons, "
@@ -83,52 +86,68 @@ def cmd_summary(args: argparse.Namespace) -> None:
           f"push-steps {info['pushes']}, sensor noise {d.noise.tolist()}")
 
 
-def _integrator(name: str) -> str:
-    """MuJoCo's integrator names to the engine's (implicit and implicitfast step free rods alike)."""
-    return "implicit" if name == "implicitfast" else name
-
-
 def cmd_fit(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
-    from identified.fit.identify import ScaleSpec, identify
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.pipeline import fit_model, parse_effects
     from identified.model import save_model
-    from identified.topology import Topology
 
-    if args.effects != "none":
-        raise CommandError(f"--effects {args.effects}: the effect search is not in this version yet "
-                           "(fit the spring-rod model with --effects none)")
-    _check_writable(args.out)
+    parse_effects(args.effects)  # a bad name fails before anything is read
+    _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
+    _check_readable(args.model)
     data = load_dataset(args.data)
-    topo = Topology.from_mjcf(args.model)
-    if args.refine:
-        from identified.fit.refine import check_refinable
-
-        check_refinable(data)  # before the fit: a dataset the refinement refuses fails at once
-    # --refine is for plants whose integrator may differ from the engine's: without an explicit
-    # --integrator it first picks the one whose equations fit the data (refining the wrong
-    # integrator's model cannot remove its O(dt) bias)
-    integrator = args.integrator or ("auto" if args.refine else "euler")
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
     weak = "auto" if args.weak_window is None else args.weak_window
-    model = identify(data, topo, regressors=args.regressors, scale=scale, solver=args.solver,
-                     weak_window=weak, integrator=_integrator(integrator), scheme=args.scheme,
-                     progress=not args.quiet)
-    model.source_model = os.path.abspath(args.model)
-    if args.refine:
-        from identified.fit.refine import refine
-
-        model = refine(model, data, progress=not args.quiet)
-    from identified.predict import attach_metrics
-
-    attach_metrics(model, data)
+    # --refine is for plants whose integrator may differ from the engine's: without an explicit
+    # --integrator it first picks the one whose equations fit the data (fit_model)
+    model = fit_model(data, args.model, effects=args.effects, regressors=args.regressors, scale=scale,
+                      solver=args.solver, weak_window=weak, integrator=args.integrator, scheme=args.scheme,
+                      refine=args.refine, progress=not args.quiet)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
+    for w in model.metrics.get("warnings", []):
+        print(f"tensegrity: warning: {w}", file=sys.stderr)
     refined = model.metrics.get("refine")
     extra = f", refine {refined['seconds']:.3g} s" if refined else ""
+    added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
-          f"integrator {model.integrator})")
+          f"integrator {model.integrator}, effects: {added})")
+
+
+def cmd_diagnose(args: argparse.Namespace) -> None:
+    from identified.dataset import load_dataset
+    from identified.diagnose import diagnose, write_report
+    from identified.fit.identify import check_compatible
+    from identified.model import load_model
+
+    model = load_model(args.identified)
+    data = load_dataset(args.data)
+    check_compatible(data, model.topology)
+    if args.horizon <= 0:
+        raise CommandError(f"--horizon {args.horizon}: must be a positive number of seconds")
+    if round(args.horizon / data.dt) > data.n_steps:
+        raise CommandError(f"--horizon {args.horizon} s is longer than the data's episodes "
+                           f"({data.n_steps * data.dt:g} s): record longer episodes or shorten --horizon")
+    mjcf = args.model
+    if mjcf is not None:
+        _check_readable(mjcf)
+    result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf)
+    paths = write_report(result, args.out) if args.out else []
+    if args.json:
+        keep = {k: v for k, v in result.items() if k != "plot_data"}
+        print(json.dumps(keep, indent=2, allow_nan=False))
+        return
+    fmt = lambda x: "diverged" if x is None else f"{x:.4g} m"
+    print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
+          f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
+    print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
+    for c in result["candidates"][:6]:
+        score = "n/a" if c["score"] is None else f"{c['score']:.3f}"
+        print(f"  candidate {c['name']:<16} score {score}  {c.get('note') or ''}".rstrip())
+    for p in paths:
+        print(f"wrote {p}")
 
 
 def cmd_predict(args: argparse.Namespace) -> None:
@@ -137,7 +156,7 @@ def cmd_predict(args: argparse.Namespace) -> None:
     from identified.predict import rollout_errors, write_error_plot
 
     if args.plot:
-        _check_writable(args.plot)
+        _check_writable(args.plot, "--plot", {"the dataset": args.data, "--identified": args.identified})
     model = load_model(args.identified)
     data = load_dataset(args.data)
     errs = rollout_errors(model, data, horizon=args.horizon)
@@ -145,7 +164,7 @@ def cmd_predict(args: argparse.Namespace) -> None:
         write_error_plot(args.plot, errs)
     out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in errs.items() if k != "per_step"}
     if args.json:
-        print(json.dumps(out, indent=2))
+        print(json.dumps(json_safe(out), indent=2, allow_nan=False))
     else:
         print(f"free-run error over {errs['horizon']} steps: position mean {errs['pos_mean']:.3g} m "
               f"(final {errs['pos_final']:.3g} m), quaternion mean {errs['quat_mean']:.3g} "
@@ -239,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("system", help="simple or ico")
     m.add_argument("--preset", default=None,
                    help="simple: paper; ico: paper-uniform, paper-nonuniform, robot (default: paper / robot)")
-    m.add_argument("--seed", type=int, default=None, help="seed for randomised presets (paper-nonuniform)")
+    m.add_argument("--seed", type=seed, default=None, help="seed for randomised presets (paper-nonuniform)")
     m.add_argument("--integrator", default="euler", help="MuJoCo integrator: euler (default), implicit, implicitfast, rk4")
     m.add_argument("--out", required=True, help="output .xml path")
     m.set_defaults(func=cmd_model)
@@ -248,16 +267,16 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Roll the MuJoCo plant with random initial states, smooth random cable "
                        "commands and optional pushes; record rod states, commands, rest lengths and pushes.")
     c.add_argument("--model", required=True, help="MJCF file following the tensegrity conventions")
-    c.add_argument("--episodes", type=int, default=10, help="number of trajectories (default 10)")
-    c.add_argument("--steps", type=int, default=2000, help="physics steps per trajectory (default 2000)")
-    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    c.add_argument("--push-every", type=int, default=None, metavar="K", help="push a random rod every K steps")
-    c.add_argument("--push-magnitude", type=float, default=50.0, help="push force in N (default 50)")
-    c.add_argument("--push-duration", type=int, default=10, help="steps a push is held (default 10)")
-    c.add_argument("--noise-pos", type=float, default=0.0, metavar="SIGMA", help="position noise std, m")
-    c.add_argument("--noise-vel", type=float, default=0.0, metavar="SIGMA", help="velocity noise std, m/s")
-    c.add_argument("--noise-quat", type=float, default=0.0, metavar="SIGMA", help="orientation noise std, rad")
-    c.add_argument("--noise-angvel", type=float, default=0.0, metavar="SIGMA",
+    c.add_argument("--episodes", type=count(1), default=10, help="number of trajectories (default 10)")
+    c.add_argument("--steps", type=count(1), default=2000, help="physics steps per trajectory (default 2000)")
+    c.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
+    c.add_argument("--push-every", type=count(1), default=None, metavar="K", help="push a random rod every K steps")
+    c.add_argument("--push-magnitude", type=finite_float(0.0, 1e6, "N", True), default=50.0, help="push force in N (default 50)")
+    c.add_argument("--push-duration", type=count(1), default=10, help="steps a push is held (default 10)")
+    c.add_argument("--noise-pos", type=noise(1.0, "m"), default=0.0, metavar="SIGMA", help="position noise std, m")
+    c.add_argument("--noise-vel", type=noise(100.0, "m/s"), default=0.0, metavar="SIGMA", help="velocity noise std, m/s")
+    c.add_argument("--noise-quat", type=noise(3.2, "rad"), default=0.0, metavar="SIGMA", help="orientation noise std, rad")
+    c.add_argument("--noise-angvel", type=noise(1000.0, "rad/s"), default=0.0, metavar="SIGMA",
                    help="angular velocity noise std, rad/s")
     c.add_argument("--integrator", default=None, help="override the model's MuJoCo integrator")
     c.add_argument("--out", required=True, help="output .npz path")
@@ -280,10 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--solver", choices=("lstsq", "adam"), default="lstsq",
                    help="closed-form least squares (default) or the paper's Adam training")
     f.add_argument("--mass", action="append", metavar="NAME=KG", help="a known rod mass (fixes the scale)")
-    f.add_argument("--total-mass", type=float, default=None, metavar="KG", help="known total rod mass")
+    f.add_argument("--total-mass", type=finite_float(0.0, 1e9, "kg", True), default=None, metavar="KG", help="known total rod mass")
     f.add_argument("--pushes-unscaled", action="store_true",
                    help="do not trust the recorded push magnitudes as newtons (fit h freely)")
-    f.add_argument("--weak-window", type=int, default=None, metavar="STEPS",
+    f.add_argument("--weak-window", type=count(0), default=None, metavar="STEPS",
                    help="sum the equations over windows of STEPS steps (weak form, for noisy data); "
                    "0: step by step; default: weak form (~0.3 s) when the dataset records sensor noise")
     f.add_argument("--integrator", choices=("euler", "implicit", "implicitfast", "rk4", "auto"), default=None,
@@ -297,18 +316,32 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--refine", action="store_true",
                    help="refine by multi-step simulation error (picks the integrator from the data unless "
                    "--integrator is given)")
-    f.add_argument("--effects", choices=("none", "auto"), default="none",
-                   help="none: the spring-rod model alone (auto, the search for missing effects, is not in "
-                   "this version yet)")
+    f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
+                   help="none: the spring-rod model alone (default); auto: search the effect library for what "
+                   "the data show (held-out free-run error, see the README); or effect names: ground_contact, "
+                   "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
+
+    dg = sub.add_parser("diagnose", help="residual analysis: where the model is wrong and which effect explains it",
+                        description="One-step, k-step and free-run errors of an identified model on data (best "
+                        "data it was not fitted on), by rod, axis and region of state; residual whiteness "
+                        "(Ljung-Box); each effect of the library scored by the share of the residual it would "
+                        "remove; the error without and with the model's own effects.")
+    dg.add_argument("data", help="dataset .npz")
+    dg.add_argument("--identified", required=True, help="identified-model .json")
+    dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
+    dg.add_argument("--horizon", type=float, default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
+    dg.add_argument("--json", action="store_true", help="print the result as JSON")
+    dg.add_argument("--out", default=None, metavar="DIR", help="write a report (report.md and PNG plots) here")
+    dg.set_defaults(func=cmd_diagnose)
 
     pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
                         description="Roll the identified model from each recorded initial state with the "
                         "recorded rest lengths and pushes; report position and quaternion error per step.")
     pr.add_argument("data", help="dataset .npz")
     pr.add_argument("--identified", required=True, help="identified-model .json")
-    pr.add_argument("--horizon", type=int, default=None, help="steps to roll (default: the whole episode)")
+    pr.add_argument("--horizon", type=count(1), default=None, help="steps to roll (default: the whole episode)")
     pr.add_argument("--plot", default=None, help="write an error-vs-step PNG here")
     pr.add_argument("--json", action="store_true", help="machine-readable output")
     pr.set_defaults(func=cmd_predict)
@@ -368,9 +401,12 @@ def _parse_mass(text: str) -> tuple[str, float]:
     if not sep:
         raise CommandError(f"--mass expects NAME=KG, got '{text}'")
     try:
-        return name.strip(), float(kg)
+        value = float(kg)
     except ValueError:
         raise CommandError(f"--mass {text}: '{kg}' is not a number") from None
+    if not (np.isfinite(value) and value > 0):
+        raise CommandError(f"--mass {text}: a mass must be finite and positive (kg)")
+    return name.strip(), value
 
 
 def _check_readable(path: str) -> None:
@@ -378,14 +414,14 @@ def _check_readable(path: str) -> None:
         raise CommandError(f"'{path}' does not exist or is not a file")
 
 
-def _check_writable(path: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path)) or "."
-    if not os.path.isdir(folder):
-        raise CommandError(f"cannot write '{path}': folder '{folder}' does not exist")
-    if not os.access(folder, os.W_OK):
-        raise CommandError(f"cannot write '{path}': folder '{folder}' is not writable")
-    if os.path.isdir(path):
-        raise CommandError(f"cannot write '{path}': it is a folder")
+def _check_writable(path: str, option: str = "--out", inputs: dict[str, str] | None = None) -> None:
+    """Refuse an output that is an input of the command, a folder, or in a missing folder."""
+    from tensegrity_gym.paths import OutputPathError, check_outputs
+
+    try:
+        check_outputs({option: path}, inputs or {})
+    except OutputPathError as exc:
+        raise CommandError(str(exc)) from None
 
 
 def _expected_errors() -> tuple[type[BaseException], ...]:
@@ -393,13 +429,27 @@ def _expected_errors() -> tuple[type[BaseException], ...]:
     from identified.model import ModelFileError
     from identified.topology import TopologyError
 
-    return (CommandError, DatasetError, TopologyError, ModelFileError, ValueError, OSError, RuntimeError)
+    # MemoryError: numpy's message names the size it could not allocate
+    return (CommandError, DatasetError, TopologyError, ModelFileError, ValueError, OSError, RuntimeError,
+            MemoryError)
+
+
+def _close_progress_bars() -> None:
+    """Clear any progress bar left open by the failure, so the error starts its own line."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", None) or []):
+        bar.close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``tensegrity`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # a bad option (its one line is printed): the status, like any bad input
+        if exc.code == 2:
+            return 2
+        raise
     func: Callable[[argparse.Namespace], None] = args.func
     try:
         func(args)
@@ -409,6 +459,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _expected_errors() as exc:
         if os.environ.get("TENSEGRITY_DEBUG"):
             raise
+        _close_progress_bars()
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"tensegrity: error: {msg}", file=sys.stderr)
         return 2

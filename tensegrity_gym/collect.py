@@ -23,7 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from identified.dataset import Dataset
-from tensegrity_gym.plant import MujocoPlant, RodStates
+from identified.rotation import quat_exp, quat_multiply
+from identified.state import RodState
+from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
+from tensegrity_gym.plant import MujocoPlant
 
 __all__ = ["CollectConfig", "axis_angle_quat", "collect", "perturb_states", "quat_multiply"]
 
@@ -54,6 +57,10 @@ class CollectConfig:
             raise ValueError(f"episodes and steps must be >= 1 (got {self.episodes}, {self.steps})")
         if self.push_every is not None and self.push_every < 1:
             raise ValueError(f"--push-every must be >= 1 step, got {self.push_every}")
+        if self.push_every is not None and self.push_duration < 1:
+            raise ValueError(f"--push-duration must be >= 1 step, got {self.push_duration} (no push would be recorded)")
+        if not 0 <= self.seed < 2**63:
+            raise ValueError(f"--seed must be a whole number in 0..2**63-1, got {self.seed}")
         for name in ("push_magnitude", "noise_pos", "noise_vel", "noise_quat", "noise_angvel",
                      "init_pos_std", "init_rot_std", "init_vel_std", "init_angvel_std"):
             v = getattr(self, name)
@@ -61,30 +68,17 @@ class CollectConfig:
                 raise ValueError(f"{name.replace('_', '-')} must be a finite number >= 0, got {v}")
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of w-x-y-z quaternions, broadcast over leading dims."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [aw * bw - ax * bx - ay * by - az * bz,
-         aw * bx + ax * bw + ay * bz - az * by,
-         aw * by - ax * bz + ay * bw + az * bx,
-         aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+#: Former names, kept for existing callers: :func:`identified.rotation.quat_multiply` and
+#: :func:`identified.rotation.quat_exp` (the quaternion of a rotation vector), numpy path.
+axis_angle_quat = quat_exp
 
 
-def axis_angle_quat(rotvec: np.ndarray) -> np.ndarray:
-    """Quaternion of a rotation vector (..., 3)."""
-    ang = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = np.divide(rotvec, ang, out=np.zeros_like(rotvec), where=ang > 0)
-    return np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * axis], axis=-1)
-
-
-def perturb_states(s: RodStates, rng: np.random.Generator, pos_std: float, rot_std: float,
-                   vel_std: float, angvel_std: float) -> RodStates:
+def perturb_states(s: RodState, rng: np.random.Generator, pos_std: float, rot_std: float,
+                   vel_std: float, angvel_std: float) -> RodState:
     """Random initial state: every rod moved, turned and set moving independently."""
     R = s.pos.shape[0]
-    q = quat_multiply(axis_angle_quat(rng.normal(0, rot_std, (R, 3))), s.quat)
-    return RodStates(
+    q = quat_multiply(quat_exp(rng.normal(0, rot_std, (R, 3))), s.quat)
+    return RodState(
         pos=s.pos + rng.normal(0, pos_std, (R, 3)),
         quat=q / np.linalg.norm(q, axis=-1, keepdims=True),
         vel=s.vel + rng.normal(0, vel_std, (R, 3)),
@@ -135,7 +129,7 @@ def _add_noise(rng: np.random.Generator, cfg: CollectConfig, pos, quat, vel, ang
     if cfg.noise_angvel:
         angvel = angvel + rng.normal(0, cfg.noise_angvel, angvel.shape)
     if cfg.noise_quat:
-        quat = quat_multiply(axis_angle_quat(rng.normal(0, cfg.noise_quat, quat.shape[:-1] + (3,))), quat)
+        quat = quat_multiply(quat_exp(rng.normal(0, cfg.noise_quat, quat.shape[:-1] + (3,))), quat)
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     return pos, quat, vel, angvel
 
@@ -147,6 +141,10 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     rng = np.random.default_rng(cfg.seed)
     E, T, R, S = cfg.episodes, cfg.steps, len(plant.rod_names), len(plant.tendon_names)
     A = len(plant.actuated_names)
+    if R == 0 or S == 0:
+        raise ValueError(f"'{model}' has {R} rods (free bodies) and {S} spatial tendons: a spring-rod model "
+                         "needs both (see the MJCF conventions in DESIGN.md)")
+    check_memory(collect_bytes(E, T, R, S, A), f"--episodes {E} x --steps {T} ({R} rods, {S} tendons)")
     pos = np.empty((E, T + 1, R, 3))
     quat = np.empty((E, T + 1, R, 4))
     vel = np.empty((E, T + 1, R, 3))
@@ -163,6 +161,31 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
         from tqdm.auto import tqdm
 
         bar = tqdm(total=E * T, desc="collect", unit="step", mininterval=0.5)
+    try:
+        with MujocoWarnings() as caught:  # MuJoCo's instability warnings become an error (in _roll)
+            _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force,
+                  push_point, lo, hi, half, radii)
+    finally:
+        if bar is not None:
+            bar.close()
+    pos, quat, vel, angvel = _add_noise(rng, cfg, pos, quat, vel, angvel)
+    return Dataset(
+        dt=plant.dt,
+        gravity=np.array(plant.model.opt.gravity, dtype=float),
+        rod_names=tuple(plant.rod_names),
+        tendon_names=tuple(plant.tendon_names),
+        actuated_names=tuple(plant.actuated_names),
+        pos=pos, quat=quat, vel=vel, angvel=angvel,
+        command=command, rest_length=rest, push_force=push_force, push_point=push_point,
+        noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
+        seed=int(cfg.seed),
+    ).validate()
+
+
+def _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force, push_point,
+          lo, hi, half, radii) -> None:
+    """Fill the record episode by episode; raise naming the episode where MuJoCo warned or diverged."""
+    E, T, R, A = pos.shape[0], pos.shape[1] - 1, pos.shape[2], command.shape[2]
     for e in range(E):
         plant.reset()
         plant.set_states(perturb_states(plant.states(), rng, cfg.init_pos_std, cfg.init_rot_std,
@@ -177,23 +200,12 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
             pushing = push_force[e, t].any()
             plant.step(push_force[e, t] if pushing else None, push_point[e, t] if pushing else None)
             rest[e, t] = plant.rest_lengths()  # the rest lengths used during step t
+            if caught.messages:
+                raise RuntimeError(f"the plant became unstable in episode {e}, step {t} (MuJoCo: "
+                                   f"{caught.messages[0]}); lower --push-magnitude or the excitation")
         s = plant.states()
         pos[e, T], quat[e, T], vel[e, T], angvel[e, T] = s.pos, s.quat, s.vel, s.angvel
         if not np.all(np.isfinite(pos[e])):
             raise RuntimeError(f"the plant diverged in episode {e}; lower the excitation or the time step")
         if bar is not None:
             bar.update(T)
-    if bar is not None:
-        bar.close()
-    pos, quat, vel, angvel = _add_noise(rng, cfg, pos, quat, vel, angvel)
-    return Dataset(
-        dt=plant.dt,
-        gravity=np.array(plant.model.opt.gravity, dtype=float),
-        rod_names=tuple(plant.rod_names),
-        tendon_names=tuple(plant.tendon_names),
-        actuated_names=tuple(plant.actuated_names),
-        pos=pos, quat=quat, vel=vel, angvel=angvel,
-        command=command, rest_length=rest, push_force=push_force, push_point=push_point,
-        noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
-        seed=int(cfg.seed),
-    ).validate()

@@ -26,7 +26,6 @@ from __future__ import annotations
 import os
 import re
 import sys
-from dataclasses import dataclass
 
 # Offscreen rendering on a headless Linux machine: MuJoCo picks its GL back-end from MUJOCO_GL when
 # mujoco is first imported, and its default (GLFW) needs a display. When nobody chose and there is
@@ -38,9 +37,12 @@ if sys.platform.startswith("linux") and "mujoco" not in sys.modules and not os.e
 import mujoco
 import numpy as np
 
+from identified.rotation import quat_to_matrix
+from identified.state import RodState
+from tensegrity_gym.backends.base import check_push, check_rest_lengths, check_targets
 from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
 
-__all__ = ["MujocoPlant", "RodStates", "quat_to_mat"]
+__all__ = ["MujocoPlant", "RodState", "RodStates", "quat_to_mat"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -50,66 +52,14 @@ _INTEGRATORS = {
 }
 
 
-@dataclass
-class RodStates:
-    """States of all R rods, numpy float64, world frame.
-
-    Attributes:
-        pos: (R, 3) centre-of-mass position, m.
-        quat: (R, 4) orientation w-x-y-z (body frame -> world; rod axis = body z).
-        vel: (R, 3) linear velocity of the centre of mass, world frame, m/s.
-        angvel: (R, 3) angular velocity, WORLD frame, rad/s.
-    """
-
-    pos: np.ndarray
-    quat: np.ndarray
-    vel: np.ndarray
-    angvel: np.ndarray
-
-    def copy(self) -> RodStates:
-        return RodStates(self.pos.copy(), self.quat.copy(), self.vel.copy(), self.angvel.copy())
-
-    def validate(self, n_rods: int) -> RodStates:
-        """Check shapes and finiteness; raise ValueError naming the bad field."""
-        for name, width in (("pos", 3), ("quat", 4), ("vel", 3), ("angvel", 3)):
-            a = np.asarray(getattr(self, name), dtype=float)
-            if a.shape != (n_rods, width):
-                raise ValueError(f"RodStates.{name} must have shape ({n_rods}, {width}), got {a.shape}")
-            if not np.all(np.isfinite(a)):
-                raise ValueError(f"RodStates.{name} has non-finite values")
-            setattr(self, name, a)
-        norms = np.linalg.norm(self.quat, axis=1)
-        if np.any(norms < 1e-9):
-            raise ValueError("RodStates.quat has a zero quaternion")
-        return self
-
-
-def _quadratic_rotation_table() -> np.ndarray:
-    """(16, 9) table C with R(q).ravel() = (q q^T).ravel() @ C for a unit quaternion q (w-x-y-z)."""
-    w, x, y, z = range(4)
-    entries = {
-        (0, 0): [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)],
-        (1, 1): [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)],
-        (2, 2): [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
-        (0, 1): [(x, y, 2), (w, z, -2)], (1, 0): [(x, y, 2), (w, z, 2)],
-        (0, 2): [(x, z, 2), (w, y, 2)], (2, 0): [(x, z, 2), (w, y, -2)],
-        (1, 2): [(y, z, 2), (w, x, -2)], (2, 1): [(y, z, 2), (w, x, 2)],
-    }
-    c = np.zeros((4, 4, 3, 3))
-    for (i, j), terms in entries.items():
-        for a, b, k in terms:
-            c[a, b, i, j] += k
-    return c.reshape(16, 9)
-
-
-_ROT_TABLE = _quadratic_rotation_table()
+#: Former name of :class:`identified.state.RodState` (the same class), kept for existing callers.
+RodStates = RodState
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices (body -> world) of (..., 4) unit quaternions w-x-y-z."""
-    q = np.asarray(q, dtype=float)
-    qq = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
-    return (qq @ _ROT_TABLE).reshape(q.shape[:-1] + (3, 3))
+    """(..., 3, 3) rotation matrices (body -> world) of (..., 4) quaternions w-x-y-z
+    (:func:`identified.rotation.quat_to_matrix`, numpy path; kept under its former name)."""
+    return quat_to_matrix(np.asarray(q, dtype=float))
 
 
 def _load(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
@@ -123,8 +73,10 @@ def _load(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:
             raise ValueError(f"model file '{s}' does not exist")
         return mujoco.MjModel.from_xml_path(s)
     except ValueError as exc:
-        msg = str(exc).strip().splitlines()
-        raise ValueError(f"MuJoCo cannot load the model: {msg[0] if msg else exc}") from None
+        msg = [m.strip() for m in str(exc).strip().splitlines() if m.strip()]
+        where = f"'{s}'" if not s.lstrip().startswith("<") else "the model"
+        # every line of MuJoCo's detail (the XML element and line number), on one line
+        raise ValueError(f"MuJoCo cannot load {where}: {'; '.join(msg) if msg else exc}") from None
 
 
 class MujocoPlant:
@@ -165,7 +117,12 @@ class MujocoPlant:
                 )
             m.opt.integrator = _INTEGRATORS[key]
         self.data = mujoco.MjData(m)
-        self._validate_and_index()
+        try:
+            self._validate_and_index()
+        except ValueError as exc:  # name the user's file
+            if isinstance(model, mujoco.MjModel) or os.fspath(model).lstrip().startswith("<"):
+                raise
+            raise ValueError(f"'{os.fspath(model)}': {exc}") from None
         self.motor: MotorSpec = read_motor_spec(m)
         tid = {n: i for i, n in enumerate(self.tendon_names)}
         for n in self.motor.names:
@@ -261,7 +218,7 @@ class MujocoPlant:
         return self.motor.rest_min.copy(), self.motor.rest_max.copy()
 
     # ------------------------------------------------------------------ state
-    def reset(self, states: RodStates | None = None, rest_lengths: np.ndarray | None = None) -> None:
+    def reset(self, states: RodState | None = None, rest_lengths: np.ndarray | None = None) -> None:
         """Put the plant at a state with zero time.
 
         Args:
@@ -279,17 +236,7 @@ class MujocoPlant:
         d.qvel[:] = 0.0
         m.tendon_lengthspring[:] = self._spring0
         if rest_lengths is not None:
-            r = np.asarray(rest_lengths, dtype=float)
-            if r.shape != (m.ntendon,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
-                raise ValueError(
-                    f"rest_lengths must be {m.ntendon} finite positive numbers, got shape {r.shape}"
-                )
-            act = r[self._act_idx]
-            if np.any(act < self.motor.rest_min - 1e-12) or np.any(act > self.motor.rest_max + 1e-12):
-                raise ValueError(
-                    "rest_lengths of actuated cables must lie inside the motor bounds (rest_bounds())"
-                )
-            self._write_rest(r)
+            self._write_rest(check_rest_lengths(rest_lengths, m.ntendon, self._act_idx, self.motor))
         self._rest_act = m.tendon_lengthspring[self._act_idx, 1].copy()
         self._target = self._rest_act.copy()
         if states is not None:
@@ -302,20 +249,20 @@ class MujocoPlant:
         ls[:, 1] = r
         ls[~self._pull_only, 0] = r[~self._pull_only]  # push-pull springs: both ends of the "dead-band"
 
-    def states(self) -> RodStates:
+    def states(self) -> RodState:
         """Current rod states (copies). Angular velocity converted to the world frame: w = R w_body."""
         q = self.data.qpos[self._qadr]  # fancy indexing copies
         v = self.data.qvel[self._vadr]
         quat = q[:, 3:7]
         quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
-        rot = quat_to_mat(quat)
-        return RodStates(pos=q[:, :3], quat=quat, vel=v[:, :3], angvel=(rot @ v[:, 3:6, None])[:, :, 0])
+        rot = quat_to_matrix(quat)
+        return RodState(pos=q[:, :3], quat=quat, vel=v[:, :3], angvel=(rot @ v[:, 3:6, None])[:, :, 0])
 
-    def set_states(self, states: RodStates) -> None:
+    def set_states(self, states: RodState) -> None:
         """Set every rod's state (quaternions normalised; w_body = R^T w) and recompute kinematics."""
-        s = RodStates(states.pos, states.quat, states.vel, states.angvel).validate(self.n_rods)
+        s = RodState(states.pos, states.quat, states.vel, states.angvel).validate(self.n_rods)
         quat = s.quat / np.linalg.norm(s.quat, axis=1, keepdims=True)
-        rot = quat_to_mat(quat)
+        rot = quat_to_matrix(quat)
         d = self.data
         d.qpos[self._qadr[:, :3]] = s.pos
         d.qpos[self._qadr[:, 3:]] = quat
@@ -336,7 +283,7 @@ class MujocoPlant:
         """(R, 2, 3) world positions of every rod's end0 and end1 sites, m."""
         s = self.states()
         local = self.model.site_pos[self._end_sites]  # (R, 2, 3)
-        return s.pos[:, None, :] + np.einsum("rij,rej->rei", quat_to_mat(s.quat), local)
+        return s.pos[:, None, :] + np.einsum("rij,rej->rei", quat_to_matrix(s.quat), local)
 
     @property
     def time(self) -> float:
@@ -355,11 +302,7 @@ class MujocoPlant:
 
     def set_targets(self, target_rest: np.ndarray) -> None:
         """Set the (A,) motor targets in metres (clipped into the motor bounds)."""
-        t = np.asarray(target_rest, dtype=float)
-        if t.shape != self._target.shape:
-            raise ValueError(f"targets must have shape ({len(self.actuated_names)},), got {t.shape}")
-        if not np.isfinite(t).all():
-            raise ValueError("targets must be finite")
+        t = check_targets(target_rest, len(self.actuated_names))
         self._target = np.minimum(np.maximum(t, self.motor.rest_min), self.motor.rest_max)
 
     def step(self, push_force: np.ndarray | None = None, push_point: np.ndarray | None = None) -> None:
@@ -380,30 +323,21 @@ class MujocoPlant:
             if self._act_both.size:
                 ls[self._act_idx[self._act_both], 0] = rest[self._act_both]
         pushed = push_force is not None
-        if pushed:
-            wrench = self._push_wrench(push_force, push_point)
-            d.xfrc_applied[self._bid] = wrench
-        elif push_point is not None:
-            raise ValueError("push_point given without push_force")
+        if pushed or push_point is not None:
+            d.xfrc_applied[self._bid] = self._push_wrench(*check_push(push_force, push_point, self.n_rods))
         mujoco.mj_step(m, d)
         if pushed:
             d.xfrc_applied[self._bid] = 0.0
 
     def _push_wrench(self, push_force: np.ndarray, push_point: np.ndarray | None) -> np.ndarray:
         """(R, 6) force and torque about each COM, world frame: [F, (R p) x F]."""
-        R = self.n_rods
-        f = np.asarray(push_force, dtype=float)
-        if f.shape != (R, 3) or not np.isfinite(f).all():
-            raise ValueError(f"push_force must be finite with shape ({R}, 3), got {f.shape}")
-        wrench = np.zeros((R, 6))
+        f, p = push_force, push_point  # checked by check_push
+        wrench = np.zeros((self.n_rods, 6))
         wrench[:, :3] = f
-        if push_point is not None:
-            p = np.asarray(push_point, dtype=float)
-            if p.shape != (R, 3) or not np.isfinite(p).all():
-                raise ValueError(f"push_point must be finite with shape ({R}, 3), got {p.shape}")
+        if p is not None:
             quat = self.data.qpos[self._qadr[:, 3:]]
             quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
-            a = (quat_to_mat(quat) @ p[:, :, None])[:, :, 0]  # lever arm in the world frame
+            a = (quat_to_matrix(quat) @ p[:, :, None])[:, :, 0]  # lever arm in the world frame
             wrench[:, 3] = a[:, 1] * f[:, 2] - a[:, 2] * f[:, 1]
             wrench[:, 4] = a[:, 2] * f[:, 0] - a[:, 0] * f[:, 2]
             wrench[:, 5] = a[:, 0] * f[:, 1] - a[:, 1] * f[:, 0]

@@ -2,7 +2,7 @@
 
 Commands run in-process through :func:`tensegrity_gym.cli.main` (stdout/stderr captured by
 ``capsys``); one test runs the real console script in a subprocess to prove that what the user
-sees on a failure is one line and no traceback.  The contract (DESIGN.md, "Commands"): on bad
+sees on a failure is one line and no traceback.  The contract (docs/ARCHITECTURE.md, "Contracts"): on bad
 input exit status 2, exactly one line ``tensegrity: error: ...`` on stderr, no traceback, and no
 output file (nor a temporary ``.tmp-*`` file) left behind.
 """
@@ -162,16 +162,18 @@ def test_fit_refine_picks_the_plants_integrator(tmp_path, monkeypatch, capsys):
     assert rel([r["mass"] for r in fit["rods"]], [r["mass"] for r in truth["rods"]]) < 1e-3
 
 
-def test_fit_effects_auto_is_refused_until_it_exists(tmp_path, monkeypatch, capsys):
+def test_fit_effects_bad_names_are_refused_before_anything_runs(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["model", "simple", "--out", "M.xml"]) == 0
-    assert main(["collect", "--model", "M.xml", "--episodes", "1", "--steps", "50", "--out", "D.npz",
+    assert main(["collect", "--model", "M.xml", "--episodes", "2", "--steps", "50", "--out", "D.npz",
                  "--quiet"]) == 0
     capsys.readouterr()
-    assert main(["fit", "D.npz", "--model", "M.xml", "--effects", "auto", "--out", "F.json"]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("tensegrity: error: --effects auto") and err.count("\n") == 1
-    assert not (tmp_path / "F.json").exists()
+    for bad, words in (("drag", "unknown effect 'drag'"), ("actuator_lag", "actuator_lag"),
+                       ("linear_drag,linear_drag", "twice"), ("ground_contact", "ground plane")):
+        assert main(["fit", "D.npz", "--model", "M.xml", "--effects", bad, "--out", "F.json"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("tensegrity: error: ") and words in err and err.count("\n") == 1, err
+        assert not (tmp_path / "F.json").exists()
 
 
 # ---------------------------------------------------------------------- --help

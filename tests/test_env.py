@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import tensegrity_gym  # noqa: F401  (registers the env)
-from tensegrity_gym.backends import Backend, MotorSpec, RodStates, make_backend
+from tensegrity_gym.backends import Backend, MotorSpec, RodState, make_backend
 from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 from tensegrity_gym.envs.tensegrity_ico_v0 import (
     TensegrityIcoEnv,
@@ -49,27 +49,27 @@ class FakeBackend(Backend):
     def dt(self) -> float:
         return 0.001
 
-    def nominal_states(self) -> RodStates:
+    def nominal_states(self) -> RodState:
         n = len(self.rod_names)
         pos = np.stack([np.arange(n, dtype=float), np.zeros(n), np.full(n, self.z)], axis=1)
         quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-        return RodStates(pos, quat, np.zeros((n, 3)), np.zeros((n, 3)))
+        return RodState(pos, quat, np.zeros((n, 3)), np.zeros((n, 3)))
 
     def nominal_rest_lengths(self) -> np.ndarray:
         return np.array([1.0, 0.9, 1.1, 1.0])
 
-    def reset(self, states: RodStates, rest_lengths: np.ndarray) -> None:
+    def reset(self, states: RodState, rest_lengths: np.ndarray) -> None:
         self._s, self._rest, self._n = states.copy(), np.array(rest_lengths, float), 0
 
     def step(self, target_rest, n_substeps, push_force=None, push_point=None) -> None:
         self.targets.append(np.array(target_rest))
         self.substeps.append(n_substeps)
         self._n += 1
-        self._s.pos = self._s.pos + n_substeps * self.drift
+        self._s = self._s._replace(pos=self._s.pos + n_substeps * self.drift)
         self._s.vel[:] = self.drift / self.dt
         self._rest[self.actuated_index] = target_rest  # an infinitely fast motor
 
-    def states(self) -> RodStates:
+    def states(self) -> RodState:
         if self.nan_after is not None and self._n > self.nan_after:
             s = self._s.copy()
             s.pos[0, 0] = np.nan

@@ -1,4 +1,4 @@
-"""The package split of DESIGN.md: ``identified`` stands on its own."""
+"""The package split of docs/ARCHITECTURE.md: ``identified`` stands on its own."""
 
 from __future__ import annotations
 

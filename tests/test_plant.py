@@ -11,9 +11,11 @@ import mujoco
 import numpy as np
 import pytest
 
+from identified.rotation import quat_to_matrix
+from identified.state import RodState
 from tensegrity_gym.cables import ROBOT_ROLL_SEQUENCE, scripted_roll_targets
 from tensegrity_gym.models import build_model, preset_parameters
-from tensegrity_gym.plant import MujocoPlant, RodStates, quat_to_mat
+from tensegrity_gym.plant import MujocoPlant
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +28,9 @@ def _simple(**overrides: float) -> tuple[MujocoPlant, dict]:
             preset_parameters("simple", "paper", overrides=overrides))
 
 
-def _perpendicular_spin(s: RodStates, rate: float) -> np.ndarray:
+def _perpendicular_spin(s: RodState, rate: float) -> np.ndarray:
     """(R, 3) world angular velocities perpendicular to each rod axis (no axial spin)."""
-    axis = quat_to_mat(s.quat)[:, :, 2]
+    axis = quat_to_matrix(s.quat)[:, :, 2]
     w = np.cross(axis, [0.3, 0.5, 0.8])
     return rate * w / np.linalg.norm(w, axis=1, keepdims=True)
 
@@ -39,7 +41,7 @@ def test_angular_velocity_world_body_round_trip() -> None:
     rng = np.random.default_rng(0)
     s = plant.states()
     q = rng.normal(size=(6, 4))
-    s = RodStates(s.pos + rng.normal(0, 0.1, (6, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+    s = RodState(s.pos + rng.normal(0, 0.1, (6, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
                   rng.normal(size=(6, 3)), rng.normal(size=(6, 3)))
     plant.set_states(s)
     back = plant.states()
@@ -53,7 +55,7 @@ def test_angular_velocity_world_body_round_trip() -> None:
         mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, b, v6, 0)
         assert np.allclose(v6[:3], s.angvel[i]) and np.allclose(v6[3:], s.vel[i])
         dof = m.jnt_dofadr[m.body_jntadr[b]]
-        assert np.allclose(d.qvel[dof + 3 : dof + 6], quat_to_mat(s.quat[i]).T @ s.angvel[i])
+        assert np.allclose(d.qvel[dof + 3 : dof + 6], quat_to_matrix(s.quat[i]).T @ s.angvel[i])
 
 
 def test_quaternions_are_w_x_y_z() -> None:
@@ -62,7 +64,7 @@ def test_quaternions_are_w_x_y_z() -> None:
     mujoco.mj_forward(m, d)
     plant = MujocoPlant(m)
     s = plant.states()
-    assert np.allclose(quat_to_mat(s.quat), d.xmat[1:].reshape(-1, 3, 3))
+    assert np.allclose(quat_to_matrix(s.quat), d.xmat[1:].reshape(-1, 3, 3))
 
 
 # ---------------------------------------------------------------------- physics against truth
@@ -90,7 +92,7 @@ def _simple_energy(plant: MujocoPlant, pp: dict) -> float:
     K = np.array([s["stiffness"] for s in pp["springs"]])
     L0 = np.array([s["rest_length"] for s in pp["springs"]])
     s = plant.states()
-    wb = quat_to_mat(s.quat[0]).T @ s.angvel[0]
+    wb = quat_to_matrix(s.quat[0]).T @ s.angvel[0]
     kinetic = 0.5 * M * s.vel[0] @ s.vel[0] + 0.5 * wb @ (I * wb)
     return kinetic + 0.5 * np.sum(K * (plant.tendon_lengths() - L0) ** 2)
 
@@ -128,7 +130,7 @@ def test_one_step_is_semi_implicit_euler_with_paper_forces() -> None:
     s.vel[0] = [0.4, 0.2, -0.3]
     s.angvel = _perpendicular_spin(s, 0.7)  # no axial spin: the gyroscopic term vanishes
     plant.set_states(s)
-    R = quat_to_mat(s.quat[0])
+    R = quat_to_matrix(s.quat[0])
     F, tau = np.zeros(3), np.zeros(3)
     for j, (site, anchor) in enumerate(s_["sites"] for s_ in pp["springs"]):
         arm = R @ np.array([0, 0, -1.0 if site.endswith("end0") else 1.0])
@@ -165,7 +167,7 @@ def test_push_off_com_gives_the_right_torque() -> None:
     M, I11 = pp["rods"][0]["mass"], pp["rods"][0]["inertia"][0]
     F = np.array([[0.0, 40.0, 10.0]])
     point = np.array([[0.0, 0.0, 0.7]])  # on the rod axis, 0.7 m toward end1 (world +x here)
-    arm = quat_to_mat(plant.states().quat[0]) @ point[0]
+    arm = quat_to_matrix(plant.states().quat[0]) @ point[0]
     assert np.allclose(arm, [0.7, 0, 0])
     plant.step(push_force=F, push_point=point)
     s = plant.states()

@@ -161,7 +161,10 @@ class StepContext(NamedTuple):
 
     ``rot`` (..., R, 3, 3); ``angvel_body`` (..., R, 3); ``ends`` spring end kinematics (..., S, 2, 3);
     ``geometry`` spring length/rate (..., S) and unit (..., S, 3); ``tension`` (..., S);
-    ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None.
+    ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None;
+    ``base_lin_acc`` (..., R, 3) world / ``base_ang_acc_body`` (..., R, 3) rod frame: the
+    accelerations under every force but the constraint-like effects (ground contact), given to
+    those effects only (``needs_base_acceleration``).
     """
 
     params: SpringRodParams
@@ -175,6 +178,8 @@ class StepContext(NamedTuple):
     rest_length: torch.Tensor
     push_force: torch.Tensor | None
     push_point: torch.Tensor | None
+    base_lin_acc: torch.Tensor | None = None
+    base_ang_acc_body: torch.Tensor | None = None
 
 
 @runtime_checkable
@@ -250,10 +255,14 @@ class SpringRodEngine:
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
     ) -> SpringRodEngine:
-        """The engine of an :class:`identified.model.IdentifiedModel` (its topology, parameters, dt
-        and integrator)."""
+        """The engine of an :class:`identified.model.IdentifiedModel`: its topology, parameters, dt,
+        integrator and every effect its file lists (``model.effects``), then ``effects`` (extra
+        plug-ins) after them."""
+        from identified.effects import effects_from_model
+
         return cls(model.topology, SpringRodParams.from_model(model, dtype, device), model.dt,
-                   effects=effects, dtype=dtype, device=device, integrator=model.integrator)
+                   effects=[*effects_from_model(model), *effects], dtype=dtype, device=device,
+                   integrator=model.integrator)
 
     @property
     def n_rods(self) -> int:
@@ -303,13 +312,23 @@ class SpringRodEngine:
             pf, pt = push_wrench(rot, fu, ru, p.control_scale)
             force, torque = force + pf, torque + pt
         ctx = StepContext(p, self.dt, self.graph, rot, w_b, ends, geom, tension, rest, fu, ru)
+        late = []
         for effect in self.effects:
+            if getattr(effect, "needs_base_acceleration", False):
+                late.append(effect)
+                continue
             ef, et = effect(state, ctx)
             if ef is not None:
                 force = force + ef
             if et is not None:
                 torque = torque + et
         lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
+        if late:  # constraint-like effects see the accelerations under every other force
+            ctx = ctx._replace(base_lin_acc=lin_acc, base_ang_acc_body=ang_acc_b)
+            for effect in late:
+                ef, et = effect(state, ctx)
+                force, torque = force + ef, torque + et
+            lin_acc, ang_acc_b = rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity)
         if self.integrator == "implicit":
             lin_acc, ang_acc_b = implicit_accelerations(self.graph, geom.unit, ends.lever, rot, w_b, lin_acc,
                                                         ang_acc_b, p.mass, p.inertia, p.damping, self.dt)

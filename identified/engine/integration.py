@@ -39,12 +39,12 @@ Shapes: ``R`` rods, ``S`` springs, ``...`` leading batch dimensions.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
 
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph
 from identified.rotation import matrix_apply, matrix_apply_transpose, quat_integrate, quat_to_matrix
+from identified.state import RodState  # the one state type (re-exported here for the engine)
 
 __all__ = [
     "INTEGRATORS",
@@ -58,16 +58,6 @@ __all__ = [
 ]
 
 INTEGRATORS = ("euler", "implicit", "rk4")
-
-
-class RodState(NamedTuple):
-    """The state of every rod: ``pos`` (..., R, 3) COM world, ``quat`` (..., R, 4) w-x-y-z,
-    ``vel`` (..., R, 3) world, ``angvel`` (..., R, 3) WORLD frame."""
-
-    pos: torch.Tensor
-    quat: torch.Tensor
-    vel: torch.Tensor
-    angvel: torch.Tensor
 
 
 def semi_implicit_euler(

@@ -25,18 +25,33 @@ The spring geometry and the implicit terms are the engine's own (:mod:`identifie
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from identified.engine.forces import SpringGraph, endpoint_kinematics, spring_geometry, spring_stretch
-from identified.engine.integration import gyroscopic_derivative, implicit_rate_correction, spring_rate_rows
+from identified.effects.base import Effect
+from identified.engine.engine import StepContext
+from identified.engine.forces import (
+    SpringGeometry,
+    SpringGraph,
+    endpoint_kinematics,
+    spring_geometry,
+    spring_stretch,
+)
+from identified.engine.integration import (
+    RodState,
+    gyroscopic_derivative,
+    implicit_rate_correction,
+    spring_rate_rows,
+)
 from identified.fit.layout import ParameterLayout
 from identified.rotation import matrix_apply_transpose, quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["Chunk", "RodColumns", "equation_rows"]
+__all__ = ["Chunk", "RodColumns", "equation_rows", "step_context"]
 
 
 @dataclass
@@ -72,16 +87,18 @@ class RodColumns:
     proportional to the graph's degree, not to the total number of parameters.
     """
 
-    full: np.ndarray  # (R, 2D + 5) full-vector index of each local column, -1 for padding
+    full: np.ndarray  # (R, 2D + 5 + E) full-vector index of each local column, -1 for padding
     slot: np.ndarray  # (S, 2) local slot of spring j on the rod at each of its ends (-1 for anchors)
     degree: int
+    effect_start: tuple[int, ...] = ()  # first local column of each joint effect
 
     @classmethod
     def build(cls, topology: Topology, layout: ParameterLayout) -> RodColumns:
         R, S = topology.n_rods, topology.n_springs
         per_rod = [topology.springs_of_rod(i) for i in range(R)]
         D = max(len(x) for x in per_rod)
-        full = -np.ones((R, 2 * D + 5), dtype=np.int64)
+        widths = [D if e.kind == "spring" else e.width for e in layout.effects]
+        full = -np.ones((R, 2 * D + 5 + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
@@ -92,14 +109,27 @@ class RodColumns:
             full[i, 2 * D] = layout.m(i)
             full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
             full[i, 2 * D + 4] = layout.h
-        return cls(full=full, slot=slot, degree=D)
+        starts, col = [], 2 * D + 5
+        for k, (eff, w) in enumerate(zip(layout.effects, widths)):
+            off = layout.effect_offset(k)
+            starts.append(col)
+            for i, js in enumerate(per_rod):
+                if eff.kind == "global":
+                    full[i, col : col + w] = off + np.arange(w)
+                elif eff.kind == "rod":
+                    full[i, col : col + w] = off + i * w + np.arange(w)
+                else:
+                    full[i, col : col + len(js)] = off + np.array(js, dtype=np.int64)
+            col += w
+        return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts))
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
         """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
         D = self.degree
         springs = [k for k in range(2 * D) if self.full[rod, k] >= 0]
         own = [2 * D + 1, 2 * D + 2, 2 * D + 3] if rotation else [2 * D]
-        return np.array(springs + own + [2 * D + 4], dtype=np.int64)
+        extra = [k for k in range(2 * D + 5, self.full.shape[1]) if self.full[rod, k] >= 0]
+        return np.array(springs + own + [2 * D + 4] + extra, dtype=np.int64)
 
 
 def equation_rows(
@@ -108,16 +138,19 @@ def equation_rows(
     chunk: Chunk,
     gravity: torch.Tensor,
     implicit_dt: float | None = None,
+    effects: Sequence[Effect] = (),
 ) -> torch.Tensor:
-    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5).
+    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5 + E).
 
     Rows 0-2 are translation (world frame), rows 3-5 rotation (rod frame).  The equations are
     homogeneous (``A theta = 0``): the scale is fixed later by an anchor.  ``implicit_dt``: the
     time step of a plant on MuJoCo's implicit integrators (adds their terms), ``None`` for Euler.
+    ``effects``: the jointly fitted effects of the layout, in order; their columns hold minus the
+    force (translation rows) and minus the rod-frame torque (rotation rows) per unit parameter.
     """
     N, R = chunk.pos.shape[:2]
     D = columns.degree
-    L = 2 * D + 5
+    L = columns.full.shape[1]
     dtype, device = chunk.pos.dtype, chunk.pos.device
     A = torch.zeros(N, 6, R, L, dtype=dtype, device=device)  # rows before rods: contiguous writes
 
@@ -163,10 +196,42 @@ def equation_rows(
     # control force scalar h: - h f_u, torque - R^T (R r_u x h f_u)
     A[:, 0:3, :, 2 * D + 4] = -chunk.push_force.transpose(1, 2)
     A[:, 3:6, :, 2 * D + 4] = -chunk.push_torque_body.transpose(1, 2)
+    if effects:
+        ctx = step_context(topology, chunk, rot, ends, SpringGeometry(length, rate, unit))
+        state = RodState(chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
+        for eff, c0 in zip(effects, columns.effect_start):
+            _effect_columns(A, eff, c0, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
     A = A.permute(0, 2, 1, 3)
     if chunk.row_weight is not None:
         A = A * chunk.row_weight[:, :, None, None]
     return A
+
+
+def step_context(topology: Topology, chunk: Chunk, rot: torch.Tensor, ends: Any,
+                 geometry: SpringGeometry, params: Any = None) -> StepContext:
+    """The engine's :class:`~identified.engine.StepContext` built from recorded states (no tension,
+    no pushes): what an effect's features read in the fit and in the engine alike."""
+    graph = SpringGraph.from_topology(topology, dtype=chunk.pos.dtype, device=chunk.pos.device)
+    return StepContext(params, 0.0, graph, rot, chunk.angvel_body, ends, geometry, None, chunk.rest, None, None)
+
+
+def _effect_columns(A: torch.Tensor, eff: Effect, c0: int, state: RodState, ctx: StepContext, rot: torch.Tensor,
+                    topology: Topology, columns: RodColumns, on: np.ndarray, flat_rod: np.ndarray,
+                    flat_slot: np.ndarray) -> None:
+    """Write an effect's columns (minus its force, minus its rod-frame torque) into ``A`` (N, 6, R, L)."""
+    N, _, R, L = A.shape
+    if eff.kind == "spring":
+        f = eff.end_features(state, ctx)  # (N, S, 2, 3)
+        tau = _to_body(rot[:, torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=A.device)],
+                       torch.cross(ctx.ends.lever, f, dim=-1))
+        vals = -torch.cat([f, tau], dim=-1).reshape(N, -1, 6)[:, torch.as_tensor(on, device=A.device)]
+        idx = torch.as_tensor(flat_rod * L + c0 + flat_slot, device=A.device)
+        A.view(N, 6, R * L).index_add_(2, idx, vals.transpose(1, 2))
+        return
+    force, torque = eff.features(state, ctx)  # (N, R, W, 3) world
+    W = force.shape[-2]
+    A[:, 0:3, :, c0 : c0 + W] -= force.permute(0, 3, 1, 2)
+    A[:, 3:6, :, c0 : c0 + W] -= _to_body(rot.unsqueeze(-3), torque).permute(0, 3, 1, 2)
 
 
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

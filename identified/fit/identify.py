@@ -10,15 +10,24 @@ rollouts (:mod:`identified.fit.refine`), and returns an :class:`~identified.mode
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
-from identified.engine.integration import INTEGRATORS
+from identified.effects.base import Effect
+from identified.engine.integration import INTEGRATORS, RodState
+from identified.fit.checks import (
+    adam_convergence,
+    apply_checks,
+    check_enough_data,
+    constrain_inertias,
+    widen_for_overlap,
+)
 from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
@@ -118,8 +127,13 @@ def identify(
     progress: bool = False,
     device: str = "cpu",
     noise_copies: int = 1,
+    effects: Sequence[Effect] = (),
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
+
+    ``effects``: unfitted effects (:mod:`identified.effects`) to fit with the model: ``joint``
+    ones as extra regression columns, ``residual`` ones (ground contact) on the residual wrench of
+    the rods they touch, whose equations the joint fit leaves out.
 
     ``weak_window``: sum the equations over windows of this many steps (the weak form, for noisy
     data; :mod:`identified.fit.derivatives`); ``None`` or 0: step by step (exact on clean data);
@@ -136,7 +150,7 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies)
+                         chunk_steps, progress, device, noise_copies, effects)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -149,9 +163,15 @@ def identify(
         weak_window = default_window(dataset.dt) if np.any(dataset.noise > 0) else None
     weak = int(weak_window or 0)
     t0 = time.perf_counter()
-    layout = ParameterLayout.for_topology(topology, regressors)
+    joint = [e for e in effects if e.stage == "joint"]
+    late = [e for e in effects if e.stage != "joint"]
+    layout = ParameterLayout.for_topology(topology, regressors, joint)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
+    for k, e in enumerate(joint):
+        pinned = getattr(e, "pinned", None)
+        if pinned is not None:
+            fixed.update({layout.effect_offset(k) + int(p): 0.0 for p in np.flatnonzero(pinned())})
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -162,7 +182,10 @@ def identify(
     def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
-            A = equation_rows(topology, columns, ch, gravity, implicit_dt)
+            if late:  # rods touched by a residual-stage effect are fitted in the second stage
+                keep = ~_affected(late, topology, ch)
+                ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
+            A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint)
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
             if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])
@@ -177,21 +200,89 @@ def identify(
         if solver == "lstsq":
             factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
             sol = solve(factors, layout, anchor, fixed)
+            not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
+            sol, notes, held = constrain_inertias(sol, lambda f: solve(factors, layout, anchor, f),
+                                                  layout.inertia, layout.n_rods, layout.rod_names, fixed)
+            sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve
 
             sol = adam_solve(rows, columns, layout, anchor, fixed)
+            not_estimable, held = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak), []
+            notes = adam_convergence(sol, solve(accumulate(runs(dataset, False), columns, layout.n_full),
+                                                layout, anchor, fixed))
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    apply_checks(model, sol, not_estimable, held, notes, weak)
+    model.integrator = integrator
+    if late:
+        model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     model.metrics["weak_window"] = weak if weak > 1 else None
     model.metrics["scheme"] = scheme
     model.metrics["integrator"] = integrator
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
-    model.integrator = integrator
     return model
+
+
+def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:
+    """(N, R) bool: rods whose equations hold a residual-stage effect's force."""
+    ctx = _chunk_context(topology, ch)
+    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
+    out = torch.zeros(ch.pos.shape[:2], dtype=torch.bool, device=ch.pos.device)
+    for e in late:
+        out |= e.rows_affected(state, ctx)
+    return out
+
+
+def _chunk_context(topology: Topology, ch: Any, params: Any = None) -> Any:
+    from identified.engine.forces import endpoint_kinematics, spring_geometry
+    from identified.fit.features import step_context
+    from identified.rotation import quat_to_matrix
+
+    rot = quat_to_matrix(ch.quat)
+    ends = endpoint_kinematics(topology, ch.pos, ch.quat, ch.vel, ch.angvel, rot=rot)
+    return step_context(topology, ch, rot, ends, spring_geometry(ends), params)
+
+
+def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequence[Effect], scheme: str = "forward",
+                         device: str = "cpu", max_steps: int = 200_000) -> dict[str, Any]:
+    """Second stage: fit residual-stage effects (ground contact) on what the joint model leaves.
+
+    The jointly fitted model (its spring-rod parameters and joint effects) gives, at every
+    recorded state, the wrench of every other force and the accelerations it alone would cause;
+    the rest of the recorded wrench ``M (a - g)``, ``R (I α_b + ω_b × I ω_b)`` is the residual the
+    effect's law is fitted to (on the rods it touches).  Appends each fitted effect to
+    ``model.effects`` and returns per-effect fit statistics.
+    """
+    from identified.engine import SpringRodEngine
+    from identified.rotation import matrix_apply
+
+    E = dataset.n_episodes
+    per = max(1, min(E, max_steps // max(dataset.n_steps, 1)))
+    data = dataset.select(episodes=slice(0, per)) if per < E else dataset
+    ch, n_ep = next(iter_chunks(data, data.n_episodes * data.n_steps + 1, scheme, device=device))
+    groups = np.repeat(np.arange(n_ep), ch.pos.shape[0] // n_ep)
+    eng = SpringRodEngine.from_model(model, dtype=torch.float64, device=device)
+    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
+    push_point = torch.as_tensor(data.push_point[:, : ch.pos.shape[0] // n_ep].reshape(-1, data.n_rods, 3),
+                                 dtype=ch.pos.dtype) if scheme == "forward" else None
+    with torch.no_grad():
+        terms = eng.dynamics(state, ch.rest, ch.push_force, push_point)
+        p = eng.params
+        need_f = p.mass[:, None] * (ch.acc - p.gravity)
+        w = ch.angvel_body
+        need_tb = p.inertia * ch.alpha_body + torch.cross(w, p.inertia * w, dim=-1)
+        need_t = matrix_apply(terms.ctx.rot, need_tb)
+        ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
+        stats = {}
+        for e in late:
+            rows = e.rows_affected(state, ctx)
+            stats[e.name] = e.fit_residual(state, ctx, need_f - terms.force, need_t - terms.torque, groups, rows)
+            model.effects.append(e.to_json())
+    return stats
 
 
 def select_integrator(
@@ -265,7 +356,14 @@ def _to_model(
     }
     if not has_pushes:
         scale_desc = dict(scale_desc, control_scale="not identified: no pushes in the data (kept at 1)")
+    effects = []
+    for k, e in enumerate(layout.effects):
+        sl = layout.effect_slice(k)
+        e.values = th[sl].copy()
+        e.stderr = None if se is None else se[sl].copy()
+        effects.append(e.to_json())
     return IdentifiedModel(
+        effects=effects,
         topology=topology,
         stiffness=th[k_idx],
         damping=th[c_idx],

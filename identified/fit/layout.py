@@ -1,23 +1,37 @@
 """Where each physical parameter sits in the regression's parameter vector.
 
-The full vector is ``[K (S), c (S), M (R), I (R x 3: Ixx, Iyy, Izz), h]``.  ``single`` regressors tie
-all springs to one K and one c and all rods to one M and one I (paper, uniform parameters);
-``multiple`` keeps one per spring and per rod (paper, non-uniform: 54 parameters + inertias for
-the icosahedron).  The tie is a 0/1 matrix ``G`` with ``theta_full = G @ theta_free``.
+The full vector is a concatenation of parameter *blocks* (:class:`~identified.effects.base.ParamBlock`):
+the paper's ``K (S), c (S), M (R), I (R x 3: Ixx, Iyy, Izz), h``, then one block group per effect
+fitted jointly with them (:mod:`identified.effects`); offsets follow from the block sizes.
+``single`` regressors tie all springs to one K and one c and all rods to one M and one I (paper,
+uniform parameters); ``multiple`` keeps one per spring and per rod (paper, non-uniform: 54
+parameters + inertias for the icosahedron).  The tie is a 0/1 matrix ``G`` with
+``theta_full = G @ theta_free``; effect parameters are never tied.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from identified.effects.base import Effect, ParamBlock
 from identified.topology import Topology
 
-__all__ = ["REGRESSORS", "ParameterLayout"]
+__all__ = ["BASE_BLOCKS", "REGRESSORS", "ParameterLayout"]
 
 REGRESSORS = ("single", "multiple")
 AXES = ("xx", "yy", "zz")
+
+#: the spring-rod model's own blocks, in order (paper eqs. 1-4)
+BASE_BLOCKS = (
+    ParamBlock("stiffness", "spring", unit="N/m"),
+    ParamBlock("damping", "spring", unit="N s/m"),
+    ParamBlock("mass", "rod", unit="kg"),
+    ParamBlock("inertia", "rod", width=3, unit="kg m^2"),
+    ParamBlock("control_scale", "global", mass_scaled=False),
+)
 
 
 @dataclass(frozen=True)
@@ -29,17 +43,33 @@ class ParameterLayout:
     regressors: str
     spring_names: tuple[str, ...]
     rod_names: tuple[str, ...]
+    effects: tuple[Effect, ...] = field(default=())
 
     @classmethod
-    def for_topology(cls, topology: Topology, regressors: str = "multiple") -> ParameterLayout:
+    def for_topology(cls, topology: Topology, regressors: str = "multiple",
+                     effects: Sequence[Effect] = ()) -> ParameterLayout:
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
-        return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names)
+        return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names,
+                   tuple(effects))
 
-    # ---------------------------------------------------------------- full-vector column indices
+    # ---------------------------------------------------------------- blocks and offsets
+    @property
+    def n_base(self) -> int:
+        """Size of the spring-rod blocks ``[K, c, M, I, h]``."""
+        return sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS)
+
+    def effect_offset(self, k: int) -> int:
+        """Full-vector index of the first parameter of effect ``k``."""
+        return self.n_base + sum(e.n_params for e in self.effects[:k])
+
+    def effect_slice(self, k: int) -> slice:
+        o = self.effect_offset(k)
+        return slice(o, o + self.effects[k].n_params)
+
     @property
     def n_full(self) -> int:
-        return 2 * self.n_springs + 4 * self.n_rods + 1
+        return self.n_base + sum(e.n_params for e in self.effects)
 
     def k(self, j: int | np.ndarray) -> int | np.ndarray:
         return j
@@ -55,7 +85,15 @@ class ParameterLayout:
 
     @property
     def h(self) -> int:
-        return self.n_full - 1
+        return self.n_base - 1
+
+    @property
+    def signed(self) -> np.ndarray:
+        """(n_full,) bool: parameters that may be negative (the rest are physical magnitudes)."""
+        out = np.zeros(self.n_full, dtype=bool)
+        for k, e in enumerate(self.effects):
+            out[self.effect_slice(k)] = e.signed_mask()
+        return out
 
     @property
     def full_names(self) -> list[str]:
@@ -63,7 +101,10 @@ class ParameterLayout:
         names += [f"{s}.damping" for s in self.spring_names]
         names += [f"{r}.mass" for r in self.rod_names]
         names += [f"{r}.inertia_{a}" for r in self.rod_names for a in AXES]
-        return names + ["control_scale"]
+        names += ["control_scale"]
+        for e in self.effects:
+            names += e.param_names(self.rod_names, self.spring_names)
+        return names
 
     # ---------------------------------------------------------------- tying
     @property
@@ -72,20 +113,23 @@ class ParameterLayout:
         if self.regressors == "multiple":
             return np.eye(self.n_full)
         S, R = self.n_springs, self.n_rods
-        G = np.zeros((self.n_full, 7))
+        n_eff = self.n_full - self.n_base
+        G = np.zeros((self.n_full, 7 + n_eff))
         G[0:S, 0] = 1.0  # K
         G[S : 2 * S, 1] = 1.0  # c
         G[2 * S : 2 * S + R, 2] = 1.0  # M
         for a in range(3):
             G[[self.inertia(i, a) for i in range(R)], 3 + a] = 1.0
         G[self.h, 6] = 1.0
+        G[self.n_base:, 7:] = np.eye(n_eff)
         return G
 
     @property
     def free_names(self) -> list[str]:
         if self.regressors == "multiple":
             return self.full_names
-        return ["stiffness", "damping", "mass", "inertia_xx", "inertia_yy", "inertia_zz", "control_scale"]
+        base = ["stiffness", "damping", "mass", "inertia_xx", "inertia_yy", "inertia_zz", "control_scale"]
+        return base + self.full_names[self.n_base:]
 
     def describe_free(self, weights: np.ndarray, threshold: float = 0.1) -> list[str]:
         """Names of free parameters that carry a direction vector (for rank-deficiency messages)."""

@@ -124,8 +124,12 @@ def refine(
             vals["mass"] = m
         return replace(base, **vals)
 
+    from identified.effects import effects_from_model
+
+    effects = effects_from_model(model)  # held at their fitted values while the spring-rod part refines
+
     def loss_fn() -> torch.Tensor:
-        eng = SpringRodEngine(model.topology, params(), data.dt, integrator=model.integrator)
+        eng = SpringRodEngine(model.topology, params(), data.dt, integrator=model.integrator, effects=effects)
         if not noisy:
             s0 = eng.state(pos[:, 0], quat[:, 0], vel[:, 0] + dv0, angvel[:, 0] + dw0)
             out = eng.rollout(s0, rest, fu, ru)

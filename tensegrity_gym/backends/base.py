@@ -3,7 +3,7 @@
 A backend is a spring-rod system that takes cable commands (and optional pushes) and gives back
 rod states and the cables' actual rest lengths. Nothing else flows from a backend to the env: the
 env (:mod:`tensegrity_gym.envs.tensegrity_ico_v0`) computes observation, reward and termination
-from :class:`~tensegrity_gym.plant.RodStates` and rest lengths alone, so that the MuJoCo plant and
+from :class:`~identified.state.RodState` and rest lengths alone, so that the MuJoCo plant and
 the identified twin cannot drift apart (as Brax puts one env API over several pipelines).
 
 Static metadata a backend exposes (fixed for its lifetime):
@@ -18,6 +18,11 @@ Dynamic interface: :meth:`Backend.reset`, :meth:`Backend.step`, :meth:`Backend.s
 :meth:`Backend.nominal_rest_lengths` (the standing pose the env perturbs at reset). Two backends
 of one robot must return the same nominal pose (the plant's MJCF keyframe ``nominal``) for the
 env's reset distribution to be the same on both.
+
+Input checks live here, once, for every backend and for the plant itself
+(:func:`check_rest_lengths`, :func:`check_targets`, :func:`check_push`, :func:`check_substeps`):
+a backend calls them at its entry points, so a bad shape or a NaN gives the same message whichever
+physics is behind the env.
 
 Divergence: a backend never raises when its physics blows up; it returns non-finite rod states
 (NaN) until the next :meth:`Backend.reset`, and the env ends the episode.
@@ -36,17 +41,68 @@ from __future__ import annotations
 
 import abc
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from identified.state import RodState
 from tensegrity_gym.cables import MotorSpec
-from tensegrity_gym.plant import RodStates
 
 if TYPE_CHECKING:
     from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["Backend", "MotorSpec", "RodStates"]
+__all__ = ["Backend", "MotorSpec", "RodState", "RodStates", "check_push", "check_rest_lengths",
+           "check_substeps", "check_targets"]
+
+#: Former name of :class:`~identified.state.RodState`, kept for existing callers.
+RodStates = RodState
+
+
+# ---------------------------------------------------------------------- input checks (one place)
+def check_substeps(n_substeps: Any) -> int:
+    """``n_substeps`` as an int >= 1 (ValueError otherwise)."""
+    if int(n_substeps) != n_substeps or n_substeps < 1:
+        raise ValueError(f"n_substeps must be an integer >= 1, got {n_substeps}")
+    return int(n_substeps)
+
+
+def check_targets(target_rest: Any, n_actuated: int) -> np.ndarray:
+    """(A,) finite motor targets as float64 (ValueError on a bad shape or a non-finite value)."""
+    t = np.asarray(target_rest, dtype=float)
+    if t.shape != (n_actuated,):
+        raise ValueError(f"targets must have shape ({n_actuated},), got {t.shape}")
+    if not np.isfinite(t).all():
+        raise ValueError("targets must be finite")
+    return t
+
+
+def check_rest_lengths(rest_lengths: Any, n: int, actuated_index: np.ndarray, motor: MotorSpec) -> np.ndarray:
+    """(n,) rest lengths as float64: finite, positive, actuated ones inside the motor bounds."""
+    r = np.asarray(rest_lengths, dtype=float)
+    if r.shape != (n,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+        raise ValueError(f"rest_lengths must be {n} finite positive numbers, got shape {r.shape}")
+    act = r[actuated_index]
+    if np.any(act < motor.rest_min - 1e-12) or np.any(act > motor.rest_max + 1e-12):
+        raise ValueError("rest_lengths of actuated cables must lie inside the motor bounds (rest_bounds())")
+    return r
+
+
+def check_push(push_force: Any, push_point: Any, n_rods: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The optional push: (R, 3) finite world force and (R, 3) finite rod-frame point, float64;
+    a point without a force is an error."""
+    if push_force is None:
+        if push_point is not None:
+            raise ValueError("push_point given without push_force")
+        return None, None
+    f = np.asarray(push_force, dtype=float)
+    if f.shape != (n_rods, 3) or not np.isfinite(f).all():
+        raise ValueError(f"push_force must be finite with shape ({n_rods}, 3), got {f.shape}")
+    if push_point is None:
+        return f, None
+    p = np.asarray(push_point, dtype=float)
+    if p.shape != (n_rods, 3) or not np.isfinite(p).all():
+        raise ValueError(f"push_point must be finite with shape ({n_rods}, 3), got {p.shape}")
+    return f, p
 
 
 class Backend(abc.ABC):
@@ -87,7 +143,7 @@ class Backend(abc.ABC):
 
     # ------------------------------------------------------------------ the standing pose
     @abc.abstractmethod
-    def nominal_states(self) -> RodStates:
+    def nominal_states(self) -> RodState:
         """The settled standing pose (zero velocities) the env starts from, before reset noise."""
 
     @abc.abstractmethod
@@ -96,7 +152,7 @@ class Backend(abc.ABC):
 
     # ------------------------------------------------------------------ dynamics
     @abc.abstractmethod
-    def reset(self, states: RodStates, rest_lengths: np.ndarray) -> None:
+    def reset(self, states: RodState, rest_lengths: np.ndarray) -> None:
         """Put the system at ``states`` with rest lengths ``rest_lengths`` (S,), time zero.
 
         Motor targets are set to the actuated rest lengths (the motors hold still), any
@@ -118,7 +174,7 @@ class Backend(abc.ABC):
         """
 
     @abc.abstractmethod
-    def states(self) -> RodStates:
+    def states(self) -> RodState:
         """Current rod states (copies the caller may keep)."""
 
     @abc.abstractmethod
@@ -150,7 +206,7 @@ class Backend(abc.ABC):
             plant.set_states(self.states())
         else:  # same rods, another order
             s, order = self.states(), [self.rod_names.index(n) for n in plant.rod_names]
-            plant.set_states(RodStates(s.pos[order], s.quat[order], s.vel[order], s.angvel[order]))
+            plant.set_states(RodState(s.pos[order], s.quat[order], s.vel[order], s.angvel[order]))
         return plant
 
     def render(self, width: int = 480, height: int = 480, camera: str | int | None = None) -> np.ndarray:

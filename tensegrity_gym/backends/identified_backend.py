@@ -11,7 +11,7 @@ What the twin takes from the MJCF the model was fitted against (``model.source_m
 XML only (:func:`read_source_mjcf`):
 
 * the motor specification (which cables are actuated, speed, bounds: ``read_motor_spec``);
-* the nominal pose the env perturbs at reset: keyframe ``nominal`` (:func:`nominal_pose_from_mjcf`),
+* the nominal pose the env perturbs at reset: keyframe ``nominal`` (:func:`identified.mjcf.nominal_pose`),
   so plant and twin start from the same reset distribution;
 * the neutral rest length of every actuated cable (its ``springlength``): the motor setting the
   robot starts from, a command, not a fitted parameter. Non-actuated springs keep the identified
@@ -25,9 +25,10 @@ Where the source MJCF lives (:func:`resolve_source_mjcf`): an existing path in `
 motor spec, keyframe and drawing only, never parameters, and its topology must match the model's
 (names and attachment points), else a clear ``ValueError`` asks for ``mjcf=``.
 
-:class:`TwinPhysics` is the batched core: N copies of the system in state tensors ``(N, R, ·)``
-stepped by ONE engine call per physics substep. :class:`IdentifiedBackend` is its unbatched use
-(``batch=None``); :class:`tensegrity_gym.envs.vector.TensegrityIcoVectorEnv` its batched use.
+The physics itself is :class:`~tensegrity_gym.backends.twin_physics.TwinPhysics` (its own module,
+with the thread policy and the compiled substep): :class:`IdentifiedBackend` is its unbatched use
+(``batch=None``), :class:`tensegrity_gym.envs.vector.TensegrityIcoVectorEnv` its batched use. The
+MJCF is read as XML by :mod:`identified.mjcf`; input checks are the backend base's.
 """
 
 from __future__ import annotations
@@ -37,16 +38,24 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from importlib import resources
-from typing import Any
 
 import numpy as np
 import torch
 
-from identified.engine import Effect, RodState, SpringRodEngine
-from identified.model import IdentifiedModel, load_model
+from identified.engine import Effect, SpringRodEngine
+from identified.mjcf import nominal_pose, parse_mjcf, read_mjcf_text, spring_lengths
+from identified.model import IdentifiedModel, check_effect_objects, load_model, validate_fields
+from identified.state import RodState
 from identified.topology import Topology
-from tensegrity_gym.backends.base import Backend, RodStates
-from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
+from tensegrity_gym.backends.base import (
+    Backend,
+    check_push,
+    check_rest_lengths,
+    check_substeps,
+    check_targets,
+)
+from tensegrity_gym.backends.twin_physics import TwinPhysics
+from tensegrity_gym.cables import read_motor_spec
 
 __all__ = [
     "PRESET_PREFIX",
@@ -63,6 +72,8 @@ __all__ = [
 #: it resolves on a fresh clone).
 PRESET_PREFIX = "preset:"
 _FALLBACK = ("ico", "robot")
+#: Former names, kept for existing callers: the MJCF readers now live in :mod:`identified.mjcf`.
+nominal_pose_from_mjcf = nominal_pose
 _DTYPES = {"float64": torch.float64, "double": torch.float64,
            "float32": torch.float32, "float": torch.float32}
 
@@ -104,14 +115,14 @@ def resolve_source_mjcf(model: IdentifiedModel, mjcf: str | os.PathLike | None =
     """
     if mjcf is not None:
         s = os.fspath(mjcf)
-        text, where = (s, "mjcf text") if s.lstrip().startswith("<") else (_read_file(s), s)
+        text, where = (s, "mjcf text") if s.lstrip().startswith("<") else (read_mjcf_text(s), s)
     else:
         src = model.source_model
         if src and src.startswith(PRESET_PREFIX):
             system, _, preset = src[len(PRESET_PREFIX):].partition("/")
             text, where = _preset_xml(system, preset or None), src  # type: ignore[arg-type]
         elif src and os.path.isfile(src):
-            text, where = _read_file(src), src
+            text, where = read_mjcf_text(src), src
         else:
             if src:
                 warnings.warn(f"the identified model's source MJCF '{src}' does not exist here; using the "
@@ -126,225 +137,9 @@ def resolve_source_mjcf(model: IdentifiedModel, mjcf: str | os.PathLike | None =
     return text, where
 
 
-def _read_file(path: str) -> str:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return fh.read()
-    except OSError as exc:
-        raise ValueError(f"cannot read MJCF file '{path}': {exc.strerror}") from None
-
-
 def read_source_mjcf(text: str) -> ET.Element:
-    """Parse MJCF text (ValueError on malformed XML)."""
-    try:
-        return ET.fromstring(text)
-    except ET.ParseError as exc:
-        raise ValueError(f"not a valid MJCF/XML text: {exc}") from None
-
-
-def _floats(s: str | None) -> np.ndarray:
-    return np.array([float(x) for x in (s or "").split()], dtype=float)
-
-
-def nominal_pose_from_mjcf(text: str, rod_names: Sequence[str]) -> RodStates:
-    """The nominal pose of the rods, from MJCF text alone (no MuJoCo): keyframe ``nominal``.
-
-    A rod is a top-level body with a free joint; in MuJoCo's ``qpos`` every such body holds 7
-    numbers (position, then quaternion w-x-y-z) in document order. Without a keyframe ``nominal``
-    the bodies' ``pos``/``quat`` attributes are used (MuJoCo's ``qpos0``). Velocities are zero, as
-    in the plant's reset. Quaternions are normalised exactly as ``MujocoPlant.states`` does, so
-    the pose is bit-identical to the plant's nominal pose.
-    """
-    root = read_source_mjcf(text)
-    world = root.find("worldbody")
-    if world is None:
-        raise ValueError("MJCF has no <worldbody>")
-    free: list[ET.Element] = []
-    for body in world.findall("body"):
-        j = body.find("joint")
-        if body.find("freejoint") is not None or (j is not None and j.get("type") == "free"):
-            free.append(body)
-    names = [b.get("name") for b in free]
-    missing = [r for r in rod_names if r not in names]
-    if missing:
-        raise ValueError(f"the MJCF has no free body for the rods {missing}")
-    key = None
-    kf = root.find("keyframe")
-    if kf is not None:
-        key = next((k for k in kf.findall("key") if k.get("name") == "nominal"), None)
-    if key is not None and key.get("qpos"):
-        qpos = _floats(key.get("qpos"))
-        if qpos.size != 7 * len(free):
-            raise ValueError(f"keyframe 'nominal' has {qpos.size} qpos values, expected {7 * len(free)} "
-                             f"(7 per free body)")
-        table = qpos.reshape(len(free), 7)
-    else:
-        rows = []
-        for b in free:
-            if any(b.get(k) for k in ("euler", "axisangle", "xyaxes", "zaxis")):
-                raise ValueError(f"rod body '{b.get('name')}' gives its orientation other than as quat; "
-                                 "add a keyframe 'nominal'")
-            pos = _floats(b.get("pos")) if b.get("pos") else np.zeros(3)
-            quat = _floats(b.get("quat")) if b.get("quat") else np.array([1.0, 0.0, 0.0, 0.0])
-            rows.append(np.concatenate([pos, quat]))
-        table = np.array(rows)
-    idx = [names.index(r) for r in rod_names]
-    q = table[idx]
-    pos, quat = q[:, :3].copy(), q[:, 3:7].copy()
-    quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
-    zeros = np.zeros_like(pos)
-    return RodStates(pos=pos, quat=quat, vel=zeros, angvel=zeros.copy())
-
-
-def _springlengths(text: str) -> dict[str, float]:
-    """Rest length written in every spatial tendon's ``springlength`` (the upper value of a dead band)."""
-    root = read_source_mjcf(text)
-    out: dict[str, float] = {}
-    tendon = root.find("tendon")
-    for t in ([] if tendon is None else tendon.findall("spatial")):
-        v = _floats(t.get("springlength"))
-        if t.get("name") and v.size:
-            out[t.get("name")] = float(v[-1])  # type: ignore[index]
-    return out
-
-
-# ---------------------------------------------------------------------- the batched core
-class TwinPhysics:
-    """N copies of an identified spring-rod system with cable motors, stepped together.
-
-    State tensors have shape ``(*B, R, ·)`` with ``B = (N,)`` (``batch=N``) or ``()``
-    (``batch=None``); rest lengths ``(*B, S)``; motor targets ``(*B, A)``. One
-    :meth:`step` runs ``n_substeps`` times: motors (:func:`~tensegrity_gym.cables.motor_step`),
-    then ONE batched :meth:`SpringRodEngine.step`. A copy whose state stops being finite is
-    marked diverged (:attr:`diverged`) and reads as NaN until it is reset.
-
-    Args:
-        engine: the identified engine (its dtype and device are used throughout).
-        motor: the motor specification; ``actuated_index`` (A,) the springs it drives.
-        batch: number of copies N, or ``None`` for one unbatched system.
-        chunk_size: ``None`` (default): one engine call per substep for all N copies. An int: the
-            copies are stepped in consecutive blocks of this many, each block through all its
-            substeps (the copies are independent, so the result is the same up to rounding). On a
-            CPU, blocks whose tensors fit the cache (e.g. 64 robots) can be several times faster
-            than one call on N = 1024 (``benchmarks/bench_twin.py``); on a GPU keep ``None``.
-    """
-
-    def __init__(self, engine: SpringRodEngine, motor: MotorSpec, actuated_index: np.ndarray,
-                 batch: int | None = None, chunk_size: int | None = None) -> None:
-        if batch is not None and (int(batch) != batch or batch < 1):
-            raise ValueError(f"batch must be an integer >= 1 or None, got {batch}")
-        if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1 or batch is None):
-            raise ValueError(f"chunk_size must be an integer >= 1 (and needs batch), got {chunk_size}")
-        self.chunk_size = None if chunk_size is None or chunk_size >= (batch or 0) else int(chunk_size)
-        self.engine = engine
-        self.motor = motor
-        self.batch = None if batch is None else int(batch)
-        self.shape: tuple[int, ...] = () if batch is None else (int(batch),)
-        dt, dev = engine.dtype, engine.device
-        self._act = torch.as_tensor(np.asarray(actuated_index, dtype=np.int64), device=dev)
-        self._all_actuated = bool(np.array_equal(np.asarray(actuated_index), np.arange(engine.n_springs)))
-        self._lo = torch.as_tensor(motor.rest_min, dtype=dt, device=dev)
-        self._hi = torch.as_tensor(motor.rest_max, dtype=dt, device=dev)
-        R, S = engine.n_rods, engine.n_springs
-        z3 = torch.zeros(self.shape + (R, 3), dtype=dt, device=dev)
-        quat = torch.zeros(self.shape + (R, 4), dtype=dt, device=dev)
-        quat[..., 0] = 1.0
-        self.state = RodState(z3, quat, z3.clone(), z3.clone())
-        self.rest = torch.ones(self.shape + (S,), dtype=dt, device=dev)  # every spring, (*B, S)
-        self.rest_act = self.rest[..., self._act].clone()  # the motors' state, (*B, A)
-        self.target = self.rest_act.clone()
-        self.diverged = torch.zeros(self.shape, dtype=torch.bool, device=dev)
-
-    # ------------------------------------------------------------------ conversions
-    def tensor(self, x: Any) -> torch.Tensor:
-        """``x`` as a tensor of the engine's dtype and device."""
-        e = self.engine
-        if isinstance(x, torch.Tensor):
-            return x.to(dtype=e.dtype, device=e.device)
-        return torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=e.dtype, device=e.device)
-
-    def _index(self, index: Any) -> Any:
-        """Batch index: ``None`` = every copy (``...``), else an int array/tensor of copies."""
-        if index is None:
-            return ...
-        if self.batch is None:
-            raise ValueError("an unbatched TwinPhysics takes index=None")
-        return torch.as_tensor(np.asarray(index, dtype=np.int64), device=self.engine.device)
-
-    # ------------------------------------------------------------------ reset and step
-    def reset(self, pos: Any, quat: Any, vel: Any, angvel: Any, rest: Any, index: Any = None) -> None:
-        """Put the copies ``index`` (``None``: all) at the given states and rest lengths (S,) each;
-        their motor targets become their actuated rest lengths, and they are no longer diverged."""
-        i = self._index(index)
-        s = self.state
-        for field, value in zip(s, (pos, quat, vel, angvel), strict=True):
-            field[i] = self.tensor(value)
-        r = self.tensor(rest)
-        self.rest[i] = r
-        ra = self.rest[i][..., self._act]
-        self.rest_act[i] = ra
-        self.target[i] = ra
-        self.diverged[i] = False
-
-    def set_targets(self, target: Any, index: Any = None) -> None:
-        """Motor targets (*B, A) in metres (clipped into the motor bounds)."""
-        t = self.tensor(target)
-        self.target[self._index(index)] = torch.minimum(torch.maximum(t, self._lo), self._hi)
-
-    def step(self, n_substeps: int, push_force: Any | None = None, push_point: Any | None = None) -> None:
-        """``n_substeps`` physics steps of every copy, the push (``(*B, R, 3)`` world force, N, at
-        ``(*B, R, 3)`` rod-frame points, m) held throughout."""
-        pf = None if push_force is None else self.tensor(push_force)
-        pp = None if push_point is None else self.tensor(push_point)
-        c = self.chunk_size
-        with torch.inference_mode():
-            if c is None:
-                state, rest, rest_act = self._advance(int(n_substeps), self.state, self.rest, self.rest_act,
-                                                      self.target, pf, pp)
-            else:
-                parts = []
-                for a in range(0, self.batch, c):  # type: ignore[arg-type]
-                    sl = slice(a, a + c)
-                    block = RodState(*(x[sl] for x in self.state))
-                    parts.append(self._advance(int(n_substeps), block, self.rest[sl], self.rest_act[sl],
-                                               self.target[sl], None if pf is None else pf[sl],
-                                               None if pp is None else pp[sl]))
-                state = RodState(*(torch.cat([p[0][k] for p in parts]) for k in range(4)))
-                rest = torch.cat([p[1] for p in parts])
-                rest_act = torch.cat([p[2] for p in parts])
-            finite = torch.ones(self.shape, dtype=torch.bool, device=self.engine.device)
-            for x in state:
-                finite &= torch.isfinite(x).flatten(-2).all(-1)
-        # inference tensors cannot be written in place outside inference mode: keep plain copies
-        self.state = RodState(*(x.clone() for x in state))
-        self.rest = rest.clone()
-        self.rest_act = rest_act.clone()
-        self.diverged = self.diverged | ~finite
-
-    def _advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
-                 target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
-                 ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
-        """``n`` substeps (motors, then one engine step) of a block of copies."""
-        e, m = self.engine, self.motor
-        for _ in range(n):
-            if m.n:
-                rest_act = motor_step(rest_act, target, m.speed, e.dt, self._lo, self._hi)
-                rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)
-            state = e.step(state, rest, pf, pp)
-        return state, rest, rest_act
-
-    # ------------------------------------------------------------------ read-out
-    def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(pos, quat, vel, angvel) as new float64 arrays (*B, R, ·); NaN for diverged copies."""
-        out = tuple(x.detach().to("cpu", torch.float64, copy=True).numpy() for x in self.state)
-        bad = self.diverged.cpu().numpy()
-        if bad.any():
-            out = tuple(np.where(bad[..., None, None], np.nan, x) for x in out)
-        return out  # type: ignore[return-value]
-
-    def rest_numpy(self) -> np.ndarray:
-        """(*B, S) float64 rest lengths of every spring, m."""
-        return self.rest.detach().to("cpu", torch.float64, copy=True).numpy()
+    """Parse MJCF text (ValueError on malformed XML); :func:`identified.mjcf.parse_mjcf`."""
+    return parse_mjcf(text)
 
 
 # ---------------------------------------------------------------------- the backend
@@ -354,11 +149,19 @@ class IdentifiedBackend(Backend):
     Args:
         model: identified-model JSON path, or an :class:`IdentifiedModel`; ``None`` loads the
             model that ships for the robot preset (:func:`default_model_path`).
-        dtype: engine precision, ``torch.float64`` (default) or ``torch.float32`` (or their names).
+        dtype: engine precision, ``torch.float32`` (default: the twin's precision, fast; it agrees
+            with the float64 engine to float32 rounding over an episode) or ``torch.float64``
+            (identification's precision; for comparisons with the plant to 1e-10), or their names.
         device: torch device of the engine (``"cpu"``, ``"cuda"``).
+        num_threads: torch intra-op threads while the twin steps: ``"auto"`` (default: 1 on CPU,
+            never slower on a busy machine), an int, or ``None`` (torch's own setting); scoped, the
+            global setting is restored after each step
+            (:mod:`~tensegrity_gym.backends.twin_physics`).
+        compile: ``"auto"`` (default: ``torch.compile`` one substep when a C++ compiler is present
+            and ``TENSEGRITY_TWIN_COMPILE`` is not ``0``), ``True`` or ``False``.
         effects: engine :class:`~identified.engine.Effect` plug-ins (forces the spring-rod model
-            lacks, e.g. ground contact) passed to the engine. The effects a model lists in
-            ``model.effects`` are not built here yet; a model that lists some and gets none warns.
+            lacks) added after the effects the model lists in ``model.effects``, which the engine
+            builds from the model file (:func:`identified.effects.effects_from_model`).
         mjcf: the MJCF (path or text) to take motors, keyframe and drawing from, instead of
             ``model.source_model`` (see :func:`resolve_source_mjcf`).
 
@@ -376,8 +179,9 @@ class IdentifiedBackend(Backend):
     name = "identified"
 
     def __init__(self, model: str | os.PathLike | IdentifiedModel | None = None,
-                 dtype: torch.dtype | str = torch.float64, device: torch.device | str = "cpu",
-                 effects: Sequence[Effect] = (), mjcf: str | os.PathLike | None = None) -> None:
+                 dtype: torch.dtype | str = torch.float32, device: torch.device | str = "cpu",
+                 effects: Sequence[Effect] = (), mjcf: str | os.PathLike | None = None,
+                 num_threads: int | str | None = "auto", compile: bool | str = "auto") -> None:
         if isinstance(dtype, str):
             if dtype not in _DTYPES:
                 raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
@@ -392,11 +196,9 @@ class IdentifiedBackend(Backend):
             model = path
         self.model: IdentifiedModel = model if isinstance(model, IdentifiedModel) else load_model(model)
         m = self.model
-        effects = list(effects)
-        if m.effects and not effects:
-            names = [e.get("name") for e in m.effects]
-            warnings.warn(f"the identified model lists effects {names} that the twin does not build yet; "
-                          "pass them as effects=[...] (backend_kwargs={'effects': [...]})", stacklevel=2)
+        validate_fields(m)  # dt > 0, finite gravity, positive masses and inertias, known effects
+        effects = list(effects)  # extra plug-ins; the model's own effects the engine builds itself
+        check_effect_objects(effects)
         self.mjcf, self.mjcf_source = resolve_source_mjcf(m, mjcf)
         topo = m.topology
         self.rod_names = topo.rod_names
@@ -407,18 +209,20 @@ class IdentifiedBackend(Backend):
         if unknown:
             raise ValueError(f"actuated cables {unknown} of the MJCF are not springs of the identified model")
         self.engine = SpringRodEngine.from_model(m, effects=effects, dtype=dtype, device=device)
-        self._nominal = nominal_pose_from_mjcf(self.mjcf, self.rod_names)
+        self._nominal = nominal_pose(self.mjcf, self.rod_names)
         rest = np.array(m.rest_length, dtype=float)
-        written = _springlengths(self.mjcf)
+        written = spring_lengths(self.mjcf)
         act = self.actuated_index
         for j, name in zip(act, self.actuated_names, strict=True):
             rest[j] = written.get(name, rest[j])
         rest[act] = np.clip(rest[act], self.motor.rest_min, self.motor.rest_max)
         self._nominal_rest = rest
-        self.physics = TwinPhysics(self.engine, self.motor, act, batch=None)
-        self._cache: RodStates | None = None
-        self._last_finite: RodStates | None = None
-        self._drawn: RodStates | None = None
+        self.num_threads, self.compile = num_threads, compile  # the batched env takes the same
+        self.physics = TwinPhysics(self.engine, self.motor, act, batch=None, num_threads=num_threads,
+                                   compile=compile)
+        self._cache: RodState | None = None
+        self._last_finite: RodState | None = None
+        self._drawn: RodState | None = None
         self.reset(self._nominal, self._nominal_rest)
 
     # ------------------------------------------------------------------ metadata
@@ -434,15 +238,15 @@ class IdentifiedBackend(Backend):
     def device(self) -> torch.device:
         return self.engine.device
 
-    def nominal_states(self) -> RodStates:
+    def nominal_states(self) -> RodState:
         return self._nominal.copy()
 
     def nominal_rest_lengths(self) -> np.ndarray:
         return self._nominal_rest.copy()
 
     # ------------------------------------------------------------------ dynamics
-    def reset(self, states: RodStates, rest_lengths: np.ndarray) -> None:
-        s = RodStates(states.pos, states.quat, states.vel, states.angvel).validate(self.n_rods)
+    def reset(self, states: RodState, rest_lengths: np.ndarray) -> None:
+        s = RodState(*states).validate(self.n_rods)
         r = check_rest_lengths(rest_lengths, len(self.tendon_names), self.actuated_index, self.motor)
         quat = s.quat / np.linalg.norm(s.quat, axis=1, keepdims=True)
         self.physics.reset(s.pos, quat, s.vel, s.angvel, r)
@@ -451,39 +255,28 @@ class IdentifiedBackend(Backend):
 
     def step(self, target_rest: np.ndarray, n_substeps: int, push_force: np.ndarray | None = None,
              push_point: np.ndarray | None = None) -> None:
-        if int(n_substeps) != n_substeps or n_substeps < 1:
-            raise ValueError(f"n_substeps must be an integer >= 1, got {n_substeps}")
-        t = np.asarray(target_rest, dtype=float)
-        if t.shape != (self.motor.n,):
-            raise ValueError(f"targets must have shape ({self.motor.n},), got {t.shape}")
-        if not np.isfinite(t).all():
-            raise ValueError("targets must be finite")
-        R = self.n_rods
-        if push_force is not None:
-            f = np.asarray(push_force, dtype=float)
-            if f.shape != (R, 3) or not np.isfinite(f).all():
-                raise ValueError(f"push_force must be finite with shape ({R}, 3), got {f.shape}")
-            if push_point is not None:
-                p = np.asarray(push_point, dtype=float)
-                if p.shape != (R, 3) or not np.isfinite(p).all():
-                    raise ValueError(f"push_point must be finite with shape ({R}, 3), got {p.shape}")
-        elif push_point is not None:
-            raise ValueError("push_point given without push_force")
+        n = check_substeps(n_substeps)
+        t = check_targets(target_rest, self.motor.n)
+        push_force, push_point = check_push(push_force, push_point, self.n_rods)
         ph = self.physics
         ph.set_targets(t)
-        if bool(ph.diverged):
+        if self._diverged:
             return
-        ph.step(int(n_substeps), push_force, push_point)
+        ph.step(n, push_force, push_point)
         self._cache = None
 
-    def states(self) -> RodStates:
+    @property
+    def _diverged(self) -> bool:
+        return bool(self.physics.diverged)
+
+    def states(self) -> RodState:
         if self._drawn is not None:  # drawing: the base class reads the states to draw here
             return self._drawn.copy()
         if self._cache is None:
             pos, quat, vel, angvel = self.physics.states_numpy()
             quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]  # as MujocoPlant.states does
-            self._cache = RodStates(pos, quat, vel, angvel)
-            if not bool(self.physics.diverged):
+            self._cache = RodState(pos, quat, vel, angvel)
+            if not self._diverged:
                 self._last_finite = self._cache
         return self._cache.copy()
 
@@ -494,7 +287,7 @@ class IdentifiedBackend(Backend):
     def drawing_model(self) -> str:
         return self.mjcf
 
-    def render_states(self, states: RodStates, width: int = 480, height: int = 480,
+    def render_states(self, states: RodState, width: int = 480, height: int = 480,
                       camera: str | int | None = None) -> np.ndarray:
         """(height, width, 3) uint8 image of the given rod states (drawn like :meth:`render`)."""
         self._drawn = states
@@ -515,14 +308,3 @@ class IdentifiedBackend(Backend):
             super().show()
         finally:
             self._drawn = None
-
-
-def check_rest_lengths(rest_lengths: Any, n: int, actuated_index: np.ndarray, motor: MotorSpec) -> np.ndarray:
-    """Validate (n,) rest lengths as the plant does: finite, positive, actuated ones in the motor bounds."""
-    r = np.asarray(rest_lengths, dtype=float)
-    if r.shape != (n,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
-        raise ValueError(f"rest_lengths must be {n} finite positive numbers, got shape {r.shape}")
-    act = r[actuated_index]
-    if np.any(act < motor.rest_min - 1e-12) or np.any(act > motor.rest_max + 1e-12):
-        raise ValueError("rest_lengths of actuated cables must lie inside the motor bounds")
-    return r

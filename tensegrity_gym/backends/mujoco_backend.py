@@ -13,7 +13,7 @@ import os
 import mujoco
 import numpy as np
 
-from tensegrity_gym.backends.base import Backend, RodStates, _sync_viewer
+from tensegrity_gym.backends.base import Backend, RodState, _sync_viewer, check_substeps
 from tensegrity_gym.plant import MujocoPlant
 
 __all__ = ["MujocoBackend", "default_robot_xml"]
@@ -68,13 +68,13 @@ class MujocoBackend(Backend):
     def dt(self) -> float:
         return self.plant.dt
 
-    def nominal_states(self) -> RodStates:
+    def nominal_states(self) -> RodState:
         return self._nominal.copy()
 
     def nominal_rest_lengths(self) -> np.ndarray:
         return self._nominal_rest.copy()
 
-    def reset(self, states: RodStates, rest_lengths: np.ndarray) -> None:
+    def reset(self, states: RodState, rest_lengths: np.ndarray) -> None:
         # MujocoPlant.reset restores the keyframe (mj_resetDataKeyframe clears time, warm start
         # and applied forces), writes the rest lengths and motor targets, then sets the states.
         self.plant.reset(states, rest_lengths)
@@ -82,8 +82,7 @@ class MujocoBackend(Backend):
 
     def step(self, target_rest: np.ndarray, n_substeps: int, push_force: np.ndarray | None = None,
              push_point: np.ndarray | None = None) -> None:
-        if int(n_substeps) != n_substeps or n_substeps < 1:
-            raise ValueError(f"n_substeps must be an integer >= 1, got {n_substeps}")
+        n_substeps = check_substeps(n_substeps)
         plant = self.plant
         plant.set_targets(target_rest)
         if self._diverged:
@@ -95,10 +94,10 @@ class MujocoBackend(Backend):
         if sum(warnings[w].number for w in _BAD) != before:
             self._diverged = True
 
-    def states(self) -> RodStates:
+    def states(self) -> RodState:
         if self._diverged:
             nan = np.full((self.n_rods, 3), np.nan)
-            return RodStates(nan.copy(), np.full((self.n_rods, 4), np.nan), nan.copy(), nan.copy())
+            return RodState(nan.copy(), np.full((self.n_rods, 4), np.nan), nan.copy(), nan.copy())
         return self.plant.states()
 
     def rest_lengths(self) -> np.ndarray:

@@ -18,9 +18,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
+from identified.state import RodState
 from tensegrity_gym.backends import Backend, make_backend
-from tensegrity_gym.collect import axis_angle_quat, quat_multiply
-from tensegrity_gym.plant import RodStates, quat_to_mat
 
 __all__ = [
     "TensegrityIcoEnv",
@@ -50,7 +50,7 @@ def rest_to_action(rest: np.ndarray, rest_min: np.ndarray, rest_max: np.ndarray)
     return np.where(span > 0, 2.0 * (np.asarray(rest, dtype=float) - rest_min) / safe - 1.0, 0.0)
 
 
-def structure_com(states: RodStates) -> np.ndarray:
+def structure_com(states: RodState) -> np.ndarray:
     """(3,) the structure's centre: the mean of the rods' centres of mass, m.
 
     Unweighted on purpose: it needs no mass, so the plant and a twin with identified (slightly
@@ -60,7 +60,7 @@ def structure_com(states: RodStates) -> np.ndarray:
     return np.asarray(states.pos, dtype=float).mean(axis=0)
 
 
-def observation(states: RodStates, rest_lengths: np.ndarray, actuated_index: np.ndarray,
+def observation(states: RodState, rest_lengths: np.ndarray, actuated_index: np.ndarray,
                 rest_min: np.ndarray, rest_max: np.ndarray,
                 exclude_current_positions: bool = True) -> np.ndarray:
     """The observation vector (float64; the env casts it to float32) of rod states and rest lengths.
@@ -88,7 +88,7 @@ def observation(states: RodStates, rest_lengths: np.ndarray, actuated_index: np.
         return np.asarray(x, dtype=float).reshape(*lead, -1)
 
     com = pos.mean(axis=-2)
-    rot = quat_to_mat(np.asarray(states.quat, dtype=float))
+    rot = quat_to_matrix(np.asarray(states.quat, dtype=float))
     rest = np.asarray(rest_lengths, dtype=float)[..., np.asarray(actuated_index, dtype=int)]
     parts = [] if exclude_current_positions else [com[..., :2]]
     parts += [
@@ -131,7 +131,7 @@ def reward_terms(com_before: np.ndarray, com_after: np.ndarray, action: np.ndarr
     return {k: float(v) if np.ndim(v) == 0 else v for k, v in terms.items()}
 
 
-def termination_reason(states: RodStates, rest_lengths: np.ndarray,
+def termination_reason(states: RodState, rest_lengths: np.ndarray,
                        healthy_z_range: tuple[float, float] | None) -> str | None:
     """Why the episode must end, or ``None``.
 
@@ -164,14 +164,14 @@ def termination_reasons(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angv
     return out
 
 
-def perturb_start(nominal: RodStates, rng: np.random.Generator, scale: float) -> RodStates:
+def perturb_start(nominal: RodState, rng: np.random.Generator, scale: float) -> RodState:
     """The starting state: ``nominal`` with independent uniform noise U(-scale, scale) on every
     rod's position (m), orientation (a rotation vector about the rod's centre, rad), linear
     velocity (m/s) and angular velocity (rad/s). Rods stay rigid; cables take up the difference."""
     R = nominal.pos.shape[0]
     u = rng.uniform(-scale, scale, size=(4, R, 3))
-    q = quat_multiply(axis_angle_quat(u[1]), nominal.quat)
-    return RodStates(
+    q = quat_multiply(quat_exp(u[1]), nominal.quat)
+    return RodState(
         pos=nominal.pos + u[0],
         quat=q / np.linalg.norm(q, axis=-1, keepdims=True),
         vel=nominal.vel + u[2],
@@ -300,10 +300,14 @@ class TensegrityIcoEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        if not (np.isfinite(reset_noise_scale) and reset_noise_scale >= 0):
-            raise ValueError(f"reset_noise_scale must be a finite number >= 0, got {reset_noise_scale}")
+        if not (np.isfinite(reset_noise_scale) and 0 <= reset_noise_scale <= 1):
+            # beyond 1 the reset perturbation (m, rad, m/s) throws the rods apart: no usable start
+            raise ValueError(f"reset_noise_scale must be a finite number in [0, 1], got {reset_noise_scale}")
+        for name, w in (("ctrl_cost_weight", ctrl_cost_weight), ("forward_reward_weight", forward_reward_weight)):
+            if not np.isfinite(w):  # a NaN weight would make every reward NaN
+                raise ValueError(f"{name} must be a finite number, got {w}")
         lo_z, hi_z = (float(v) for v in healthy_z_range)
-        if not lo_z < hi_z:
+        if not (np.isfinite(lo_z) and np.isfinite(hi_z) and lo_z < hi_z):
             raise ValueError(f"healthy_z_range must be (low, high) with low < high, got {healthy_z_range}")
 
         if isinstance(backend, Backend):
@@ -340,11 +344,11 @@ class TensegrityIcoEnv(gym.Env):
         assert n_obs == 1 + 18 * R + A + (0 if self.exclude_current_positions else 2)
 
         # the last finite states and observation (what a diverged step falls back to)
-        self._states: RodStates | None = None
+        self._states: RodState | None = None
         self._obs: np.ndarray | None = None
 
     # ------------------------------------------------------------------ helpers
-    def _observe(self, states: RodStates, rest: np.ndarray) -> np.ndarray:
+    def _observe(self, states: RodState, rest: np.ndarray) -> np.ndarray:
         obs = observation(states, rest, self.actuated_index, self.rest_min, self.rest_max,
                           self.exclude_current_positions)
         return obs.astype(np.float32)

@@ -3,14 +3,12 @@
 ``gym.make_vec("TensegrityIco-v0", num_envs=N, vectorization_mode="vector_entry_point",
 backend="identified", model="F.json")`` builds :class:`TensegrityIcoVectorEnv`: the N envs' rod
 states live in tensors ``(N, R, ·)`` and every physics substep is ONE batched engine call
-(:class:`~tensegrity_gym.backends.identified_backend.TwinPhysics`). Observation, reward and
+(:class:`~tensegrity_gym.backends.twin_physics.TwinPhysics`). Observation, reward and
 termination are the env's pure functions (:mod:`tensegrity_gym.envs.tensegrity_ico_v0`) applied to
 the batch — the same functions, which work over a leading batch dimension (:func:`batch_observation`,
 :func:`batch_termination_reason` and :func:`batch_reward_terms` are thin aliases); tests check them
-against the single-env calls. Measured
-with ``benchmarks/bench_twin.py`` (N = 1024, 2-core CPU): 2-12 ms per step batched against
-110-200 ms for a Python loop over the single-env functions (the CPU engine takes ~4 s for the
-step's 20 substeps; the loop would dominate a GPU engine's step).
+against the single-env calls. The batched functions cost about 1 ms per step at N = 1024, a Python
+loop over the single-env functions ~30 times more (measured 2026-11-23, ``benchmarks/README.md``).
 
 Semantics are those of a :class:`gymnasium.vector.SyncVectorEnv` over N single twin envs made with
 ``gym.make`` (same seeds, same actions, same results, infos in the same dict-of-arrays layout with
@@ -38,7 +36,9 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from tensegrity_gym.backends.identified_backend import IdentifiedBackend, TwinPhysics
+from identified.state import RodState
+from tensegrity_gym.backends.identified_backend import IdentifiedBackend
+from tensegrity_gym.backends.twin_physics import TwinPhysics
 from tensegrity_gym.envs.tensegrity_ico_v0 import (
     TensegrityIcoEnv,
     action_to_rest,
@@ -47,7 +47,6 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import (
     reward_terms,
     termination_reasons,
 )
-from tensegrity_gym.plant import RodStates
 
 __all__ = [
     "TensegrityIcoVectorEnv",
@@ -66,7 +65,7 @@ def batch_observation(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel
                       rest_max: np.ndarray, exclude_current_positions: bool = True) -> np.ndarray:
     """(N, n_obs) float64: the env's own :func:`~tensegrity_gym.envs.tensegrity_ico_v0.observation`
     on a batch (``pos``, ``vel``, ``angvel`` (N, R, 3), ``quat`` (N, R, 4), ``rest_lengths`` (N, S))."""
-    return observation(RodStates(pos, quat, vel, angvel), rest_lengths, actuated_index, rest_min, rest_max,
+    return observation(RodState(pos, quat, vel, angvel), rest_lengths, actuated_index, rest_min, rest_max,
                        exclude_current_positions)
 
 
@@ -97,7 +96,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
             ``gym.make_vec`` passes the registration's 1000.
         autoreset_mode: :class:`gymnasium.vector.AutoresetMode` or its value.
         backend_kwargs: keyword arguments of :class:`IdentifiedBackend` (``dtype``, ``device``,
-            ``effects``, ``mjcf``).
+            ``effects``, ``mjcf``, ``num_threads``, ``compile``).
         chunk_size: ``None`` (default): one engine call per physics substep for all N envs; an int
             steps blocks of that many envs one after the other (faster on a CPU for large N, see
             :class:`TwinPhysics`).
@@ -135,7 +134,8 @@ class TensegrityIcoVectorEnv(VectorEnv):
         e = self.env
         self.backend = backend
         self.physics = TwinPhysics(backend.engine, backend.motor, backend.actuated_index, batch=self.num_envs,
-                                   chunk_size=chunk_size)
+                                   chunk_size=chunk_size, num_threads=backend.num_threads,
+                                   compile=backend.compile)
         self.dt = e.dt
         self.render_mode = e.render_mode
         self.metadata = {**self.metadata, "render_fps": e.metadata["render_fps"],
@@ -386,7 +386,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         R = b.n_rods
         zeros = np.zeros((R, 3))
         return tuple(
-            b.render_states(RodStates(self._pos[i], self._quat[i], zeros, zeros), e.width, e.height, e.camera)
+            b.render_states(RodState(self._pos[i], self._quat[i], zeros, zeros), e.width, e.height, e.camera)
             for i in range(self.num_envs)
         )
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import atomic_write
+from identified.rotation import matrix_to_quat
 from tensegrity_gym.models import presets as P
 
 __all__ = [
@@ -135,26 +136,6 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _rotz(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def _mat2quat(m: np.ndarray) -> np.ndarray:
-    """Unit quaternion w-x-y-z (w >= 0) of a rotation matrix (Shepperd's method)."""
-    t = np.trace(m)
-    if t > 0:
-        s = math.sqrt(t + 1.0) * 2
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
 
 
 def _axis_frame(axis: np.ndarray) -> np.ndarray:
@@ -448,7 +429,7 @@ def _to_xml(s: _Spec, integrator: str, keyframe: np.ndarray | None) -> str:
     for name, pos in s.anchors.items():
         ET.SubElement(world, "site", name=name, pos=_v(pos), size="0.04", rgba="0.2 0.2 0.2 1")
     for r in s.rods:
-        b = ET.SubElement(world, "body", name=r.name, pos=_v(r.pos), quat=_v(_mat2quat(r.rot)))
+        b = ET.SubElement(world, "body", name=r.name, pos=_v(r.pos), quat=_v(matrix_to_quat(r.rot)))
         ET.SubElement(b, "freejoint", name=f"{r.name}_free")
         ET.SubElement(b, "inertial", pos="0 0 0", mass=_f(r.mass), diaginertia=_v(r.inertia))
         h = r.length / 2

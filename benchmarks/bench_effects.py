@@ -1,0 +1,113 @@
+"""The loop on plants that hide one effect, and on clean plants: what `fit --effects auto` adds.
+
+Each plant is the paper's non-uniform icosahedron (or the robot) with ONE effect put in by MuJoCo's
+own means, which the fit is never told about: fluid viscosity (-> linear drag), fluid density
+(-> quadratic drag), a gravity the dataset does not declare (-> constant force), free-joint
+damping (-> linear drag), tendon frictionloss (-> cable friction).  For each: the effect added,
+the held-out free-run error (1 s) before and after from the loop, and the free-run error on a fresh
+test set of the model without and with its effects.  Clean plants: the false discoveries.
+
+    python benchmarks/bench_effects.py            # ~10 min on 2 cores
+    python benchmarks/bench_effects.py --quick    # fewer cases
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from identified.fit.pipeline import fit_model
+from identified.predict import rollout_errors
+from tensegrity_gym.collect import CollectConfig, collect
+from tensegrity_gym.models import write_model
+
+
+def plant_text(base: str, kind: str, size: float) -> str:
+    if kind == "viscosity":
+        return base.replace("<option ", f'<option viscosity="{size}" ')
+    if kind == "density":
+        return base.replace("<option ", f'<option density="{size}" ')
+    if kind == "gravity":
+        return re.sub(r' gravity="[^"]*"', f' gravity="{size} 0 -9.81"', base)
+    if kind == "joint_damping":
+        return base.replace("<freejoint", f'<joint type="free" damping="{size}"')
+    if kind == "frictionloss":
+        return base.replace("<spatial ", f'<spatial frictionloss="{size}" ')
+    return base
+
+
+CASES = [  # (preset, kind, size, seed, the effect it should add)
+    ("paper-nonuniform", "viscosity", 1.5, 1, "linear_drag"),
+    ("paper-nonuniform", "viscosity", 0.3, 2, "linear_drag"),
+    ("paper-uniform", "viscosity", 3.0, 3, "linear_drag"),
+    ("paper-nonuniform", "density", 60.0, 4, "quadratic_drag"),
+    ("paper-nonuniform", "density", 15.0, 5, "quadratic_drag"),
+    ("paper-nonuniform", "gravity", 0.4, 6, "constant_force"),
+    ("paper-nonuniform", "gravity", 0.1, 7, "constant_force"),
+    ("paper-nonuniform", "joint_damping", 2.0, 8, "linear_drag"),
+    ("paper-nonuniform", "frictionloss", 5.0, 9, "cable_friction"),
+    ("paper-nonuniform", "clean", 0, 10, None),
+    ("paper-nonuniform", "clean", 0, 11, None),
+    ("paper-uniform", "clean", 0, 12, None),
+    ("robot", "clean", 0, 13, "ground_contact"),
+]
+
+
+def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
+    clean = tmp / f"{preset}-{seed}.xml"
+    write_model(clean, "ico", preset=preset, seed=seed)
+    plant = tmp / f"{preset}-{kind}-{seed}.xml"
+    plant.write_text(plant_text(clean.read_text(), kind, size))
+    steps = 3000 if preset == "robot" else 1000
+    cfg = CollectConfig(episodes=8, steps=steps, seed=seed, push_every=100 if preset != "robot" else 200)
+    train = collect(plant, cfg)
+    test = collect(plant, dataclasses.replace(cfg, episodes=4, seed=seed + 1000))
+    if kind == "gravity":  # the datasets declare the nominal gravity
+        train = dataclasses.replace(train, gravity=np.array([0.0, 0.0, -9.81]))
+        test = dataclasses.replace(test, gravity=np.array([0.0, 0.0, -9.81]))
+    t0 = time.perf_counter()
+    model = fit_model(train, clean, effects="auto")  # the fit sees the clean MJCF only
+    secs = time.perf_counter() - t0
+    bare = copy.deepcopy(model)
+    bare.effects = []
+    H = min(test.n_steps, 1000)
+    before = rollout_errors(bare, test, horizon=H)["pos_mean"]
+    after = rollout_errors(model, test, horizon=H)["pos_mean"]
+    return {"added": [e["name"] for e in model.effects], "loop": model.loop, "test_before": before,
+            "test_after": after, "seconds": secs, "explained": model.metrics["effect_search"]["explained"]}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    cases = CASES[::3] if args.quick else CASES
+    print(f"{'plant':<18} {'hidden':<14} {'size':>6} {'seed':>4}  {'added':<28} {'held-out before':>15} "
+          f"{'after':>9}  {'test before':>11} {'after':>9}  {'ok':<3} {'s':>5}")
+    bad = 0
+    with tempfile.TemporaryDirectory() as d:
+        for preset, kind, size, seed, want in cases:
+            r = run_case(Path(d), preset, kind, size, seed)
+            lp = r["loop"][0] if r["loop"] else {}
+            ok = r["added"] == ([want] if want else [])
+            bad += not ok
+            fmt = lambda x: "    -" if x is None else f"{x:9.3g}"
+            print(f"{preset:<18} {kind:<14} {size:>6g} {seed:>4}  {','.join(r['added']) or 'nothing':<28} "
+                  f"{fmt(lp.get('error_before')):>15} {fmt(lp.get('error_after'))}  {fmt(r['test_before']):>11} "
+                  f"{fmt(r['test_after'])}  {'yes' if ok else 'NO':<3} {r['seconds']:5.1f}", flush=True)
+    print(f"{len(cases) - bad}/{len(cases)} cases as expected (a wrong or missing effect counts against)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""The effect plug-in: a force the spring-rod model lacks, one small class per effect.
+
+An :class:`Effect` (in the spirit of PySINDy's ``feature_library/base.py``) knows
+
+* its ``name`` (the key in the model JSON) and its parameter blocks (:class:`ParamBlock`: names,
+  per rod / per spring / global, signed or not, in units that scale with mass or not);
+* its regression *features*: the force and torque it puts on every rod per unit of each
+  parameter (:meth:`Effect.features`), linear in the parameters, so that the fit adds columns to
+  the paper's linear regression (:mod:`identified.fit.features`);
+* the wrench it adds in the engine (:meth:`Effect.wrench`): by default the same features
+  contracted with the parameter values, so the fit and the twin cannot disagree;
+* whether the implicit integrator may treat it explicitly (every effect here is explicit);
+* its JSON round trip with standard errors (:meth:`Effect.to_json`, :func:`effect_from_json`).
+
+Inputs: the engine's :class:`~identified.engine.StepContext` and the rod state; the fit builds the
+same context from recorded states (:func:`identified.fit.features.step_context`).
+
+Parameter layout of an effect: its blocks concatenated, each block flattened in (element,
+component) order, e.g. ``linear_drag`` per rod ``[b_lin, b_rot]`` -> ``rod0.b_lin, rod0.b_rot,
+rod1.b_lin, ...``.
+
+Stages: ``stage = "joint"`` effects enter the main regression as extra columns (fitted together
+with K, c, M, I, h); ``stage = "residual"`` effects (ground contact) need the accelerations under
+every other force, so they are fitted on the residual of the jointly fitted model, on the rows
+they touch, after the joint fit has left those rows out (:mod:`identified.fit.pipeline`).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+__all__ = ["Effect", "ParamBlock"]
+
+KINDS = ("rod", "spring", "global")
+
+
+@dataclass(frozen=True)
+class ParamBlock:
+    """One named group of an effect's parameters.
+
+    ``per``: ``"rod"`` (one set per rod), ``"spring"`` (one per spring/cable) or ``"global"``;
+    ``width``: components per element (e.g. 3 axes); ``signed``: may be negative (else a
+    non-negative physical quantity); ``mass_scaled``: its unit contains kg (it scales with the
+    global mass scale when only ratios are identified); ``unit``: for reports.
+    """
+
+    name: str
+    per: str
+    width: int = 1
+    signed: bool = False
+    mass_scaled: bool = True
+    unit: str = ""
+
+    def size(self, n_rods: int, n_springs: int) -> int:
+        return self.width * {"rod": n_rods, "spring": n_springs, "global": 1}[self.per]
+
+    def shape(self, n_rods: int, n_springs: int) -> tuple[int, ...]:
+        n = {"rod": (n_rods,), "spring": (n_springs,), "global": ()}[self.per]
+        return n + ((self.width,) if self.width > 1 else ())
+
+
+class Effect(ABC):
+    """Base class of the effect library.
+
+    Subclasses set ``name``, ``blocks`` (all of one ``per`` kind, :attr:`kind`), ``description``,
+    and implement :meth:`features` (or :meth:`end_features` for per-spring effects).  An effect
+    holds its fitted ``values`` (P,) and ``stderr`` (P,) (``None`` before the fit) and its
+    non-fitted ``options`` (geometry, smoothing widths).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str] = ""
+    blocks: ClassVar[tuple[ParamBlock, ...]]
+    stage: ClassVar[str] = "joint"
+    explicit: ClassVar[bool] = True  # the implicit integrator treats its force as explicit
+    needs_base_acceleration: ClassVar[bool] = False
+
+    def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,
+                 options: dict[str, Any] | None = None) -> None:
+        self.n_rods, self.n_springs = int(n_rods), int(n_springs)
+        self.options: dict[str, Any] = dict(options or {})
+        P = self.n_params
+        self.values = None if values is None else np.asarray(values, dtype=float).reshape(P)
+        self.stderr = None if stderr is None else np.asarray(stderr, dtype=float).reshape(P)
+        self._cache: dict[tuple, torch.Tensor] = {}
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def kind(self) -> str:
+        kinds = {b.per for b in self.blocks}
+        assert len(kinds) == 1, f"{self.name}: blocks of one kind only"
+        return kinds.pop()
+
+    @property
+    def width(self) -> int:
+        """Parameters per element (rod or spring), or all of them for a global effect."""
+        return sum(b.width for b in self.blocks)
+
+    @property
+    def n_params(self) -> int:
+        return sum(b.size(self.n_rods, self.n_springs) for b in self.blocks)
+
+    def param_names(self, rod_names: tuple[str, ...], spring_names: tuple[str, ...]) -> list[str]:
+        """Full names in the effect's parameter order, e.g. ``linear_drag.rod0.b_lin``."""
+        comps = [f"{b.name}{'' if b.width == 1 else '_' + 'xyz'[k] if b.width == 3 else f'_{k}'}"
+                 for b in self.blocks for k in range(b.width)]
+        if self.kind == "global":
+            return [f"{self.name}.{c}" for c in comps]
+        elems = rod_names if self.kind == "rod" else spring_names
+        return [f"{self.name}.{e}.{c}" for e in elems for c in comps]
+
+    def signed_mask(self) -> np.ndarray:
+        per = np.array([b.signed for b in self.blocks for _ in range(b.width)])
+        n = 1 if self.kind == "global" else (self.n_rods if self.kind == "rod" else self.n_springs)
+        return np.tile(per, n)
+
+    # ------------------------------------------------------------------ physics
+    def features(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Force and WORLD torque on each rod per unit of each parameter.
+
+        Per-rod effects: (..., R, W, 3) each, column k of rod i is parameter ``i W + k``; global
+        effects: (..., R, P, 3).  Per-spring effects implement :meth:`end_features` instead.
+        """
+        raise NotImplementedError
+
+    def end_features(self, state: Any, ctx: Any) -> torch.Tensor:
+        """Per-spring effects: the force on each spring end per unit of the spring's parameter,
+        (..., S, 2, 3)."""
+        raise NotImplementedError
+
+    def theta(self, like: torch.Tensor) -> torch.Tensor:
+        """The fitted values as a tensor in ``like``'s dtype and device (cached)."""
+        if self.values is None:
+            raise ValueError(f"effect '{self.name}' has no fitted values")
+        key = (like.dtype, like.device)
+        if key not in self._cache:
+            self._cache[key] = torch.as_tensor(self.values, dtype=like.dtype, device=like.device)
+        return self._cache[key]
+
+    def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """The force and WORLD torque the effect adds to each rod, (..., R, 3) each."""
+        th = self.theta(state.pos)
+        if self.kind == "spring":
+            from identified.engine.accelerations import rod_wrench
+
+            f = self.end_features(state, ctx) * th.view(-1, 1, 1)
+            return rod_wrench(ctx.graph, f, ctx.ends.lever)
+        force, torque = self.features(state, ctx)
+        w = th.view(self.n_rods, -1, 1) if self.kind == "rod" else th.view(-1, 1)
+        return (force * w).sum(-2), (torque * w).sum(-2)
+
+    def __call__(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.wrench(state, ctx)
+
+    def rows_affected(self, state: Any, ctx: Any) -> torch.Tensor | None:
+        """(..., R) bool: rods whose equations this effect touches (residual-stage effects); None: all."""
+        return None
+
+    # ------------------------------------------------------------------ JSON
+    def structured(self, flat: np.ndarray | None) -> dict[str, Any] | None:
+        """``{block: nested list}`` from a flat parameter vector (None stays None)."""
+        if flat is None:
+            return None
+        flat = np.where(np.isfinite(flat), flat, np.nan).astype(object)
+        flat[[not np.isfinite(x) for x in flat]] = None  # not estimable -> null in JSON
+        out: dict[str, Any] = {}
+        W = self.width
+        if self.kind == "global":
+            off = 0
+            for b in self.blocks:
+                v = flat[off: off + b.width]
+                out[b.name] = v[0] if b.width == 1 else v.tolist()
+                off += b.width
+            return out
+        n = self.n_rods if self.kind == "rod" else self.n_springs
+        mat = flat.reshape(n, W)
+        off = 0
+        for b in self.blocks:
+            v = mat[:, off: off + b.width]
+            out[b.name] = (v[:, 0] if b.width == 1 else v).tolist()
+            off += b.width
+        return out
+
+    def flatten(self, obj: dict[str, Any]) -> np.ndarray:
+        """The flat parameter vector from ``{block: nested list}``; raises ValueError on bad shapes."""
+        parts = []
+        for b in self.blocks:
+            if b.name not in obj:
+                raise ValueError(f"effect '{self.name}' lacks parameter '{b.name}'")
+            v = np.asarray(obj[b.name], dtype=float)
+            want = b.shape(self.n_rods, self.n_springs)
+            if v.shape != want:
+                raise ValueError(f"effect '{self.name}' parameter '{b.name}' has shape {v.shape}, expected {want}")
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"effect '{self.name}' parameter '{b.name}' is not finite")
+            parts.append(v.reshape(-1, b.width) if self.kind != "global" else v.reshape(1, b.width))
+        return np.concatenate(parts, axis=1).reshape(-1)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "parameters": self.structured(self.values),
+                "stderr": self.structured(self.stderr), "options": self.options}
+
+    def describe(self) -> str:
+        """One line in words (for the fit report)."""
+        if self.values is None:
+            return f"effect {self.name}: not fitted"
+        se = self.stderr
+        parts = []
+        for b in self.blocks:
+            idx = self._block_index(b)
+            v = self.values[idx]
+            s = "" if se is None else f" ± {np.max(se[idx]):.2g}"
+            if v.size <= 3:
+                parts.append(f"{b.name} = {np.array2string(v, precision=4)}{s} {b.unit}".rstrip())
+            else:
+                parts.append(f"{b.name} in [{v.min():.4g}, {v.max():.4g}]{s} {b.unit}".rstrip())
+        return f"effect {self.name}: " + "; ".join(parts)
+
+    def _block_index(self, block: ParamBlock) -> np.ndarray:
+        off = 0
+        for b in self.blocks:
+            if b is block:
+                break
+            off += b.width
+        n = 1 if self.kind == "global" else (self.n_rods if self.kind == "rod" else self.n_springs)
+        return (np.arange(n)[:, None] * self.width + off + np.arange(block.width)).reshape(-1)
+
+    @classmethod
+    @abstractmethod
+    def for_system(cls, topology: Any, mjcf: str | None = None) -> Effect:
+        """An unfitted instance for this system (reads the geometry it needs from the MJCF)."""

@@ -1,0 +1,326 @@
+"""``ground_contact``: normal and friction forces between the rods' capsules and a ground plane.
+
+Geometry (read from the MJCF, never its physics parameters): every rod's collision capsule
+(radius, segment end points in the rod frame) and the ground plane (height and normal).  Each end
+sphere of a capsule is a contact candidate; it is *in contact* when it penetrates the plane,
+depth ``d = r - (n·c - h) > 0`` (``c`` the sphere centre), at the point ``ρ = c - r n`` (lever from
+the rod's centre of mass).
+
+Force law.  MuJoCo's contact is a soft *constraint*, not a penalty spring: the solver chooses the
+force that gives the contact point a reference acceleration, ``f = (a_ref - J qacc) / R``, with
+``a_ref = k d - b v`` and a regulariser ``R`` proportional to the inverse effective mass.  Written
+with the acceleration ``a0`` that the contact point would have under every *other* force (springs,
+gravity, pushes, other effects) this is, for one contact on a rod,
+
+    f_n = max(0, m_n (κ d - β_n v_n - γ_n a0_n))                        (normal)
+    f_a = m_a (-β_a v_a - γ_a a0_a),   f_p = m_p (-β_p v_p - γ_p a0_p)   (friction)
+    |(f_a, f_p)| <= μ f_n
+
+written here per direction for one contact: in full, the force in contact coordinates
+``(n, a, p)`` is ``A⁻¹ g`` with ``g`` the bracketed reference accelerations and
+``A_ab = δ_ab / M + (ρ×u_a)ᵀ I_w⁻¹ (ρ×u_b)`` the contact point's inverse effective-mass matrix from
+the rod's identified M and I (its off-diagonal terms are why a normal force at a tilted rod's end
+also moves the point sideways, which the friction must cancel to stick); ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
+(no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
+ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
+so none of them scales with the mass.  The friction axes are per rod: ``a`` along the rod's
+shadow on the ground, ``p`` across it (an end cap rolls across its rod more easily than it slides
+along it; on the robot γ_p ≈ 0.7 against γ_a ≈ 0.95).  Given M, I and ``a0`` -- all from the jointly identified
+spring-rod model -- the law is *linear* in ``(κ, β_n, γ_n, β_t, γ_t)``: it is fitted by least
+squares on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
+and the friction bound ``μ`` by a profile scan of the same residual.  Measured on the robot preset,
+this law explains most of the contact force (``explained_variance`` in the fit's metrics).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from typing import Any
+
+import numpy as np
+import torch
+
+from identified.effects.base import Effect, ParamBlock
+from identified.rotation import matrix_apply, matrix_apply_transpose
+
+__all__ = ["GroundContact", "read_contact_geometry"]
+
+REGULARISER = 1e-2  # relative, on the diagonal of the contact-space inverse mass
+LINEAR = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p")
+NL = len(LINEAR)
+
+
+class GeometryError(ValueError):
+    """The MJCF lacks the geometry an effect needs."""
+
+
+def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, Any]:
+    """Capsule radius and segment ends per rod, and the ground plane, from an MJCF (XML only).
+
+    Returns ``{"radius": [R], "segment": [R][2][3] rod frame, "ground_height": h, "normal": [3]}``.
+    Raises :class:`GeometryError` (one line) when there is no ground plane or a rod has no capsule.
+    """
+    from identified.mjcf import parse_mjcf, read_mjcf_text
+    from identified.topology import _frame, _vec
+
+    root = parse_mjcf(read_mjcf_text(mjcf, GeometryError), GeometryError)
+    world = root.find("worldbody")
+    planes = [g for g in world.iter("geom") if g.get("type") == "plane"] if world is not None else []
+    if not planes:
+        raise GeometryError("ground_contact needs a ground plane (a <geom type=\"plane\">) in the MJCF; it has none")
+    g = planes[0]
+    pos = _vec(g.get("pos"), 3)
+    q = _vec(g.get("quat"), 4) if g.get("quat") else np.array([1.0, 0, 0, 0])
+    fake = ET.Element("body", {"pos": " ".join(map(str, pos)), "quat": " ".join(map(str, q))})
+    _, rot = _frame(fake)
+    normal = rot[:, 2]
+    radius, segment = [], []
+    bodies = {b.get("name"): b for b in world.findall("body")}
+    for name in rod_names:
+        b = bodies.get(name)
+        caps = [] if b is None else [x for x in b.findall("geom") if x.get("type") == "capsule"]
+        if not caps:
+            raise GeometryError(f"ground_contact needs a collision capsule on rod '{name}'; the MJCF has none")
+        c = caps[0]
+        size = [float(v) for v in (c.get("size") or "0").split()]
+        if c.get("fromto"):
+            ft = _vec(c.get("fromto"), 6)
+            ends = [ft[:3], ft[3:]]
+        else:
+            if c.get("quat") or c.get("euler") or c.get("axisangle"):
+                raise GeometryError(f"rod '{name}': give its capsule as fromto to read its geometry")
+            p = _vec(c.get("pos"), 3)
+            half = size[1] if len(size) > 1 else 0.0
+            ends = [p - [0, 0, half], p + [0, 0, half]]
+        radius.append(size[0])
+        segment.append([list(map(float, e)) for e in ends])
+    return {"radius": radius, "segment": segment, "ground_height": float(normal @ pos),
+            "normal": normal.tolist()}
+
+
+class GroundContact(Effect):
+    name = "ground_contact"
+    description = "rod capsules on a ground plane: constraint-like normal force and saturating friction"
+    blocks = (
+        ParamBlock("kappa", "global", mass_scaled=False, unit="1/s^2"),
+        ParamBlock("beta_n", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_n", "global", mass_scaled=False),
+        ParamBlock("beta_a", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_a", "global", mass_scaled=False),
+        ParamBlock("beta_p", "global", mass_scaled=False, unit="1/s"),
+        ParamBlock("gamma_p", "global", mass_scaled=False),
+        ParamBlock("mu", "global", mass_scaled=False),
+    )
+    stage = "residual"
+    needs_base_acceleration = True
+
+    @classmethod
+    def for_system(cls, topology: Any, mjcf: str | None = None) -> GroundContact:
+        if mjcf is None:
+            raise GeometryError("ground_contact needs the MJCF's geometry (capsules and ground plane)")
+        return cls(topology.n_rods, topology.n_springs, options=read_contact_geometry(mjcf, topology.rod_names))
+
+    # ------------------------------------------------------------------ geometry
+    def _geom(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        key = ("geom", like.dtype, like.device)
+        if key not in self._cache:
+            t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
+            n = t(self.options["normal"])
+            a = torch.tensor([1.0, 0, 0], dtype=like.dtype) if abs(float(n[0])) < 0.9 else torch.tensor([0, 1.0, 0], dtype=like.dtype)
+            t1 = torch.linalg.cross(n, a.to(like.device))
+            t1 = t1 / t1.norm()
+            t2 = torch.linalg.cross(n, t1)
+            self._cache[key] = (t(self.options["radius"]), t(self.options["segment"]), n, t1, t2,
+                                t(self.options["ground_height"]))
+        return self._cache[key]
+
+    def contacts(self, state: Any, ctx: Any) -> dict[str, torch.Tensor]:
+        """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3); per rod the
+        contact-space inverse effective-mass matrix of both ends, ``A`` (..., R, 6, 6), rows
+        (end, direction) with directions (n, t1, t2), from the model's M and I."""
+        radius, seg, n, t1, t2, height = self._geom(state.pos)
+        rot = ctx.rot
+        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3)
+        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        # the force acts on the rod's axis at the end sphere's centre: a contact at the capsule's
+        # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
+        # small for the data to identify and which the plant's torsional friction holds still
+        lever = centre - state.pos.unsqueeze(-2)
+        # friction axes per rod: along the rod's shadow on the ground (a) and across it (p); an end
+        # cap rolls across its rod far more easily than it slides along it
+        axis = rot[..., :, 2]
+        along = axis - (axis * n).sum(-1, keepdim=True) * n
+        norm = along.norm(dim=-1, keepdim=True)
+        along = torch.where(norm > 1e-6, along / norm.clamp_min(1e-12), t1)
+        across = torch.linalg.cross(n.expand_as(along), along)
+        dirs = torch.stack((n.expand_as(along), along, across), -2).unsqueeze(-3).expand(lever.shape[:-1] + (3, 3))
+        p = ctx.params
+        inertia = p.inertia.unsqueeze(-2).unsqueeze(-2)
+        rxu = torch.linalg.cross(lever.unsqueeze(-2).expand_as(dirs), dirs)  # (..., R, 2, 3, 3)
+        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
+        B = body.reshape(body.shape[:-3] + (6, 3))
+        eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
+        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
+        return {"depth": depth, "active": depth > 0, "lever": lever, "A": A, "dirs": dirs}
+
+    def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Velocity and other-force acceleration of each contact point along (n, t1, t2): (..., R, 2, 3)."""
+        lever = c["lever"]
+        vel = state.vel.unsqueeze(-2) + torch.linalg.cross(state.angvel.unsqueeze(-2).expand_as(lever), lever)
+        alpha_w = matrix_apply(ctx.rot, ctx.base_ang_acc_body)
+        acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2).expand_as(lever), lever)
+        dirs = c["dirs"]  # (..., R, 2, 3, 3)
+        return (dirs @ vel.unsqueeze(-1)).squeeze(-1), (dirs @ acc.unsqueeze(-1)).squeeze(-1)
+
+    @staticmethod
+    def _inverse(A: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """``(A + ε diag A)⁻¹`` restricted to the active contacts of each rod (zero rows and columns
+        elsewhere).  Two point contacts on one rod leave its spin about the line through them free:
+        ``A`` is then singular, and the small regulariser ``ε = REGULARISER`` (as MuJoCo's own
+        ``R``) picks the least-force solution."""
+        m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
+        m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
+        A = A + REGULARISER * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
+        Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
+        return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
+
+    def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
+        """Reference accelerations per unit of each linear parameter, (..., R, 2, 7, 3) contact frame."""
+        v, a0 = self._point_kinematics(state, ctx, c)
+        zero = torch.zeros_like(v[..., 0])
+        return torch.stack([
+            torch.stack((c["depth"], zero, zero), -1),
+            torch.stack((-v[..., 0], zero, zero), -1),
+            torch.stack((-a0[..., 0], zero, zero), -1),
+            torch.stack((zero, -v[..., 1], zero), -1),
+            torch.stack((zero, -a0[..., 1], zero), -1),
+            torch.stack((zero, zero, -v[..., 2]), -1),
+            torch.stack((zero, zero, -a0[..., 2]), -1),
+        ], -2)
+
+    @staticmethod
+    def _apply(Ainv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        """``A⁻¹ g`` per rod: g (..., R, 2, [K,] 3) in (end, direction) -> forces of the same shape."""
+        if g.dim() == Ainv.dim():  # (..., R, 2, 3)
+            return (Ainv @ g.reshape(g.shape[:-2] + (6, 1))).reshape(g.shape)
+        K = g.shape[-2]
+        flat = g.transpose(-2, -3).reshape(g.shape[:-3] + (K, 6))  # (..., R, K, 6)
+        return (flat @ Ainv.transpose(-1, -2)).reshape(g.shape[:-3] + (K, 2, 3)).transpose(-2, -3)
+
+    def _linear_terms(self, state: Any, ctx: Any) -> tuple[dict, torch.Tensor]:
+        """Force per unit of each linear parameter, per contact, in (n, t1, t2) components:
+        (..., R, 2, 7, 3); zero where not in contact."""
+        c = self.contacts(state, ctx)
+        return c, self._apply(self._inverse(c["A"], c["active"]), self._references(state, ctx, c))
+
+    def _to_wrench(self, c: dict, local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Contact-frame forces, (..., R, 2, 3) or per parameter (..., R, 2, K, 3), to the rod force
+        and WORLD torque about its centre of mass, (..., R, 3) or (..., R, K, 3)."""
+        lever = c["lever"]
+        if local.dim() == lever.dim():
+            world = (local.unsqueeze(-2) @ c["dirs"]).squeeze(-2)
+        else:
+            world = local @ c["dirs"]
+        if local.dim() == lever.dim():
+            return world.sum(-2), torch.linalg.cross(lever, world).sum(-2)
+        torque = torch.linalg.cross(lever.unsqueeze(-2).expand_as(world), world)
+        return world.sum(-3), torque.sum(-3)
+
+    def features(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Force and torque per unit of the seven linear parameters (..., R, 7, 3); μ unbounded."""
+        c, terms = self._linear_terms(state, ctx)
+        return self._to_wrench(c, terms)
+
+    def _unbounded(self, state: Any, ctx: Any, th: torch.Tensor) -> tuple[dict, torch.Tensor]:
+        """The law before the friction bound: per contact (..., R, 2, 3), both ends of a rod solved
+        together; an end whose normal force comes out pulling is released and the rod solved again."""
+        c = self.contacts(state, ctx)
+        g = (self._references(state, ctx, c) * th[:NL, None]).sum(-2)  # (..., R, 2, 3)
+        raw = self._apply(self._inverse(c["A"], c["active"]), g)
+        released = c["active"] & ~(raw[..., 0] > 0)
+        if bool(released.any()):
+            raw = self._apply(self._inverse(c["A"], c["active"] & ~released), g)
+        return c, raw
+
+    @staticmethod
+    def _bound(raw: torch.Tensor, mu: torch.Tensor | float) -> torch.Tensor:
+        """``f_n >= 0`` and ``|f_t| <= μ f_n`` on unbounded contact forces (..., 3)."""
+        fn = raw[..., 0].clamp_min(0.0)
+        ft = raw[..., 1:]
+        norm = ft.norm(dim=-1).clamp_min(1e-12)
+        ft = ft * torch.clamp(mu * fn / norm, max=1.0).unsqueeze(-1)
+        return torch.cat((fn.unsqueeze(-1), ft), -1)
+
+    def contact_forces(self, state: Any, ctx: Any, theta: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
+        """The law with its bounds: forces per contact in (n, t1, t2) components, (..., R, 2, 3)."""
+        th = self.theta(state.pos) if theta is None else theta
+        c, raw = self._unbounded(state, ctx, th)
+        return c, self._bound(raw, th[NL])
+
+    def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        c, f = self.contact_forces(state, ctx)
+        return self._to_wrench(c, f)
+
+    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
+        """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
+        radius, seg, n, _, _, height = self._geom(state.pos)
+        centre = state.pos.unsqueeze(-2) + matrix_apply(ctx.rot.unsqueeze(-3), seg)
+        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        return (depth > -margin).any(-1)
+
+    # ------------------------------------------------------------------ fit on the residual
+    def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
+                     groups: np.ndarray, rows: torch.Tensor) -> dict[str, Any]:
+        """Least squares of the law on the residual wrench of the contact rows.
+
+        ``force``/``torque`` (N, R, 3) world: the wrench the jointly fitted model leaves
+        unexplained; ``rows`` (N, R) bool: the rod equations to use; ``groups`` (N,): the episode
+        of each instant (cluster-robust standard errors).  Sets ``values``/``stderr`` and
+        returns fit statistics.
+        """
+        # only the instants where some rod touches: everything below runs on those
+        sel = rows & (self.contacts(state, ctx)["depth"] > 0).any(-1)
+        keep_t = sel.any(-1)
+        sub = lambda x: None if x is None else x[keep_t]
+        state = type(state)(*(sub(x) for x in state))
+        ctx = ctx._replace(rot=sub(ctx.rot), angvel_body=sub(ctx.angvel_body), base_lin_acc=sub(ctx.base_lin_acc),
+                           base_ang_acc_body=sub(ctx.base_ang_acc_body))
+        force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
+        c, terms = self._linear_terms(state, ctx)
+        F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
+        scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
+        X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
+        Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
+        g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
+        if X.shape[0] < 50:
+            raise ValueError("too few contact rows to identify ground_contact")
+        keep = np.ones(len(Y), dtype=bool)
+        theta = np.linalg.lstsq(X, Y, rcond=None)[0]
+        best = (np.inf, None, 1.0)
+        with torch.no_grad():
+            cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0]])))
+            for mu in np.geomspace(0.05, 3.0, 40):
+                Fm, Tm = self._to_wrench(cc, self._bound(raw, float(mu)))
+                r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
+                sse = float(r @ r)
+                if sse < best[0]:
+                    best = (sse, r, mu)
+        sse, r, mu = best
+        cov = _cluster_cov(X[keep], Y[keep] - X[keep] @ theta, g[keep])
+        self.values = np.concatenate([theta, [mu]])
+        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan]])  # μ: profile scan
+        return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
+                "mu_profile": "scan over 0.05..3 (no standard error)"}
+
+
+def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Cluster-robust (sandwich) covariance of least squares, clusters = episodes."""
+    XtX_inv = np.linalg.pinv(X.T @ X)
+    meat = np.zeros((X.shape[1], X.shape[1]))
+    for gid in np.unique(groups):
+        m = groups == gid
+        s = X[m].T @ r[m]
+        meat += np.outer(s, s)
+    G = len(np.unique(groups))
+    corr = G / max(G - 1, 1)
+    return corr * XtX_inv @ meat @ XtX_inv

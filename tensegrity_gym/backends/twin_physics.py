@@ -1,0 +1,285 @@
+"""The twin's physics: N copies of an identified spring-rod system with cable motors, stepped together.
+
+:class:`TwinPhysics` holds the state tensors ``(*B, R, ·)`` (``B = (N,)`` batched, ``()`` single)
+and advances them: every physics substep is the cable motors (:func:`tensegrity_gym.cables.motor_step`,
+the plant's motor model on tensors) then ONE engine step (:meth:`identified.engine.SpringRodEngine.step`,
+with whatever effects the engine was built with) for all N copies. The single twin env
+(:class:`~tensegrity_gym.backends.identified_backend.IdentifiedBackend`) and the batched one
+(:class:`~tensegrity_gym.envs.vector.TensegrityIcoVectorEnv`) both step through it.
+
+Speed, two policies, each a keyword argument with a default that suits a CPU:
+
+* **Threads** (``num_threads``, default ``"auto"``): torch's intra-op threads spin while they wait
+  for work; on a machine where another process holds a core they fight it, and the batched twin
+  at 256 envs fell from ~4,000 to ~120 env steps/s with torch's 2 threads on 2 cores
+  (``benchmarks/bench_twin.py`` measures it). ``"auto"`` runs the twin's CPU work on ONE thread,
+  which is never slower under load and, measured, as fast or faster on a quiet machine at the
+  batch sizes that fit a CPU; an int asks for that many threads; ``None`` leaves torch's setting.
+  The setting is scoped: :func:`torch_threads` sets it for the twin's step and puts the caller's
+  value back after, so the user's global ``torch.set_num_threads`` is never changed behind their
+  back (torch's thread count is process-wide: another Python thread running torch work during
+  the twin's step sees the twin's count). CUDA work is not affected.
+* **Compilation** (``compile``, default ``"auto"``): one substep (motors + engine step) is compiled
+  once with ``torch.compile`` (inductor: the substep's hundred small kernels become a few fused
+  loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles in
+  seconds (timed in :attr:`TwinPhysics.compile_seconds`) and inductor's on-disk cache makes the
+  next process faster. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
+  variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
+  warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
+  substeps agree to rounding (tests/test_twin_speed.py).
+
+Divergence: a copy whose state stops being finite is marked (:attr:`TwinPhysics.diverged`) and
+reads as NaN until it is reset.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import torch
+
+from identified.engine import SpringRodEngine
+from identified.state import RodState
+from tensegrity_gym.cables import MotorSpec, motor_step
+
+__all__ = ["COMPILE_ENV", "TwinPhysics", "compiler_available", "resolve_threads", "torch_threads"]
+
+#: Environment variable: ``0`` turns the ``compile="auto"`` default off (eager twin).
+COMPILE_ENV = "TENSEGRITY_TWIN_COMPILE"
+
+
+def compiler_available() -> bool:
+    """True when a C++ compiler that inductor can use is on the PATH (``$CXX``, g++, c++, clang++)."""
+    names = [os.environ.get("CXX", ""), "g++", "c++", "clang++"]
+    return any(n and shutil.which(n) for n in names)
+
+
+def resolve_threads(num_threads: int | str | None, device: torch.device) -> int | None:
+    """The intra-op thread count the twin runs under: ``"auto"`` -> 1 on CPU (``None`` on other
+    devices: nothing to set); an int >= 1 as given; ``None``: leave torch's setting."""
+    if num_threads is None:
+        return None
+    if num_threads == "auto":
+        return 1 if device.type == "cpu" else None
+    if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
+        raise ValueError(f"num_threads must be 'auto', None or an integer >= 1, got {num_threads!r}")
+    return int(num_threads)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads, then restore the caller's count
+    (``None`` or the current count: nothing changes)."""
+    old = torch.get_num_threads()
+    if n is None or n == old:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _wants_compile(compile: bool | str, device: torch.device) -> bool:
+    if compile == "auto":
+        if os.environ.get(COMPILE_ENV, "1").strip() in ("0", "false", "no", "off"):
+            return False
+        return device.type != "cpu" or compiler_available()
+    if not isinstance(compile, bool):
+        raise ValueError(f"compile must be 'auto', True or False, got {compile!r}")  # noqa: TRY004
+    return compile
+
+
+class TwinPhysics:
+    """N copies of an identified spring-rod system with cable motors, stepped together.
+
+    State tensors have shape ``(*B, R, ·)`` with ``B = (N,)`` (``batch=N``) or ``()``
+    (``batch=None``); rest lengths ``(*B, S)``; motor targets ``(*B, A)``. One :meth:`step` runs
+    ``n_substeps`` times: motors, then ONE batched engine step.
+
+    Args:
+        engine: the identified engine (its dtype and device are used throughout).
+        motor: the motor specification; ``actuated_index`` (A,) the springs it drives.
+        batch: number of copies N, or ``None`` for one unbatched system.
+        chunk_size: ``None`` (default): one engine call per substep for all N copies. An int: the
+            copies are stepped in consecutive blocks of this many, each block through all its
+            substeps (the copies are independent: the same result up to rounding).
+        num_threads: torch intra-op threads for the twin's work, ``"auto"`` (1 on CPU), an int,
+            or ``None`` (torch's setting); scoped to :meth:`step` (module docstring).
+        compile: ``"auto"``, ``True`` or ``False``: ``torch.compile`` one substep (module docstring).
+    """
+
+    def __init__(self, engine: SpringRodEngine, motor: MotorSpec, actuated_index: np.ndarray,
+                 batch: int | None = None, chunk_size: int | None = None,
+                 num_threads: int | str | None = "auto", compile: bool | str = "auto") -> None:
+        if batch is not None and (int(batch) != batch or batch < 1):
+            raise ValueError(f"batch must be an integer >= 1 or None, got {batch}")
+        if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1 or batch is None):
+            raise ValueError(f"chunk_size must be an integer >= 1 (and needs batch), got {chunk_size}")
+        self.chunk_size = None if chunk_size is None or chunk_size >= (batch or 0) else int(chunk_size)
+        self.engine = engine
+        self.motor = motor
+        self.batch = None if batch is None else int(batch)
+        self.shape: tuple[int, ...] = () if batch is None else (int(batch),)
+        dt, dev = engine.dtype, engine.device
+        self.num_threads = resolve_threads(num_threads, dev)
+        self.compiled = _wants_compile(compile, dev)
+        #: seconds spent compiling the substep (first step; 0 when eager)
+        self.compile_seconds = 0.0
+        self._act = torch.as_tensor(np.asarray(actuated_index, dtype=np.int64), device=dev)
+        self._all_actuated = bool(np.array_equal(np.asarray(actuated_index), np.arange(engine.n_springs)))
+        self._lo = torch.as_tensor(motor.rest_min, dtype=dt, device=dev)
+        self._hi = torch.as_tensor(motor.rest_max, dtype=dt, device=dev)
+        R, S = engine.n_rods, engine.n_springs
+        z3 = torch.zeros(self.shape + (R, 3), dtype=dt, device=dev)
+        quat = torch.zeros(self.shape + (R, 4), dtype=dt, device=dev)
+        quat[..., 0] = 1.0
+        self.state = RodState(z3, quat, z3.clone(), z3.clone())
+        self.rest = torch.ones(self.shape + (S,), dtype=dt, device=dev)  # every spring, (*B, S)
+        self.rest_act = self.rest[..., self._act].clone()  # the motors' state, (*B, A)
+        self.target = self.rest_act.clone()
+        self.diverged = torch.zeros(self.shape, dtype=torch.bool, device=dev)
+        self._substep: Callable[..., tuple[torch.Tensor, ...]] = self._eager_substep
+        self._compiled_substep: Callable[..., tuple[torch.Tensor, ...]] | None = None
+        self._first_call = True
+
+    # ------------------------------------------------------------------ conversions
+    def tensor(self, x: Any) -> torch.Tensor:
+        """``x`` as a tensor of the engine's dtype and device."""
+        e = self.engine
+        if isinstance(x, torch.Tensor):
+            return x.to(dtype=e.dtype, device=e.device)
+        return torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=e.dtype, device=e.device)
+
+    def _index(self, index: Any) -> Any:
+        """Batch index: ``None`` = every copy (``...``), else an int array/tensor of copies."""
+        if index is None:
+            return ...
+        if self.batch is None:
+            raise ValueError("an unbatched TwinPhysics takes index=None")
+        return torch.as_tensor(np.asarray(index, dtype=np.int64), device=self.engine.device)
+
+    # ------------------------------------------------------------------ reset and step
+    def reset(self, pos: Any, quat: Any, vel: Any, angvel: Any, rest: Any, index: Any = None) -> None:
+        """Put the copies ``index`` (``None``: all) at the given states and rest lengths (S,) each;
+        their motor targets become their actuated rest lengths, and they are no longer diverged."""
+        i = self._index(index)
+        for field, value in zip(self.state, (pos, quat, vel, angvel), strict=True):
+            field[i] = self.tensor(value)
+        self.rest[i] = self.tensor(rest)
+        ra = self.rest[i][..., self._act]
+        self.rest_act[i] = ra
+        self.target[i] = ra
+        self.diverged[i] = False
+
+    def set_targets(self, target: Any, index: Any = None) -> None:
+        """Motor targets (*B, A) in metres (clipped into the motor bounds)."""
+        t = self.tensor(target)
+        self.target[self._index(index)] = torch.minimum(torch.maximum(t, self._lo), self._hi)
+
+    def step(self, n_substeps: int, push_force: Any | None = None, push_point: Any | None = None) -> None:
+        """``n_substeps`` physics steps of every copy, the push (``(*B, R, 3)`` world force, N, at
+        ``(*B, R, 3)`` rod-frame points, m) held throughout."""
+        pf = None if push_force is None else self.tensor(push_force)
+        pp = None if push_point is None else self.tensor(push_point)
+        c, n = self.chunk_size, int(n_substeps)
+        with torch_threads(self.num_threads), torch.no_grad():
+            if c is None:
+                state, rest, rest_act = self._advance(n, self.state, self.rest, self.rest_act, self.target, pf, pp)
+            else:
+                parts = []
+                for a in range(0, self.batch, c):  # type: ignore[arg-type]
+                    sl = slice(a, a + c)
+                    block = RodState(*(x[sl] for x in self.state))
+                    parts.append(self._advance(n, block, self.rest[sl], self.rest_act[sl], self.target[sl],
+                                               None if pf is None else pf[sl], None if pp is None else pp[sl]))
+                state = RodState(*(torch.cat([p[0][k] for p in parts]) for k in range(4)))
+                rest = torch.cat([p[1] for p in parts])
+                rest_act = torch.cat([p[2] for p in parts])
+            finite = torch.isfinite(torch.cat(tuple(state), dim=-1)).flatten(-2).all(-1)
+        self.state = state
+        self.rest = rest.clone() if rest is rest_act else rest  # two tensors: reset writes both
+        self.rest_act = rest_act
+        self.diverged = self.diverged | ~finite
+
+    def _advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
+                 target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
+                 ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
+        """``n`` substeps (motors, then one engine step) of a block of copies."""
+        if self._first_call:
+            self._first_call = False
+            if self.compiled:
+                return self._compile_and_advance(n, state, rest, rest_act, target, pf, pp)
+        sub = self._substep
+        pos, quat, vel, angvel = state
+        r, ra = rest, rest_act
+        try:
+            for _ in range(n):
+                pos, quat, vel, angvel, r, ra = sub(pos, quat, vel, angvel, r, ra, target, pf, pp)
+        except Exception as exc:
+            if sub is self._eager_substep:
+                raise
+            # a later compilation (a push, a new block shape) failed: eager from the same inputs
+            self._fall_back(exc)
+            return self._advance(n, state, rest, rest_act, target, pf, pp)
+        return RodState(pos, quat, vel, angvel), r, ra
+
+    def _fall_back(self, exc: Exception) -> None:
+        """Stop compiling (warn once) and step eagerly from now on."""
+        self.compiled = False
+        self._substep = self._eager_substep
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        warnings.warn(f"torch.compile of the twin's substep failed ({type(exc).__name__}: {msg}); the twin "
+                      "runs eagerly (compile=False silences this)", stacklevel=5)
+
+    def _eager_substep(self, pos: torch.Tensor, quat: torch.Tensor, vel: torch.Tensor, angvel: torch.Tensor,
+                       rest: torch.Tensor, rest_act: torch.Tensor, target: torch.Tensor,
+                       pf: torch.Tensor | None, pp: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        """One substep: the motors move the actuated rest lengths, then one engine step."""
+        e = self.engine
+        if self.motor.n:
+            rest_act = motor_step(rest_act, target, self.motor.speed, e.dt, self._lo, self._hi)
+            rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)
+        s = e.step(RodState(pos, quat, vel, angvel), rest, pf, pp)
+        return s.pos, s.quat, s.vel, s.angvel, rest, rest_act
+
+    def _compile_and_advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
+                             target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
+                             ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
+        """The first step with ``compile``: compile the substep (timed), check it runs, keep it;
+        on any failure warn once and stay eager."""
+        t0 = time.perf_counter()
+        try:
+            fn = torch.compile(self._eager_substep, dynamic=False)
+            out = fn(*state, rest, rest_act, target, pf, pp)
+        except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
+            self._fall_back(exc)
+            return self._advance(n, state, rest, rest_act, target, pf, pp)
+        self.compile_seconds = time.perf_counter() - t0
+        self._substep = self._compiled_substep = fn
+        pos, quat, vel, angvel, rest, rest_act = out
+        for _ in range(n - 1):
+            pos, quat, vel, angvel, rest, rest_act = fn(pos, quat, vel, angvel, rest, rest_act, target, pf, pp)
+        return RodState(pos, quat, vel, angvel), rest, rest_act
+
+    # ------------------------------------------------------------------ read-out
+    def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(pos, quat, vel, angvel) as new float64 arrays (*B, R, ·); NaN for diverged copies."""
+        flat = torch.cat(tuple(self.state), dim=-1).detach().to("cpu", torch.float64).numpy()
+        out = (flat[..., 0:3], flat[..., 3:7], flat[..., 7:10], flat[..., 10:13])
+        bad = self.diverged.cpu().numpy()
+        if bad.any():
+            out = tuple(np.where(bad[..., None, None], np.nan, x) for x in out)
+        return out  # type: ignore[return-value]
+
+    def rest_numpy(self) -> np.ndarray:
+        """(*B, S) float64 rest lengths of every spring, m."""
+        return self.rest.detach().to("cpu", torch.float64, copy=True).numpy()

@@ -1,0 +1,186 @@
+"""The fast twin: float32 against the float64 engine, the compiled substep against the eager one,
+and the thread policy (scoped, overridable). No timings are asserted here (benchmarks/bench_twin.py)."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import torch
+
+from identified.engine import SpringRodEngine
+from identified.model import IdentifiedModel
+from identified.rotation import quat_to_matrix
+from identified.topology import Topology
+from tensegrity_gym.backends.identified_backend import IdentifiedBackend
+from tensegrity_gym.backends.mujoco_backend import default_robot_xml
+from tensegrity_gym.backends.twin_physics import (
+    TwinPhysics,
+    compiler_available,
+    resolve_threads,
+    torch_threads,
+)
+from tensegrity_gym.envs.tensegrity_ico_v0 import action_to_rest, perturb_start
+from tensegrity_gym.models import preset_parameters
+
+N, STEPS, SUBSTEPS = 6, 100, 20  # 6 starts, 100 control steps of 20 physics steps: 2 s each
+
+
+@pytest.fixture(scope="module")
+def floating():
+    """(model, MJCF text): the robot's true parameters without ground and without gravity, so that
+    positions stay O(1) m and float32's absolute rounding stays that of the shape, not of a fall."""
+    root = ET.fromstring(default_robot_xml())
+    world = root.find("worldbody")
+    world.remove(world.find("geom[@name='ground']"))
+    xml = ET.tostring(root, encoding="unicode")
+    t = preset_parameters("ico", "robot")
+    model = IdentifiedModel(
+        topology=Topology.from_mjcf(xml),
+        stiffness=np.array([s["stiffness"] for s in t["springs"]]),
+        damping=np.array([s["damping"] for s in t["springs"]]),
+        rest_length=np.array([s["rest_length"] for s in t["springs"]]),
+        mass=np.array([r["mass"] for r in t["rods"]]),
+        inertia=np.array([r["inertia"] for r in t["rods"]]),
+        dt=t["timestep"], gravity=np.zeros(3),
+    )
+    return model, xml
+
+
+def _episode(model, xml, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray, ...]:
+    """N twins from perturbed nominal poses under random cable targets (new ones every 0.5 s):
+    the (STEPS, N, R, ·) positions, rod axes, velocities and rest lengths, float64."""
+    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False)
+    engine = SpringRodEngine.from_model(model, dtype=dtype)
+    ph = TwinPhysics(engine, b.motor, b.actuated_index, batch=N, compile=compile)
+    rng = np.random.default_rng(0)
+    starts = [perturb_start(b.nominal_states(), rng, 0.05) for _ in range(N)]
+    ph.reset(*(np.stack([getattr(s, f) for s in starts]) for f in ("pos", "quat", "vel", "angvel")),
+             np.tile(b.nominal_rest_lengths(), (N, 1)))
+    out = []
+    for k in range(STEPS):
+        if k % 25 == 0:
+            targets = action_to_rest(rng.uniform(-1, 1, (N, b.motor.n)), b.motor.rest_min, b.motor.rest_max)
+        ph.set_targets(targets)
+        ph.step(SUBSTEPS)
+        pos, quat, vel, _ = ph.states_numpy()
+        out.append((pos, quat_to_matrix(quat)[..., 2], vel, ph.rest_numpy()))
+    assert not ph.diverged.any()
+    return tuple(np.stack(x) for x in zip(*out))
+
+
+@pytest.fixture(scope="module")
+def reference(floating):
+    return _episode(*floating, torch.float64, compile=False)
+
+
+def _assert_float32_close(run, reference) -> None:
+    pos, axis, vel, rest = run
+    pos0, axis0, vel0, rest0 = reference
+    # float32 carries ~7 digits, accumulated over 2,000 stiff steps; measured (eager and compiled):
+    # 1e-5 m, 1.6e-5, 1.3e-4 m/s, 2.3e-5 m: the bounds leave a factor 6-15
+    assert np.abs(pos - pos0).max() < 1e-4  # m, on a 1.7 m robot
+    assert np.abs(axis - axis0).max() < 1e-4  # rod directions (the axial spin is free: see below)
+    assert np.abs(vel - vel0).max() < 2e-3  # m/s, of velocities ~0.5 m/s
+    assert np.abs(rest - rest0).max() < 2e-4  # m: the motors integrate 0.3 mm steps
+    assert np.abs(pos - pos0).max() > 0  # really two precisions
+
+
+def test_float32_twin_agrees_with_float64_over_an_episode(floating, reference):
+    """The default twin (float32) stays within float32 rounding of the float64 engine for 2 s of
+    random cable commands. The spin of a rod about its own axis is left out: springs attach on the
+    axis, so nothing but rounding drives it, and its inertia is ~1/100 of the transverse one."""
+    _assert_float32_close(_episode(*floating, torch.float32, compile=False), reference)
+
+
+@pytest.mark.skipif(not compiler_available(), reason="torch.compile needs a C++ compiler")
+def test_compiled_float32_twin_agrees_with_float64(floating, reference):
+    model, xml = floating
+    _assert_float32_close(_episode(model, xml, torch.float32, compile=True), reference)
+
+
+@pytest.mark.skipif(not compiler_available(), reason="torch.compile needs a C++ compiler")
+def test_compiled_substep_equals_eager_in_float64(floating):
+    model, xml = floating
+    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=True)
+    e = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False)
+    hold = b.nominal_rest_lengths()[b.actuated_index] * 0.9
+    push = np.zeros((6, 3))
+    push[2] = [20.0, 0.0, -10.0]
+    for x in (b, e):
+        x.reset(x.nominal_states(), x.nominal_rest_lengths())
+        x.step(hold, 20)
+        x.step(hold, 5, push_force=push, push_point=np.full((6, 3), 0.1))
+    assert b.physics.compiled and b.physics.compile_seconds > 0
+    for f in ("pos", "quat", "vel", "angvel"):
+        np.testing.assert_allclose(getattr(b.states(), f), getattr(e.states(), f), rtol=0, atol=1e-12)
+
+
+def test_failed_compilation_warns_and_runs_eagerly(floating, monkeypatch):
+    model, xml = floating
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(torch, "compile", broken)
+    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=True)
+    e = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False)
+    hold = b.nominal_rest_lengths()[b.actuated_index]
+    for x in (b, e):
+        x.reset(x.nominal_states(), x.nominal_rest_lengths())
+    with pytest.warns(UserWarning, match="runs eagerly"):
+        b.step(hold, 3)
+    e.step(hold, 3)
+    assert not b.physics.compiled
+    np.testing.assert_array_equal(b.states().pos, e.states().pos)
+
+    # a compilation that fails later (a new shape, a push): the step is redone eagerly
+    def flaky(fn, **kwargs):
+        calls = []
+
+        def compiled(*args):
+            calls.append(1)
+            if len(calls) > 2:
+                raise RuntimeError("recompilation failed")
+            return fn(*args)
+
+        return compiled
+
+    monkeypatch.setattr(torch, "compile", flaky)
+    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=True)
+    b.reset(e.nominal_states(), e.nominal_rest_lengths())
+    e.reset(e.nominal_states(), e.nominal_rest_lengths())
+    b.step(hold, 2)  # the two calls that work
+    assert b.physics.compiled
+    with pytest.warns(UserWarning, match="runs eagerly"):
+        b.step(hold, 3)
+    e.step(hold, 5)
+    assert not b.physics.compiled
+    np.testing.assert_array_equal(b.states().pos, e.states().pos)
+
+
+def test_thread_policy_is_scoped_and_overridable(floating):
+    """The twin steps under its own thread count and gives the caller's back afterwards."""
+    model, xml = floating
+    seen: list[int] = []
+
+    def spy(state, ctx):  # an effect that only records the thread count during the step
+        seen.append(torch.get_num_threads())
+        return None, None
+
+    before = torch.get_num_threads()
+    for threads, expected in (("auto", 1), (None, before), (3, 3)):
+        b = IdentifiedBackend(model, mjcf=xml, effects=[spy], compile=False, num_threads=threads)
+        b.step(b.nominal_rest_lengths()[b.actuated_index], 1)
+        assert seen[-1] == expected
+        assert torch.get_num_threads() == before  # the user's setting is untouched
+    with torch_threads(2):
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == before
+    assert resolve_threads("auto", torch.device("cuda")) is None  # nothing to set for a GPU
+    for bad in (0, -1, "many", 1.5, True):
+        with pytest.raises(ValueError, match="num_threads"):
+            resolve_threads(bad, torch.device("cpu"))
+    with pytest.raises(ValueError, match="compile"):
+        IdentifiedBackend(model, mjcf=xml, compile="sometimes")

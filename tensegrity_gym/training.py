@@ -50,6 +50,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from tensegrity_gym.backends.twin_physics import torch_threads
+
 __all__ = [
     "ALGORITHMS",
     "DEFAULT_ROLLOUT",
@@ -181,19 +183,6 @@ class TrainResult:
 
 
 # ---------------------------------------------------------------------- helpers
-@contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Run the block with ``n`` torch intra-op threads, then restore the caller's setting."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def plant_mjcf(identified: str | None) -> str:
     """MJCF text of the plant an identified model belongs to (its source MJCF, as the twin resolves
     it; ``None``: the robot preset)."""

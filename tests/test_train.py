@@ -144,7 +144,7 @@ def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
         assert {"return", "progress_m"} <= set(r[key])
         assert len(r[key]["returns"]) == 2
     assert len(r["open_loop"]["com_divergence_m"]) == len(r["open_loop"]["t_s"])
-    assert r["open_loop"]["com_divergence_m"][0] == pytest.approx(0.0, abs=1e-9)  # same starts
+    assert r["open_loop"]["com_divergence_m"][0] == pytest.approx(0.0, abs=1e-6)  # same starts (float32 twin)
     pol = load_policy(trained.path)
     seeds = [5, 6]
     plant = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", model=str(robot["xml"]),
@@ -188,12 +188,11 @@ def test_bad_inputs_fail_with_one_line(robot, trained, tmp_path, capsys):
     base = ["train", "--identified", str(robot["twin"]), "--out", str(out)]
     assert main([*base, "--timesteps", "0"]) == 2
     assert "--timesteps" in one_error_line(capsys)
-    with pytest.raises(SystemExit) as e:
-        main([*base, "--timesteps", "10", "--algo", "dqn"])
-    assert e.value.code == 2 and "dqn" in one_error_line(capsys)
+    assert main([*base, "--timesteps", "10", "--algo", "dqn"]) == 2
+    assert "dqn" in one_error_line(capsys)
     assert main(["train", "--identified", str(robot["twin"]), "--out", str(tmp_path / "no" / "P.zip"),
                  *TINY]) == 2
-    assert "cannot write" in one_error_line(capsys)
+    assert "--out" in (line := one_error_line(capsys)) and "does not exist" in line
     assert main(["train", "--identified", str(robot["paper"]), "--out", str(out), *TINY]) == 2
     assert "actuated" in one_error_line(capsys)
     assert not out.exists()

@@ -362,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
     t.add_argument("--envs", type=int, default=None, metavar="K",
-                   help="envs stepped in parallel (default: ppo 32 on the twin, 8 on the plant; sac 8 / 4)")
+                   help="envs stepped in parallel (default: ppo 64 on the twin, 8 on the plant; sac 8 / 4)")
     t.add_argument("--rollout", type=int, default=16_384, metavar="N",
                    help="ppo: transitions per update over all envs (default 16384 = 2048 x 8; a shorter run "
                    "makes one rollout of its length)")

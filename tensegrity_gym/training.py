@@ -76,7 +76,7 @@ POLICY_ENTRY = "tensegrity.json"
 ALGORITHMS = ("ppo", "sac")
 #: Transitions collected per PPO update (SB3's default 2048 steps x 8 envs), whatever ``envs`` is.
 DEFAULT_ROLLOUT = 16_384
-DEFAULT_ENVS = {("ppo", False): 32, ("ppo", True): 8, ("sac", False): 8, ("sac", True): 4}
+DEFAULT_ENVS = {("ppo", False): 64, ("ppo", True): 8, ("sac", False): 8, ("sac", True): 4}
 PPO_HYPERPARAMETERS: dict[str, Any] = {
     "learning_rate": 3e-4, "batch_size": 64, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
     "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
@@ -107,7 +107,8 @@ class TrainConfig:
         identified: identified-model JSON of the twin (``None``: the shipped robot model); with
             ``plant=True`` it only names the plant (the MJCF it was fitted against).
         plant: train on the MuJoCo plant instead (SubprocVecEnv).
-        envs: envs stepped in parallel (``None``: 32 twins or 8 plants for PPO, 8 or 4 for SAC).
+        envs: envs stepped in parallel (``None``: 64 twins or 8 plants for PPO, 8 or 4 for SAC; the
+            batched twin's steps/s grow with the batch, benchmarks/README.md).
         rollout: PPO transitions per update over all envs (rounded up to a multiple of ``envs``; a
             run of fewer ``timesteps`` makes one rollout of that many).
         episode_steps: time limit of an episode in control steps (the registration's 1000).

@@ -35,18 +35,17 @@ from tensegrity_gym.gap import measure_gap
 from tensegrity_gym.models import preset_parameters, write_model
 from tensegrity_gym.training import DEFAULT_ROLLOUT, TrainConfig, train
 
-ROBOT_MASS_KG = 21.0  # six 3.5 kg rods: what one weighs on the real robot fixes the scale
-
 
 def fit_twin(data, mjcf: str) -> IdentifiedModel:
-    """The identified twin, with the effect search when the fit supports it."""
-    topo = Topology.from_mjcf(mjcf)
-    scale = ScaleSpec(total_mass=ROBOT_MASS_KG)
+    """The identified twin with the effect search (``tensegrity fit --effects auto``), as
+    ``scripts/make_shipped_model.sh`` fits the shipped model; the pushes in newtons fix the scale."""
     try:
-        model = identify(data, topo, scale=scale, effects="auto")  # type: ignore[call-arg]
-    except TypeError:  # a fit without the effect search: the spring-rod model alone
+        from identified.fit.pipeline import fit_model
+    except ImportError:  # a fit without the effect search: the spring-rod model alone
         print("   (this version of the fit has no effect search: spring-rod parameters only)")
-        model = identify(data, topo, scale=scale)
+        model = identify(data, Topology.from_mjcf(mjcf), scale=ScaleSpec())
+    else:
+        model = fit_model(data, mjcf, effects="auto", progress=True)
     model.source_model = os.path.abspath(mjcf)
     return model
 
@@ -91,11 +90,12 @@ def main() -> None:
     ap.add_argument("--out", default="runs/train_on_twin", help="output folder")
     ap.add_argument("--timesteps", type=int, default=100_000, help="training steps on the twin")
     ap.add_argument("--collect-episodes", type=int, default=10, help="plant rollouts to identify from")
-    ap.add_argument("--collect-steps", type=int, default=2000, help="physics steps (1 ms) per rollout")
+    ap.add_argument("--collect-steps", type=int, default=3000,
+                    help="physics steps per rollout (3000 of 1 ms: long enough for random commands to roll it)")
     ap.add_argument("--episodes", type=int, default=10, help="evaluation episodes on each")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true",
-                    help="small budget: 20,480 training steps in updates of 4,096, 4 x 2000 collection steps, "
+                    help="small budget: 20,480 training steps in updates of 4,096, 4 x 3000 collection steps, "
                     "3 evaluation episodes")
     ap.add_argument("--wrong-twin", action="store_true", help="also train on a twin with parameters 30 %% off")
     args = ap.parse_args()
@@ -110,7 +110,7 @@ def main() -> None:
     write_model(path("robot.xml"), "ico", preset="robot")
     print(f"== 2. collect {args.collect_episodes} x {args.collect_steps} steps of the plant")
     data = collect(path("robot.xml"), CollectConfig(episodes=args.collect_episodes, steps=args.collect_steps,
-                                                    seed=args.seed + 1, push_every=200))
+                                                    seed=args.seed, push_every=200))
     save_dataset(path("robot.npz"), data)
     print("== 3. fit the twin")
     model = fit_twin(data, path("robot.xml"))

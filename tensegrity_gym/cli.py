@@ -189,6 +189,71 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         progress=not args.quiet)
 
 
+def cmd_train(args: argparse.Namespace) -> None:
+    from tensegrity_gym.training import TrainConfig, train
+
+    if args.timesteps < 1:
+        raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
+    if args.envs is not None and args.envs < 1:
+        raise CommandError(f"--envs must be at least 1, got {args.envs}")
+    if args.identified is None and not args.plant:
+        raise CommandError("--identified F.json is needed to train on the twin (or train on the plant with --plant)")
+    if args.identified is not None:
+        _check_readable(args.identified)
+    _check_writable(args.out)
+    cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
+                      plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
+                      threads=args.threads, tensorboard=args.tensorboard)
+    r = train(cfg, args.out, progress=not args.quiet)
+    last = ("" if r.mean_return is None else
+            f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
+    print(f"wrote {args.algo} policy to {args.out} ({r.timesteps} steps on the {'plant' if args.plant else 'twin'} "
+          f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
+
+
+def cmd_gap(args: argparse.Namespace) -> None:
+    from tensegrity_gym.gap import measure_gap
+
+    if args.episodes < 1:
+        raise CommandError(f"--episodes must be at least 1, got {args.episodes}")
+    if args.episode_steps is not None and args.episode_steps < 1:
+        raise CommandError(f"--episode-steps must be at least 1, got {args.episode_steps}")
+    _check_readable(args.identified)
+    _check_readable(args.policy)
+    if args.video is not None:
+        if os.path.exists(args.video) and not os.path.isdir(args.video):
+            raise CommandError(f"--video {args.video}: not a folder")
+        _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
+    r = measure_gap(args.policy, args.identified, args.episodes, seed=args.seed,
+                    episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
+                    threads=args.threads)
+    if args.json:
+        print(json.dumps(r, indent=2))
+        return
+    print(f"{r['twin']['episodes']} episodes of up to {r['episode_steps']} steps, reset seeds "
+          f"{r['seeds'][0]}..{r['seeds'][-1]}")
+    print(f"  {'':14s}{'return':>10s}{'progress (m)':>14s}{'steps':>8s}")
+    for key, label in (("twin", "twin"), ("plant", "plant"), ("random_plant", "random, plant")):
+        b = r[key]
+        print(f"  {label:14s}{b['return']:10.4g}{b['progress_m']:14.4g}{b['episode_steps']:8.0f}")
+    tr = r["transfer"]
+
+    def ratio(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.3g}"
+
+    print(f"  plant progress / twin: {ratio(tr['plant_over_twin'])}; / random: {ratio(tr['plant_over_random'])}")
+    ol = r["open_loop"]
+
+    def metres(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.3g} m"
+
+    t01 = "never" if ol["time_to_0.1m_s"] is None else f"after {ol['time_to_0.1m_s']:.3g} s"
+    print(f"  open loop (the plant's commands on the twin): centre-of-mass divergence over 0.1 m {t01}; "
+          f"at 1 s {metres(ol['at']['1s'])}, final {metres(ol['final_m'])}")
+    for name, path in r.get("videos", {}).items():
+        print(f"  video {name}: {path}")
+
+
 # ---------------------------------------------------------------------- parser
 class _Parser(argparse.ArgumentParser):
     """argparse with the project's one-line error format (no usage dump)."""
@@ -313,6 +378,53 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, metavar="DIR", help="write the PNG figures into this folder")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
     rp.set_defaults(func=cmd_reproduce)
+
+    t = sub.add_parser("train", help="train an SB3 policy on the identified twin (or on the plant)",
+                       description="Train a Stable-Baselines3 policy to roll the robot forward on the identified "
+                       "twin, stepped natively batched (one engine call for all envs; MuJoCo is never stepped), "
+                       "with observation normalisation saved inside the policy file. --plant trains the same "
+                       "algorithm on the MuJoCo plant instead (one process per env), the upper bound to compare "
+                       "with. Hyperparameters and why: tensegrity_gym/training.py. While training, the last "
+                       "complete policy is kept in OUT's .ckpt.zip (removed at the end; kept on Ctrl-C).")
+    t.add_argument("--identified", default=None, metavar="F.json",
+                   help="identified model of the twin; with --plant it names the plant (the MJCF it was fitted "
+                   "against; default with --plant: the robot preset)")
+    t.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="algorithm (default ppo)")
+    t.add_argument("--timesteps", type=int, required=True, metavar="N", help="environment steps to train for")
+    t.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives the same policy (default 0)")
+    t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
+    t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
+    t.add_argument("--envs", type=int, default=None, metavar="K",
+                   help="envs stepped in parallel (default: ppo 64 on the twin, 8 on the plant; sac 8 / 4)")
+    t.add_argument("--rollout", type=int, default=16_384, metavar="N",
+                   help="ppo: transitions per update over all envs (default 16384 = 2048 x 8; a shorter run "
+                   "makes one rollout of its length)")
+    t.add_argument("--episode-steps", type=int, default=1000, metavar="T",
+                   help="time limit of an episode, control steps (default 1000 = 20 s)")
+    t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
+    t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=cmd_train)
+
+    g = sub.add_parser("gap", help="the sim-to-sim gap of a policy: twin, plant, random, open loop",
+                       description="Run the policy on the twin and on the plant from the same reset seeds, a random "
+                       "policy on the plant (the floor), and the open-loop gap (the policy's commands on the plant "
+                       "replayed on the twin: centre-of-mass divergence versus time). --json prints twin, plant, "
+                       "random_plant (each with return and progress_m, the mean forward distance of the centre of "
+                       "mass per episode) and open_loop.")
+    g.add_argument("--identified", required=True, metavar="F.json",
+                   help="identified model of the twin (the plant is the MJCF it was fitted against)")
+    g.add_argument("--policy", required=True, metavar="P.zip", help="policy written by 'tensegrity train'")
+    g.add_argument("--episodes", type=int, default=10, metavar="K", help="episodes on each (default 10)")
+    g.add_argument("--seed", type=int, default=0, help="episode k resets with seed + k on every env (default 0)")
+    g.add_argument("--episode-steps", type=int, default=None, metavar="T",
+                   help="time limit of an episode (default: the policy's training limit)")
+    g.add_argument("--json", action="store_true", help="machine-readable output")
+    g.add_argument("--video", default=None, metavar="DIR",
+                   help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here")
+    g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    g.set_defaults(func=cmd_gap)
     return p
 
 

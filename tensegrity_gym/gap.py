@@ -1,0 +1,346 @@
+"""The sim-to-sim gap of a policy trained on the twin: ``tensegrity gap``.
+
+:func:`measure_gap` runs, from the same reset seeds (episode ``k`` resets with ``seed + k`` on
+every env, so twin and plant start from the same perturbed pose):
+
+* ``twin``: the policy on the identified twin (the batched vector env, one episode per sub-env);
+* ``plant``: the policy on the MuJoCo plant the twin was identified from;
+* ``random_plant``: uniformly random actions in [-1, 1] on the plant, the floor;
+* ``open_loop``: the policy's command sequences recorded on the plant, replayed open loop on the
+  twin from the same starts (the twin does not end episodes for height here: it runs every
+  recorded step); the distance between the two centres of mass versus time, averaged over the
+  episodes still running at that time. It isolates the model error from the policy's feedback.
+
+Each of the first three has ``return`` (mean undiscounted episode return) and ``progress_m`` (mean
+forward distance of the centre of mass per episode, m), plus the per-episode values and lengths.
+``transfer`` has the ratios the issue's targets are stated in: plant progress over twin progress
+and over the random policy's.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
+
+__all__ = ["EpisodeSet", "measure_gap", "run_episodes", "write_mp4"]
+
+Act = Callable[[np.ndarray], np.ndarray]
+#: Videos: frame size (pixels) and one frame every this many control steps (25 fps at 50 Hz):
+#: MuJoCo's offscreen renderer on a CPU-only machine takes ~0.1-0.4 s per 480 x 480 frame.
+VIDEO_SIZE = 320
+VIDEO_EVERY = 2
+
+
+@dataclass
+class EpisodeSet:
+    """One episode per seed: returns, forward progress and lengths (K,), and per episode the
+    actions taken (T_k, A) and the centre of mass at every instant (T_k + 1, 3)."""
+
+    seeds: list[int]
+    returns: np.ndarray
+    progress: np.ndarray
+    lengths: np.ndarray
+    actions: list[np.ndarray]
+    com: list[np.ndarray]
+    diverged: np.ndarray
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON block: means, spreads and per-episode values."""
+        return {
+            "return": float(np.mean(self.returns)),
+            "progress_m": float(np.mean(self.progress)),
+            "return_std": float(np.std(self.returns)),
+            "progress_std_m": float(np.std(self.progress)),
+            "episode_steps": float(np.mean(self.lengths)),
+            "episodes": len(self.seeds),
+            "returns": [float(x) for x in self.returns],
+            "progress_per_episode_m": [float(x) for x in self.progress],
+            "lengths": [int(x) for x in self.lengths],
+        }
+
+
+def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
+                 actions: np.ndarray | None = None, bar: Any = None) -> EpisodeSet:
+    """One episode per sub-env of ``venv`` (len(seeds) of them), sub-env ``k`` reset with
+    ``seeds[k]``; the episodes end by the env's termination or time limit.
+
+    ``act``: (K, n_obs) observations -> (K, A) actions. ``actions`` (K, T, A): play these instead
+    (open loop), each episode ending after its T steps at most (NaN rows end it early).
+    """
+    K = venv.num_envs
+    if len(seeds) != K:
+        raise ValueError(f"{len(seeds)} seeds for {K} envs")
+    obs, info = venv.reset(seed=list(seeds))
+    x0 = np.asarray(info["x_position"], dtype=float).copy()
+    coms: list[list[np.ndarray]] = [[np.asarray(info["com"][k], dtype=float).copy()] for k in range(K)]
+    taken: list[list[np.ndarray]] = [[] for _ in range(K)]
+    ret = np.zeros(K)
+    progress = np.zeros(K)
+    lengths = np.zeros(K, dtype=int)
+    diverged = np.zeros(K, dtype=bool)
+    active = np.ones(K, dtype=bool)
+    t = 0
+    while active.any():
+        if actions is not None:
+            if t >= actions.shape[1]:
+                break
+            a = np.nan_to_num(actions[:, t], nan=0.0).astype(np.float32)
+            active &= ~np.isnan(actions[:, t]).any(axis=1)
+            if not active.any():
+                break
+        else:
+            a = np.asarray(act(obs), dtype=np.float32).reshape(K, -1)
+        obs, rew, term, trunc, info = venv.step(a)
+        x = np.asarray(info["x_position"], dtype=float)
+        reasons = info.get("termination_reason")
+        for k in np.flatnonzero(active):
+            ret[k] += float(rew[k])
+            lengths[k] += 1
+            taken[k].append(np.clip(a[k], -1.0, 1.0))
+            coms[k].append(np.asarray(info["com"][k], dtype=float).copy())
+            progress[k] = x[k] - x0[k]
+            if term[k] and reasons is not None and reasons[k] == "non-finite state":
+                diverged[k] = True
+        if bar is not None:
+            bar.update(int(active.sum()))
+        active &= ~(np.asarray(term) | np.asarray(trunc))
+        t += 1
+    A = venv.single_action_space.shape[0]  # type: ignore[index]
+    return EpisodeSet(seeds=list(seeds), returns=ret, progress=progress, lengths=lengths,
+                      actions=[np.array(x).reshape(-1, A) for x in taken],
+                      com=[np.array(c) for c in coms], diverged=diverged)
+
+
+def _twin_venv(identified: str | None, n: int, episode_steps: int | None, env_kwargs: dict[str, Any],
+               backend_kwargs: dict[str, Any] | None, render: bool = False) -> gym.vector.VectorEnv:
+    kw = dict(env_kwargs)
+    if render:
+        kw["render_mode"] = "rgb_array"
+    return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", backend="identified",
+                        model=identified, max_episode_steps=episode_steps, backend_kwargs=backend_kwargs,
+                        **kw)
+
+
+def _plant_venv(mjcf: str, n: int, episode_steps: int | None, env_kwargs: dict[str, Any]
+                ) -> gym.vector.VectorEnv:
+    return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", backend="mujoco",
+                        model=mjcf, max_episode_steps=episode_steps, **env_kwargs)
+
+
+def _random_act(action_dim: int, seed: int) -> Act:
+    rng = np.random.default_rng(seed)
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        return rng.uniform(-1.0, 1.0, size=(np.asarray(obs).shape[0], action_dim)).astype(np.float32)
+
+    return act
+
+
+def open_loop_divergence(plant: EpisodeSet, twin: EpisodeSet, dt: float) -> dict[str, Any]:
+    """Distance between the twin's and the plant's centres of mass under the same commands.
+
+    ``com_divergence_m[t]``: mean over the episodes that reach instant t on both (the twin's rows
+    after a non-finite state are left out) of ``|c_twin(t) - c_plant(t)|``, m.
+    """
+    T = max(len(c) for c in plant.com)
+    d = np.full((len(plant.com), T), np.nan)
+    for k, (cp, ct) in enumerate(zip(plant.com, twin.com, strict=True)):
+        n = min(len(cp), len(ct) - (1 if twin.diverged[k] else 0))
+        d[k, :n] = np.linalg.norm(ct[:n] - cp[:n], axis=1)
+    with np.errstate(all="ignore"):
+        mean = np.array([np.nanmean(col) if np.isfinite(col).any() else np.nan for col in d.T])
+    t = np.arange(T) * dt
+    finite = np.isfinite(mean)
+
+    def first_over(level: float) -> float | None:
+        over = np.flatnonzero(finite & (mean > level))
+        return float(t[over[0]]) if over.size else None
+
+    at = {}
+    for s in (1.0, 5.0, 10.0, 20.0):
+        i = round(s / dt)
+        at[f"{s:g}s"] = float(mean[i]) if i < T and finite[i] else None
+    return {
+        "commands": "the policy's commands on the plant, replayed on the twin from the same starts",
+        "dt_s": float(dt),
+        "t_s": [float(x) for x in t],
+        "com_divergence_m": [float(x) if np.isfinite(x) else None for x in mean],
+        "mean_m": float(np.nanmean(mean)) if finite.any() else None,
+        "final_m": float(mean[finite][-1]) if finite.any() else None,
+        "at": at,
+        "time_to_0.1m_s": first_over(0.1),
+        "time_to_0.5m_s": first_over(0.5),
+    }
+
+
+def _ratio(a: float, b: float) -> float | None:
+    return float(a / b) if b > 0 and np.isfinite(a / b) else None
+
+
+def write_mp4(path: str, frames: list[np.ndarray], fps: float) -> None:
+    """Write (H, W, 3) uint8 frames as an H.264 MP4, atomically (temporary file, then rename)."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        raise ValueError("--video needs the imageio-ffmpeg package (pip install imageio-ffmpeg)") from None
+    if not frames:
+        raise ValueError("no frames to write")
+    h, w = frames[0].shape[:2]
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".mp4", dir=folder)
+    os.close(fd)
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would hide the video from other users
+        writer = imageio_ffmpeg.write_frames(tmp, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                             macro_block_size=1, quality=7, output_params=["-y"])
+        writer.send(None)
+        for f in frames:
+            writer.send(np.ascontiguousarray(f, dtype=np.uint8))
+        writer.close()
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _episode_frames(env: gym.Env, act: Act, seed: int, every: int) -> list[np.ndarray]:
+    """Frames of one episode (reset ``seed``), one every ``every`` control steps and the last."""
+    obs, _ = env.reset(seed=seed)
+    frames = [env.render()]
+    done, t = False, 0
+    while not done:
+        obs, _, term, trunc, _ = env.step(act(obs[None])[0])
+        t += 1
+        done = term or trunc
+        if t % every == 0 or done:
+            frames.append(env.render())
+    return frames  # type: ignore[return-value]
+
+
+def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None, episodes: int,
+                seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
+                progress: bool = True, threads: int = 1,
+                backend_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The gap report (see the module docstring) as a JSON-ready dict.
+
+    Args:
+        policy: a policy file written by ``tensegrity train`` or a loaded one.
+        identified: the twin's identified-model JSON (``None``: the shipped robot model); the plant
+            is the MJCF it was fitted against.
+        episodes: K episodes on each, reset seeds ``seed .. seed + K - 1``.
+        episode_steps: time limit (``None``: the one the policy was trained with).
+        video_dir: write ``twin.mp4``, ``plant.mp4`` and ``random_plant.mp4`` of episode ``seed``.
+        threads: torch threads while the twin runs.
+    """
+    import tensegrity_gym  # noqa: F401  (registers the env)
+
+    if int(episodes) != episodes or episodes < 1:
+        raise ValueError(f"episodes must be an integer >= 1, got {episodes}")
+    if episode_steps is not None and (int(episode_steps) != episode_steps or episode_steps < 1):
+        raise ValueError(f"episode steps must be an integer >= 1, got {episode_steps}")
+    if identified is not None and not os.path.isfile(identified):
+        raise ValueError(f"'{identified}' does not exist or is not a file")
+    pol = policy if isinstance(policy, LoadedPolicy) else load_policy(policy)
+    steps = int(episode_steps or pol.episode_steps)
+    env_kwargs = pol.env_kwargs
+    seeds = [int(seed) + k for k in range(int(episodes))]
+    K = len(seeds)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=4 * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
+    try:
+        with torch_threads(threads):
+            mjcf = plant_mjcf(identified)
+            twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
+            plant = _plant_venv(mjcf, K, steps, env_kwargs)
+            try:
+                for v in (twin, plant):
+                    pol.check_env(v.single_observation_space, v.single_action_space)
+                dt = float(twin.dt)  # type: ignore[attr-defined]
+                A = int(twin.single_action_space.shape[0])  # type: ignore[index]
+                on_twin = run_episodes(twin, pol.act, seeds, bar=bar)
+                on_plant = run_episodes(plant, pol.act, seeds, bar=bar)
+                on_random = run_episodes(plant, _random_act(A, seed), seeds, bar=bar)
+            finally:
+                twin.close()
+                plant.close()
+            # open loop: the plant's command sequences on the twin, every recorded step
+            T = int(on_plant.lengths.max())
+            seq = np.full((K, T, A), np.nan)
+            for k, a in enumerate(on_plant.actions):
+                seq[k, : len(a)] = a
+            replay_env = _twin_venv(identified, K, None, {**env_kwargs, "terminate_when_unhealthy": False},
+                                    backend_kwargs)
+            try:
+                replay = run_episodes(replay_env, pol.act, seeds, actions=seq, bar=bar)
+            finally:
+                replay_env.close()
+            open_loop = open_loop_divergence(on_plant, replay, dt)
+            videos = {}
+            if video_dir is not None:
+                videos = _write_videos(video_dir, pol, identified, mjcf, steps, env_kwargs, backend_kwargs,
+                                       seeds[0], A, seed, dt)
+        if bar is not None:  # episodes that ended early leave part of the estimate unused
+            bar.update(bar.total - bar.n)
+    finally:
+        if bar is not None:
+            bar.close()
+    t, p, r = on_twin.summary(), on_plant.summary(), on_random.summary()
+    out: dict[str, Any] = {
+        "twin": t,
+        "plant": p,
+        "random_plant": r,
+        "open_loop": open_loop,
+        "transfer": {
+            "plant_over_twin": _ratio(p["progress_m"], t["progress_m"]),
+            "plant_over_random": _ratio(p["progress_m"], r["progress_m"]),
+        },
+        "twin_diverged_episodes": int(on_twin.diverged.sum()),
+        "policy": {k: pol.meta.get(k) for k in ("algo", "trained_on", "identified", "timesteps", "seed")},
+        "identified": None if identified is None else os.path.abspath(identified),
+        "seeds": seeds,
+        "episode_steps": steps,
+    }
+    if videos:
+        out["videos"] = videos
+    return out
+
+
+def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: str, steps: int,
+                  env_kwargs: dict[str, Any], backend_kwargs: dict[str, Any] | None, ep_seed: int, A: int,
+                  seed: int, dt: float) -> dict[str, str]:
+    """One episode (reset seed ``ep_seed``) on the twin, on the plant and of the random policy on the
+    plant, each as an MP4 in ``folder``."""
+    os.makedirs(folder, exist_ok=True)
+    kw = {**env_kwargs, "render_mode": "rgb_array", "max_episode_steps": steps, "width": VIDEO_SIZE,
+          "height": VIDEO_SIZE}
+    runs = {
+        "twin": (gym.make(ENV_ID, backend="identified", model=identified, backend_kwargs=backend_kwargs, **kw),
+                 pol.act),
+        "plant": (gym.make(ENV_ID, model=mjcf, **kw), pol.act),
+        "random_plant": (gym.make(ENV_ID, model=mjcf, **kw), _random_act(A, seed)),
+    }
+    paths = {}
+    for name, (env, act) in runs.items():
+        try:
+            frames = _episode_frames(env, act, ep_seed, VIDEO_EVERY)
+        finally:
+            env.close()
+        path = os.path.join(folder, f"{name}.mp4")
+        write_mp4(path, frames, fps=1.0 / (dt * VIDEO_EVERY))
+        paths[name] = path
+    return paths

@@ -1,0 +1,509 @@
+"""Training a Stable-Baselines3 policy on the identified twin (or on the plant): ``tensegrity train``.
+
+The twin is stepped natively batched: ``gym.make_vec("TensegrityIco-v0", num_envs=K,
+vectorization_mode="vector_entry_point", backend="identified", model=F)`` seen by SB3 through
+:class:`~tensegrity_gym.envs.sb3.SB3VecEnvAdapter`, so one engine call steps all K envs and MuJoCo
+is never stepped. ``plant=True`` trains the same algorithm with the same hyperparameters on the
+MuJoCo plant the model was identified from (SB3's ``SubprocVecEnv``, one process per env): the
+upper bound to compare with.
+
+Observations are normalised by ``VecNormalize`` (running mean and variance; rewards are scaled for
+PPO only). The normalisation statistics travel inside the policy file, so evaluation
+(:func:`load_policy`) feeds the policy exactly what it was trained on.
+
+The policy file is SB3's zip with one more entry, ``tensegrity.json`` (:data:`POLICY_FORMAT`): the
+algorithm, the env id and its keyword arguments, the observation and action shapes, the
+normalisation statistics, where it was trained and with what. SB3's ``PPO.load`` reads the file as
+usual (it ignores the extra entry).
+
+Hyperparameters (:data:`PPO_HYPERPARAMETERS`, :data:`SAC_HYPERPARAMETERS`) and why
+-----------------------------------------------------------------------------------
+PPO is the default. Its settings are SB3's defaults, which were measured to make the robot roll
+when trained on the plant (8 envs, ``VecNormalize``, 100k steps: 1.05 m per 1000-step episode
+against 0.01 m for a random policy), with one change of bookkeeping: the rollout of one update is
+fixed at 16,384 transitions (SB3's 2,048 steps per env x those 8 envs) whatever the number of envs,
+so ``envs`` only decides how many run in parallel, not what the algorithm does; on the twin and on
+the plant an update sees the same amount of experience. ``gamma`` 0.99 looks 100 control steps
+(2 s) ahead, about the time the 0.3 m/s motors take to reel a cable through most of its range and
+tip the robot onto the next face; forward speed is a dense reward, so longer horizons are not
+needed. Mini-batches of 64 over 10 epochs, learning rate 3e-4, clip 0.2, GAE 0.95, no entropy
+bonus: the defaults. SAC (``algo="sac"``) keeps SB3's defaults too (one gradient step per
+transition, batch 256), with a replay buffer no larger than the run and observation-only
+normalisation; it is slower per step on a CPU and is not tuned for this robot.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import sys
+import time
+import zipfile
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from tensegrity_gym.backends.twin_physics import torch_threads
+
+__all__ = [
+    "ALGORITHMS",
+    "DEFAULT_ROLLOUT",
+    "ENV_ID",
+    "POLICY_FORMAT",
+    "PPO_HYPERPARAMETERS",
+    "SAC_HYPERPARAMETERS",
+    "LoadedPolicy",
+    "PolicyFileError",
+    "TrainConfig",
+    "TrainResult",
+    "checkpoint_path",
+    "load_policy",
+    "plant_mjcf",
+    "torch_threads",
+    "train",
+]
+
+ENV_ID = "TensegrityIco-v0"
+POLICY_FORMAT = "tensegrity-policy/1"
+POLICY_ENTRY = "tensegrity.json"
+ALGORITHMS = ("ppo", "sac")
+#: Transitions collected per PPO update (SB3's default 2048 steps x 8 envs), whatever ``envs`` is.
+DEFAULT_ROLLOUT = 16_384
+DEFAULT_ENVS = {("ppo", False): 64, ("ppo", True): 8, ("sac", False): 8, ("sac", True): 4}
+PPO_HYPERPARAMETERS: dict[str, Any] = {
+    "learning_rate": 3e-4, "batch_size": 64, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
+    "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
+}
+SAC_HYPERPARAMETERS: dict[str, Any] = {
+    "learning_rate": 3e-4, "batch_size": 256, "tau": 0.005, "gamma": 0.99, "train_freq": 1,
+    "gradient_steps": -1, "learning_starts": 5_000, "buffer_size": 1_000_000,
+}
+#: ``VecNormalize`` settings (SB3's defaults); rewards are normalised for PPO only.
+NORMALIZE = {"clip_obs": 10.0, "epsilon": 1e-8}
+
+
+class PolicyFileError(ValueError):
+    """A policy file that is not a tensegrity policy, or not one for this env."""
+
+
+# ---------------------------------------------------------------------- configuration
+@dataclass
+class TrainConfig:
+    """What :func:`train` does.
+
+    Args:
+        timesteps: environment steps to train for (>= 1; PPO finishes its last update, so a few
+            more may be taken).
+        seed: seeds SB3 (torch, numpy), the envs (env ``i`` resets with ``seed + i``) and the
+            action sampling: the same config gives the same policy.
+        algo: ``"ppo"`` (default) or ``"sac"``.
+        identified: identified-model JSON of the twin (``None``: the shipped robot model); with
+            ``plant=True`` it only names the plant (the MJCF it was fitted against).
+        plant: train on the MuJoCo plant instead (SubprocVecEnv).
+        envs: envs stepped in parallel (``None``: 64 twins or 8 plants for PPO, 8 or 4 for SAC; the
+            batched twin's steps/s grow with the batch, benchmarks/README.md).
+        rollout: PPO transitions per update over all envs (rounded up to a multiple of ``envs``; a
+            run of fewer ``timesteps`` makes one rollout of that many).
+        episode_steps: time limit of an episode in control steps (the registration's 1000).
+        threads: torch intra-op threads while training (restored afterwards).
+        tensorboard: folder for TensorBoard logs (needs the ``tensorboard`` package).
+        env_kwargs: keyword arguments of the env (``frame_skip``, reward weights, ...).
+        hyperparameters: overrides of :data:`PPO_HYPERPARAMETERS` / :data:`SAC_HYPERPARAMETERS`.
+        backend_kwargs: keyword arguments of the twin's backend (``dtype``, ``effects``, ``mjcf``).
+    """
+
+    timesteps: int
+    seed: int = 0
+    algo: str = "ppo"
+    identified: str | None = None
+    plant: bool = False
+    envs: int | None = None
+    rollout: int = DEFAULT_ROLLOUT
+    episode_steps: int = 1000
+    threads: int = 1
+    tensorboard: str | None = None
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    hyperparameters: dict[str, Any] = field(default_factory=dict)
+    backend_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        """ValueError with one line for every setting out of range."""
+        if self.algo not in ALGORITHMS:
+            raise ValueError(f"unknown algorithm '{self.algo}' (choose from {', '.join(ALGORITHMS)})")
+        for name in ("timesteps", "rollout", "episode_steps", "threads"):
+            v = getattr(self, name)
+            if int(v) != v or v < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {v}")
+        if self.envs is not None and (int(self.envs) != self.envs or self.envs < 1):
+            raise ValueError(f"envs must be an integer >= 1, got {self.envs}")
+        if self.identified is not None and not os.path.isfile(self.identified):
+            raise ValueError(f"'{self.identified}' does not exist or is not a file")
+
+    @property
+    def n_envs(self) -> int:
+        return int(self.envs) if self.envs is not None else DEFAULT_ENVS[(self.algo, bool(self.plant))]
+
+    def algo_kwargs(self) -> dict[str, Any]:
+        """The algorithm's keyword arguments: the defaults above, the rollout, the overrides."""
+        if self.algo == "ppo":
+            hp = dict(PPO_HYPERPARAMETERS)
+            # ceil: at least the rollout; a run shorter than one rollout is one rollout of its length
+            hp["n_steps"] = -(-min(int(self.rollout), int(self.timesteps)) // self.n_envs)
+            hp.update(self.hyperparameters)
+            hp["batch_size"] = min(int(hp["batch_size"]), hp["n_steps"] * self.n_envs)
+        else:
+            hp = dict(SAC_HYPERPARAMETERS)
+            hp["buffer_size"] = min(int(hp["buffer_size"]), int(self.timesteps))
+            hp["learning_starts"] = min(int(hp["learning_starts"]), int(self.timesteps) // 10)
+            hp.update(self.hyperparameters)
+        return hp
+
+
+@dataclass
+class TrainResult:
+    """What a training run did: where the policy went, how long, and the last episodes' figures;
+    ``model`` (the SB3 algorithm) and ``vecnormalize`` (its observation normaliser) in memory."""
+
+    path: str
+    timesteps: int
+    wall_s: float
+    episodes: int
+    mean_return: float | None
+    mean_progress_m: float | None
+    env_steps_per_s: float
+    config: dict[str, Any]
+    model: Any = field(default=None, repr=False)
+    vecnormalize: Any = field(default=None, repr=False)
+
+
+# ---------------------------------------------------------------------- helpers
+def plant_mjcf(identified: str | None) -> str:
+    """MJCF text of the plant an identified model belongs to (its source MJCF, as the twin resolves
+    it; ``None``: the robot preset)."""
+    from tensegrity_gym.backends.identified_backend import resolve_source_mjcf
+    from tensegrity_gym.backends.mujoco_backend import default_robot_xml
+
+    if identified is None:
+        return default_robot_xml()
+    from identified.model import load_model
+
+    text, _ = resolve_source_mjcf(load_model(identified))
+    return text
+
+
+def checkpoint_path(out: str) -> str:
+    """Where training keeps its last complete checkpoint of the policy ``out`` (``P.ckpt.zip``)."""
+    return out.removesuffix(".zip") + ".ckpt.zip"
+
+
+def _algo_class(algo: str) -> type:
+    from stable_baselines3 import PPO, SAC
+
+    return {"ppo": PPO, "sac": SAC}[algo]
+
+
+def _make_twin_venv(cfg: TrainConfig) -> Any:
+    from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
+
+    venv = gym.make_vec(ENV_ID, num_envs=cfg.n_envs, vectorization_mode="vector_entry_point",
+                        backend="identified", model=cfg.identified, max_episode_steps=cfg.episode_steps,
+                        backend_kwargs=dict(cfg.backend_kwargs) or None, **cfg.env_kwargs)
+    return SB3VecEnvAdapter(venv)
+
+
+def _plant_factory(mjcf: str, episode_steps: int, env_kwargs: dict[str, Any]) -> Callable[[], gym.Env]:
+    def make() -> gym.Env:
+        import tensegrity_gym  # noqa: F401  (registers the env in the worker)
+
+        return gym.make(ENV_ID, model=mjcf, max_episode_steps=episode_steps, **env_kwargs)
+
+    return make
+
+
+def _make_plant_venv(cfg: TrainConfig, mjcf: str) -> Any:
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    make = _plant_factory(mjcf, cfg.episode_steps, cfg.env_kwargs)
+    return SubprocVecEnv([make for _ in range(cfg.n_envs)])
+
+
+# ---------------------------------------------------------------------- the policy file
+def _normalizer_stats(vecnorm: Any) -> dict[str, Any]:
+    rms = vecnorm.obs_rms
+    return {"mean": rms.mean.tolist(), "var": rms.var.tolist(), "count": float(rms.count),
+            "clip_obs": float(vecnorm.clip_obs), "epsilon": float(vecnorm.epsilon)}
+
+
+def _policy_bytes(model: Any, meta: dict[str, Any]) -> bytes:
+    buf = io.BytesIO()
+    model.save(buf)
+    with zipfile.ZipFile(buf, mode="a") as zf:
+        zf.writestr(POLICY_ENTRY, json.dumps(meta, indent=1))
+    return buf.getvalue()
+
+
+def _write_policy(path: str, model: Any, meta: dict[str, Any]) -> None:
+    from identified.dataset import atomic_write
+
+    data = _policy_bytes(model, meta)
+    atomic_write(path, lambda fh: fh.write(data), binary=True)
+
+
+@dataclass
+class LoadedPolicy:
+    """A trained policy with its observation normalisation: :meth:`act` maps raw env observations
+    to actions, as during training (deterministic: the mean of the action distribution)."""
+
+    model: Any
+    meta: dict[str, Any]
+    obs_mean: np.ndarray
+    obs_var: np.ndarray
+    clip_obs: float
+    epsilon: float
+
+    @property
+    def env_kwargs(self) -> dict[str, Any]:
+        """The env's keyword arguments the policy was trained with."""
+        return dict(self.meta.get("env_kwargs", {}))
+
+    @property
+    def episode_steps(self) -> int:
+        return int(self.meta.get("episode_steps", 1000))
+
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        """(..., n_obs) raw observations -> what the network saw during training (VecNormalize's)."""
+        o = (np.asarray(obs, dtype=np.float64) - self.obs_mean) / np.sqrt(self.obs_var + self.epsilon)
+        return np.clip(o, -self.clip_obs, self.clip_obs).astype(np.float32)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """(N, A) actions in [-1, 1] for (N, n_obs) raw observations ((A,) for (n_obs,))."""
+        action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+        return np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
+
+    def check_env(self, observation_space: gym.Space, action_space: gym.Space) -> None:
+        """PolicyFileError unless the env's spaces are those the policy was trained on."""
+        want_o, want_a = tuple(self.meta["observation_shape"]), tuple(self.meta["action_shape"])
+        if tuple(observation_space.shape) != want_o or tuple(action_space.shape) != want_a:  # type: ignore[arg-type]
+            raise PolicyFileError(f"the policy was trained on observations {want_o} and actions {want_a}, "
+                                  f"this env has {tuple(observation_space.shape)} and "  # type: ignore[arg-type]
+                                  f"{tuple(action_space.shape)}")  # type: ignore[arg-type]
+
+
+def load_policy(path: str | os.PathLike) -> LoadedPolicy:
+    """Load a policy written by :func:`train` (PolicyFileError for anything else)."""
+    p = os.fspath(path)
+    if not os.path.isfile(p):
+        raise PolicyFileError(f"'{p}' does not exist or is not a file")
+    try:
+        with zipfile.ZipFile(p) as zf:
+            names = zf.namelist()
+            if POLICY_ENTRY not in names:
+                raise PolicyFileError(f"'{p}' is not a tensegrity policy (no {POLICY_ENTRY} in it; write one "
+                                      "with 'tensegrity train')")
+            meta = json.loads(zf.read(POLICY_ENTRY))
+    except zipfile.BadZipFile:
+        raise PolicyFileError(f"'{p}' is not a policy file (not a zip archive)") from None
+    if meta.get("format") != POLICY_FORMAT:
+        raise PolicyFileError(f"'{p}' has policy format {meta.get('format')!r}, expected {POLICY_FORMAT!r}")
+    if meta.get("algo") not in ALGORITHMS:
+        raise PolicyFileError(f"'{p}' holds an unknown algorithm {meta.get('algo')!r}")
+    model = _algo_class(meta["algo"]).load(p, device="cpu")
+    if tuple(model.observation_space.shape) != tuple(meta["observation_shape"]):
+        raise PolicyFileError(f"'{p}': the network's observation shape {model.observation_space.shape} is not "
+                              f"the recorded {tuple(meta['observation_shape'])}")
+    norm = meta["normalize"]
+    return LoadedPolicy(model=model, meta=meta, obs_mean=np.asarray(norm["mean"], dtype=np.float64),
+                        obs_var=np.asarray(norm["var"], dtype=np.float64), clip_obs=float(norm["clip_obs"]),
+                        epsilon=float(norm["epsilon"]))
+
+
+# ---------------------------------------------------------------------- progress and checkpoints
+def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dict[str, Any]],
+                   progress: bool) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _Progress(BaseCallback):
+        """Progress bar (mean return and forward progress of the last 20 episodes), per-episode
+        forward progress, and a checkpoint of the policy after every update."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.returns: deque[float] = deque(maxlen=20)
+            self.progress: deque[float] = deque(maxlen=20)
+            self.episodes = 0
+            self.last_checkpoint: int | None = None
+            self._dist = np.zeros(cfg.n_envs)
+            self._bar: Any = None
+
+        def _on_training_start(self) -> None:
+            if progress:
+                from tqdm.auto import tqdm
+
+                where = "plant" if cfg.plant else "twin"
+                self._bar = tqdm(total=int(cfg.timesteps), unit="step", desc=f"train {cfg.algo} on {where}",
+                                 dynamic_ncols=True, file=sys.stderr)
+
+        def _on_step(self) -> bool:
+            infos = self.locals["infos"]
+            dones = self.locals["dones"]
+            for i, info in enumerate(infos):
+                self._dist[i] += float(info.get("x_velocity", 0.0)) * dt
+                if dones[i]:
+                    ep = info.get("episode")
+                    if ep is not None:
+                        self.returns.append(float(ep["r"]))
+                    self.progress.append(float(self._dist[i]))
+                    self._dist[i] = 0.0
+                    self.episodes += 1
+            if self._bar is not None:
+                self._bar.update(min(self.num_timesteps, int(cfg.timesteps)) - self._bar.n)
+                if self.returns:
+                    self._bar.set_postfix_str(f"return {np.mean(self.returns):.3g}, progress "
+                                              f"{np.mean(self.progress):.3g} m, {self.episodes} episodes",
+                                              refresh=False)
+            return True
+
+        def _on_rollout_start(self) -> None:
+            # after an update: the policy is complete, keep it (atomically) in case of an interrupt
+            if self.num_timesteps > 0 and self.num_timesteps != self.last_checkpoint:
+                _write_policy(checkpoint_path(out), self.model, meta())
+                self.last_checkpoint = self.num_timesteps
+            if self.progress:
+                self.logger.record("rollout/progress_m", float(np.mean(self.progress)))
+
+        def _on_training_end(self) -> None:
+            if self._bar is not None:
+                self._bar.close()
+
+    return _Progress()
+
+
+# ---------------------------------------------------------------------- training
+def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> TrainResult:
+    """Train a policy as ``cfg`` says and write it to ``out`` (atomically; see the module docstring).
+
+    While training, the last complete policy (after each update) is kept in
+    :func:`checkpoint_path` ``(out)``; it is removed when the run completes. On Ctrl-C the
+    interrupt is re-raised after a line on stderr saying where that checkpoint is.
+    """
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    import tensegrity_gym  # noqa: F401  (registers the env)
+
+    cfg.validate()
+    out = os.fspath(out)
+    hp = cfg.algo_kwargs()
+    if cfg.tensorboard is not None:
+        try:
+            import tensorboard  # noqa: F401
+        except ImportError:
+            raise ValueError("--tensorboard needs the tensorboard package (pip install tensorboard)") from None
+
+    with torch_threads(cfg.threads):
+        mjcf = None
+        if cfg.plant:
+            mjcf = plant_mjcf(cfg.identified)
+            probe = gym.make(ENV_ID, model=mjcf, **cfg.env_kwargs)  # spaces and control period, here
+            dt = float(probe.unwrapped.dt)  # type: ignore[attr-defined]
+            spaces = (probe.observation_space, probe.action_space)
+            probe.close()
+            venv = _make_plant_venv(cfg, mjcf)
+        else:
+            venv = _make_twin_venv(cfg)
+            dt = float(venv.venv.dt)
+            spaces = (venv.observation_space, venv.action_space)
+        base = venv
+        try:
+            venv = VecMonitor(venv)
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=cfg.algo == "ppo", gamma=hp["gamma"],
+                                **NORMALIZE)
+            model = _algo_class(cfg.algo)("MlpPolicy", venv, seed=cfg.seed, device="cpu", verbose=0,
+                                          tensorboard_log=cfg.tensorboard, **hp)
+            t0 = time.perf_counter()
+            started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+            def meta() -> dict[str, Any]:
+                return {
+                    "format": POLICY_FORMAT,
+                    "algo": cfg.algo,
+                    "env_id": ENV_ID,
+                    "env_kwargs": dict(cfg.env_kwargs),
+                    "episode_steps": int(cfg.episode_steps),
+                    "observation_shape": list(spaces[0].shape),
+                    "action_shape": list(spaces[1].shape),
+                    "normalize": _normalizer_stats(venv),
+                    "trained_on": "plant" if cfg.plant else "twin",
+                    "identified": None if cfg.identified is None else os.path.abspath(cfg.identified),
+                    "timesteps": int(model.num_timesteps),
+                    "seed": int(cfg.seed),
+                    "envs": cfg.n_envs,
+                    "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str))},
+                    "started": started,
+                    "wall_s": time.perf_counter() - t0,
+                }
+
+            callback = _make_callback(cfg, dt, out, meta, progress)
+            ckpt = checkpoint_path(out)
+            try:
+                model.learn(total_timesteps=int(cfg.timesteps), callback=callback,
+                            tb_log_name=f"{cfg.algo}_{'plant' if cfg.plant else 'twin'}")
+            except KeyboardInterrupt:
+                if callback.last_checkpoint is not None:
+                    print(f"tensegrity: training interrupted at step {model.num_timesteps}; the last complete "
+                          f"checkpoint (step {callback.last_checkpoint}) is {ckpt}", file=sys.stderr)
+                else:
+                    print("tensegrity: training interrupted before its first update: no checkpoint",
+                          file=sys.stderr)
+                raise
+            wall = time.perf_counter() - t0
+            final = meta()
+            final["wall_s"] = wall
+            _write_policy(out, model, final)
+            if os.path.exists(ckpt):
+                os.unlink(ckpt)
+        finally:
+            # SubprocVecEnv workers must not outlive the run, even on an interrupt
+            with _ignore_sigint():
+                _close(venv, base)
+    rets, prog = list(callback.returns), list(callback.progress)
+    return TrainResult(
+        path=out, timesteps=int(model.num_timesteps), wall_s=wall, episodes=callback.episodes,
+        mean_return=float(np.mean(rets)) if rets else None,
+        mean_progress_m=float(np.mean(prog)) if prog else None,
+        env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
+        config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
+        model=model, vecnormalize=venv,
+    )
+
+
+def _close(venv: Any, base: Any) -> None:
+    """Close the env stack; SubprocVecEnv workers that a Ctrl-C already ended (a closed pipe) are
+    terminated instead."""
+    try:
+        venv.close()
+    except (OSError, EOFError):
+        for proc in getattr(base, "processes", []):
+            if proc.is_alive():
+                proc.terminate()
+            proc.join(timeout=5)
+
+
+@contextmanager
+def _ignore_sigint() -> Iterator[None]:
+    """Let cleanup finish when the user presses Ctrl-C again (main thread only)."""
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not in the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)

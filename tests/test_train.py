@@ -1,0 +1,304 @@
+"""``tensegrity train`` and ``tensegrity gap``: training on the twin, the policy file, the gap report.
+
+Runs are tiny (a few hundred steps, rollouts of 128-256) so the file stays fast on two cores: these
+tests check the machinery, not learning. The twin is the shipped robot model with its source MJCF
+written to a file first (building the preset settles its keyframe in MuJoCo; training must not).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+
+import tensegrity_gym  # noqa: F401  (registers the env)
+from identified import Topology
+from identified.fit.identify import identify
+from identified.model import load_model, save_model
+from tensegrity_gym.backends.identified_backend import default_model_path
+from tensegrity_gym.cli import main
+from tensegrity_gym.collect import CollectConfig, collect
+from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
+from tensegrity_gym.gap import open_loop_divergence, run_episodes
+from tensegrity_gym.models import write_model
+from tensegrity_gym.training import TrainConfig, checkpoint_path, load_policy, train
+
+TINY = ["--timesteps", "256", "--envs", "4", "--rollout", "128", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory) -> dict[str, Path]:
+    """The robot's MJCF as a file and the shipped twin pointing at it; a paper-preset fit (no motors)."""
+    d = tmp_path_factory.mktemp("robot")
+    f = {"xml": d / "robot.xml", "twin": d / "twin.json", "paper_xml": d / "ico.xml", "paper": d / "ico.json"}
+    write_model(f["xml"], "ico", preset="robot")
+    model = load_model(default_model_path())
+    model.source_model = str(f["xml"])
+    save_model(f["twin"], model)
+    write_model(f["paper_xml"], "ico", preset="paper-uniform")
+    data = collect(f["paper_xml"], CollectConfig(episodes=2, steps=60, seed=1, push_every=20))
+    paper = identify(data, Topology.from_mjcf(f["paper_xml"]))
+    paper.source_model = str(f["paper_xml"])
+    save_model(f["paper"], paper)
+    return f
+
+
+@pytest.fixture(scope="module")
+def trained(robot, tmp_path_factory):
+    """One short PPO run on the twin through the Python API (policy file and in-memory result)."""
+    out = tmp_path_factory.mktemp("policy") / "P.zip"
+    cfg = TrainConfig(timesteps=256, seed=3, identified=str(robot["twin"]), envs=4, rollout=128)
+    return train(cfg, out, progress=False)
+
+
+def no_mujoco_stepping(monkeypatch) -> None:
+    def refuse(*args, **kwargs):
+        raise AssertionError("MuJoCo was stepped")
+
+    for name in ("mj_step", "mj_step1", "mj_step2"):
+        monkeypatch.setattr(mujoco, name, refuse)
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tensegrity: error: "), err
+    return err[0]
+
+
+# ---------------------------------------------------------------------- training
+def test_train_on_twin_end_to_end_never_steps_mujoco(robot, tmp_path, monkeypatch, capsys):
+    no_mujoco_stepping(monkeypatch)
+    out = tmp_path / "P.zip"
+    assert main(["train", "--identified", str(robot["twin"]), "--seed", "1", "--out", str(out), *TINY]) == 0
+    said = capsys.readouterr().out
+    assert "wrote ppo policy" in said and "on the twin" in said
+    assert out.is_file() and not Path(checkpoint_path(str(out))).exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["P.zip"]  # no temporary file left
+    pol = load_policy(out)
+    assert pol.meta["trained_on"] == "twin" and pol.meta["timesteps"] >= 256
+    assert pol.meta["observation_shape"] == [133] and pol.meta["action_shape"] == [24]
+    assert pol.meta["hyperparameters"]["n_steps"] == 32  # rollout 128 over 4 envs
+    assert np.all(pol.obs_var > 0) and pol.meta["normalize"]["count"] > 256  # statistics were updated
+    with zipfile.ZipFile(out) as zf:
+        assert {"policy.pth", "data", "tensegrity.json"} <= set(zf.namelist())
+    plant = gym.make("TensegrityIco-v0", model=str(robot["xml"]))  # the guard does catch a plant step
+    plant.reset(seed=0)
+    with pytest.raises(AssertionError, match="MuJoCo was stepped"):
+        plant.step(plant.action_space.sample())
+
+
+def test_training_is_deterministic_with_a_seed(robot, tmp_path):
+    def run(seed, name):
+        cfg = TrainConfig(timesteps=64, seed=seed, identified=str(robot["twin"]), envs=2, rollout=32)
+        r = train(cfg, tmp_path / name, progress=False)
+        return [p.detach().numpy().copy() for p in r.model.policy.parameters()], r.vecnormalize.obs_rms.mean
+
+    (a, mean_a), (b, mean_b), (c, _) = run(3, "a.zip"), run(3, "b.zip"), run(4, "c.zip")
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(mean_a, mean_b)
+    assert any(not np.array_equal(x, z) for x, z in zip(a, c, strict=True))
+
+
+def test_saved_and_loaded_policy_gives_the_same_actions(trained, robot):
+    pol = load_policy(trained.path)
+    env = gym.make("TensegrityIco-v0", backend="identified", model=str(robot["twin"]))
+    obs = np.stack([env.reset(seed=s)[0] for s in range(5)])
+    env.close()
+    vn = trained.vecnormalize
+    np.testing.assert_array_equal(pol.normalize(obs), vn.normalize_obs(obs))
+    live, _ = trained.model.predict(vn.normalize_obs(obs), deterministic=True)
+    np.testing.assert_array_equal(pol.act(obs), np.clip(live, -1, 1))
+    assert not np.allclose(pol.act(obs)[0], pol.act(obs)[1])  # the actions depend on the observation
+
+
+# ---------------------------------------------------------------------- gap
+def _evaluate_by_hand(pol, make_env, seeds, steps):
+    """Return and forward progress of one episode per seed, stepping single envs in a plain loop."""
+    out = []
+    for s in seeds:
+        env = make_env(steps)
+        obs, info = env.reset(seed=s)
+        x0, ret, done = info["x_position"], 0.0, False
+        while not done:
+            obs, r, term, trunc, info = env.step(pol.act(obs))
+            ret += r
+            done = term or trunc
+        out.append((ret, info["x_position"] - x0))
+        env.close()
+    return np.array(out)
+
+
+def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
+    args = ["gap", "--identified", str(robot["twin"]), "--policy", trained.path, "--episodes", "2",
+            "--seed", "5", "--episode-steps", "30", "--json", "--quiet"]
+    assert main(args) == 0
+    r = json.loads(capsys.readouterr().out)
+    for key in ("twin", "plant", "random_plant"):
+        assert {"return", "progress_m"} <= set(r[key])
+        assert len(r[key]["returns"]) == 2
+    assert len(r["open_loop"]["com_divergence_m"]) == len(r["open_loop"]["t_s"])
+    assert r["open_loop"]["com_divergence_m"][0] == pytest.approx(0.0, abs=1e-6)  # same starts (float32 twin)
+    pol = load_policy(trained.path)
+    seeds = [5, 6]
+    plant = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", model=str(robot["xml"]),
+                                                     max_episode_steps=n), seeds, 30)
+    twin = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", backend="identified",
+                                                    model=str(robot["twin"]), max_episode_steps=n), seeds, 30)
+    # the network on a batch of rows and on one row rounds differently in float32 (~1e-7 in the
+    # actions), which the dynamics carry on; a wrong seed, start or sum would be off by far more
+    tol = {"rtol": 1e-4, "atol": 1e-6}
+    np.testing.assert_allclose(r["plant"]["returns"], plant[:, 0], **tol)
+    np.testing.assert_allclose(r["plant"]["progress_per_episode_m"], plant[:, 1], **tol)
+    np.testing.assert_allclose(r["twin"]["returns"], twin[:, 0], **tol)
+    np.testing.assert_allclose(r["twin"]["progress_per_episode_m"], twin[:, 1], **tol)
+    assert r["plant"]["return"] == pytest.approx(np.mean(r["plant"]["returns"]), rel=1e-12)
+    assert r["twin"]["progress_m"] == pytest.approx(np.mean(r["twin"]["progress_per_episode_m"]), rel=1e-12)
+    assert not np.allclose(plant[:, 1], twin[:, 1], **tol)  # the two evaluations are told apart
+    assert r["random_plant"]["returns"] != r["plant"]["returns"]
+
+
+def test_open_loop_replay_of_the_plant_on_the_plant_does_not_diverge(trained, robot):
+    """The open-loop machinery against itself: the plant's own commands replayed on the plant."""
+    pol = load_policy(trained.path)
+
+    def plant(n):
+        return gym.make_vec("TensegrityIco-v0", num_envs=n, vectorization_mode="vector_entry_point",
+                            model=str(robot["xml"]), max_episode_steps=25)
+
+    closed = run_episodes(plant(2), pol.act, [0, 1])
+    seq = np.stack(closed.actions)
+    replay = run_episodes(plant(2), pol.act, [0, 1], actions=seq)
+    ol = open_loop_divergence(closed, replay, dt=0.02)
+    assert len(ol["com_divergence_m"]) == 26
+    assert max(ol["com_divergence_m"]) < 1e-12 and ol["time_to_0.1m_s"] is None
+    shifted = run_episodes(plant(2), pol.act, [7, 8], actions=seq)  # other starts: it must see a difference
+    assert open_loop_divergence(closed, shifted, dt=0.02)["mean_m"] > 1e-4
+
+
+# ---------------------------------------------------------------------- bad input and interrupts
+def test_bad_inputs_fail_with_one_line(robot, trained, tmp_path, capsys):
+    out = tmp_path / "P.zip"
+    base = ["train", "--identified", str(robot["twin"]), "--out", str(out)]
+    assert main([*base, "--timesteps", "0"]) == 2
+    assert "--timesteps" in one_error_line(capsys)
+    assert main([*base, "--timesteps", "10", "--algo", "dqn"]) == 2
+    assert "dqn" in one_error_line(capsys)
+    assert main(["train", "--identified", str(robot["twin"]), "--out", str(tmp_path / "no" / "P.zip"),
+                 *TINY]) == 2
+    assert "--out" in (line := one_error_line(capsys)) and "does not exist" in line
+    assert main(["train", "--identified", str(robot["paper"]), "--out", str(out), *TINY]) == 2
+    assert "actuated" in one_error_line(capsys)
+    assert not out.exists()
+
+    # a policy file of another env (an SB3 zip without the tensegrity entry), and one whose recorded
+    # spaces are not the env's
+    from stable_baselines3 import PPO
+
+    foreign = tmp_path / "pendulum.zip"
+    PPO("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=64, device="cpu").save(foreign)
+    gap = ["gap", "--identified", str(robot["twin"]), "--episodes", "1", "--episode-steps", "5", "--quiet"]
+    assert main([*gap, "--policy", str(foreign)]) == 2
+    assert "not a tensegrity policy" in one_error_line(capsys)
+    other = tmp_path / "other_space.zip"
+    with zipfile.ZipFile(trained.path) as src, zipfile.ZipFile(other, "w") as dst:
+        for name in src.namelist():
+            data = src.read(name)
+            if name == "tensegrity.json":
+                meta = json.loads(data)
+                meta["env_kwargs"]["exclude_current_positions_from_observation"] = False
+                data = json.dumps(meta).encode()
+            dst.writestr(name, data)
+    assert main([*gap, "--policy", str(other)]) == 2
+    assert "trained on observations (133,)" in one_error_line(capsys)
+    not_zip = tmp_path / "junk.zip"
+    not_zip.write_text("not a zip")
+    assert main([*gap, "--policy", str(not_zip)]) == 2
+    assert "not a zip" in one_error_line(capsys)
+    assert main([*gap, "--policy", trained.path, "--episodes", "0"]) == 2
+    assert "--episodes" in one_error_line(capsys)
+    assert main([*gap, "--policy", trained.path, "--video", str(not_zip)]) == 2
+    assert "not a folder" in one_error_line(capsys)
+    assert sorted(os.listdir(tmp_path)) == ["junk.zip", "other_space.zip", "pendulum.zip"]
+
+
+def test_interrupt_keeps_the_last_complete_checkpoint(robot, tmp_path, monkeypatch, capsys):
+    calls = {"n": 0}
+    step = SB3VecEnvAdapter.step_wait
+
+    def step_then_interrupt(self):
+        calls["n"] += 1
+        if calls["n"] > 80:  # after two updates of 32 steps per env
+            raise KeyboardInterrupt
+        return step(self)
+
+    monkeypatch.setattr(SB3VecEnvAdapter, "step_wait", step_then_interrupt)
+    out = tmp_path / "P.zip"
+    rc = main(["train", "--identified", str(robot["twin"]), "--out", str(out), "--timesteps", "100000",
+               "--envs", "4", "--rollout", "128", "--quiet"])
+    assert rc == 130
+    err = capsys.readouterr().err
+    ckpt = checkpoint_path(str(out))
+    assert f"checkpoint (step 256) is {ckpt}" in err
+    assert not out.exists() and load_policy(ckpt).meta["timesteps"] == 256
+    assert sorted(os.listdir(tmp_path)) == ["P.ckpt.zip"]
+
+
+# ---------------------------------------------------------------------- videos
+_VIDEO_SCRIPT = """
+import json, os, sys
+import imageio_ffmpeg
+from tensegrity_gym import gap
+policy, twin, folder = sys.argv[1:4]
+gap.VIDEO_SIZE = 64
+try:
+    r = gap.measure_gap(policy, twin, 1, episode_steps=4, video_dir=folder, progress=False)
+except RuntimeError as exc:
+    if "offscreen rendering is not available" in str(exc):
+        print(json.dumps({"unavailable": str(exc)})); raise SystemExit(0)
+    raise
+out = {}
+for name, path in r["videos"].items():
+    with open(path, "rb") as fh:
+        head = fh.read(12)
+    reader = imageio_ffmpeg.read_frames(path)
+    meta = next(reader)
+    out[name] = {"ftyp": head[4:8].decode("latin-1"), "frames": sum(1 for _ in reader), "size": meta["size"]}
+print(json.dumps({"videos": out, "files": sorted(os.listdir(folder))}))
+"""
+
+
+def test_gap_writes_an_mp4_of_each(trained, robot, tmp_path):
+
+    from tests._render import render_in_subprocess
+
+    folder = tmp_path / "videos"
+    script = f"import sys; sys.argv = ['x', {trained.path!r}, {str(robot['twin'])!r}, {str(folder)!r}]\n"
+    r = render_in_subprocess(script + _VIDEO_SCRIPT)
+    assert r["files"] == ["plant.mp4", "random_plant.mp4", "twin.mp4"]  # nothing temporary left
+    for name in ("twin", "plant", "random_plant"):
+        v = r["videos"][name]
+        assert v["ftyp"] == "ftyp" and v["size"] == [64, 64]
+        assert v["frames"] == 3  # reset, then every 2nd of 4 steps
+
+
+@pytest.mark.parametrize("command,options", [
+    ("train", ["--identified", "--algo", "--timesteps", "--seed", "--out", "--plant", "--envs", "--rollout",
+               "--episode-steps", "--threads", "--tensorboard", "--quiet"]),
+    ("gap", ["--identified", "--policy", "--episodes", "--seed", "--episode-steps", "--json", "--video",
+             "--threads", "--quiet"]),
+])
+def test_help_lists_options(command, options, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([command, "--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"usage: tensegrity {command}")
+    for opt in options:
+        assert opt in text

@@ -128,11 +128,12 @@ class GroundContact(Effect):
         key = ("geom", like.dtype, like.device)
         if key not in self._cache:
             t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
-            n = t(self.options["normal"])
-            a = torch.tensor([1.0, 0, 0], dtype=like.dtype) if abs(float(n[0])) < 0.9 else torch.tensor([0, 1.0, 0], dtype=like.dtype)
-            t1 = torch.linalg.cross(n, a.to(like.device))
-            t1 = t1 / t1.norm()
-            t2 = torch.linalg.cross(n, t1)
+            # the plane's frame in numpy (no tensor-to-float inside a compiled step)
+            n_np = np.asarray(self.options["normal"], dtype=float)
+            a = np.array([1.0, 0, 0]) if abs(n_np[0]) < 0.9 else np.array([0, 1.0, 0])
+            t1_np = np.cross(n_np, a)
+            t1_np /= np.linalg.norm(t1_np)
+            n, t1, t2 = t(n_np), t(t1_np), t(np.cross(n_np, t1_np))
             self._cache[key] = (t(self.options["radius"]), t(self.options["segment"]), n, t1, t2,
                                 t(self.options["ground_height"]))
         return self._cache[key]
@@ -242,9 +243,9 @@ class GroundContact(Effect):
         c = self.contacts(state, ctx)
         g = (self._references(state, ctx, c) * th[:NL, None]).sum(-2)  # (..., R, 2, 3)
         raw = self._apply(self._inverse(c["A"], c["active"], th[NL + 1]), g)
-        released = c["active"] & ~(raw[..., 0] > 0)
-        if bool(released.any()):
-            raw = self._apply(self._inverse(c["A"], c["active"] & ~released, th[NL + 1]), g)
+        # solved again with the pulling ends released (always: no data-dependent branch, so the
+        # twin's compiled step stays one graph)
+        raw = self._apply(self._inverse(c["A"], c["active"] & (raw[..., 0] > 0), th[NL + 1]), g)
         return c, raw
 
     @staticmethod

@@ -113,12 +113,13 @@ def fit_model(
               scheme=scheme)
     loop: list[dict[str, Any]] = []
     explained = None
+    fixed: dict[str, dict[str, Any]] = {}
     if spec == "auto":
-        names, loop, explained = select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress)
+        names, loop, explained, fixed = select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress)
     else:
         names = [] if spec == "none" else spec
     t0 = time.perf_counter()
-    model = identify(data, topo, effects=_build(names, topo, mjcf), progress=progress, **kw)
+    model = identify(data, topo, effects=_build(names, topo, mjcf, fixed), progress=progress, **kw)
     model.metrics["fit_seconds"] = round(time.perf_counter() - t0, 4)
     if selection is not None:
         model.metrics["integrator_selection"] = selection
@@ -164,11 +165,12 @@ def select_effects(
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
     progress: bool = False,
-) -> tuple[list[str], list[dict[str, Any]], bool]:
+) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]]]:
     """Forward selection of effects on held-out episodes (module docstring).
 
     Returns the chosen names, the loop record (one entry per step: ``added``, ``error_before``,
-    ``error_after``, ``candidates`` with each one's held-out error) and ``explained``.
+    ``error_after``, ``candidates`` with each one's held-out error), ``explained``, and the options
+    a chosen effect's own profile scan settled (the contact regulariser), for the final fit.
     """
     from identified.predict import rollout_errors
 
@@ -254,7 +256,7 @@ def select_effects(
     rel = _relative_residual(base_model)
     explained = bool((rel is not None and rel < 1e-6) or (first_err > 0 and base_err <= first_err / 5)
                      or (first_err == 0))
-    return chosen, loop, explained
+    return chosen, loop, explained, fixed
 
 
 def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int | None = None) -> float:

@@ -122,6 +122,12 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     from identified.fit.identify import check_compatible
     from identified.model import load_model
 
+    if args.out is not None:  # a report folder: never one of the inputs, never over a file
+        inputs = [p for p in (args.data, args.identified, args.model) if p]
+        if any(os.path.realpath(args.out) == os.path.realpath(p) for p in inputs):
+            raise CommandError(f"--out '{args.out}' is one of the command's inputs; give a new folder for the report")
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            raise CommandError(f"--out '{args.out}' exists and is not a folder")
     model = load_model(args.identified)
     data = load_dataset(args.data)
     check_compatible(data, model.topology)

@@ -180,3 +180,16 @@ def test_ljung_box_tells_white_from_correlated():
     rho = [np.sum(xc[:-k] * xc[k:]) / np.sum(xc * xc) for k in range(1, 4)]
     want = 50 * 52 * sum(r * r / (50 - k) for k, r in zip(range(1, 4), rho))
     assert ljung_box(x, 3) == (pytest.approx(want, rel=1e-12), 3)
+
+
+def test_diagnose_out_never_overwrites_an_input(tmp_path, capsys):
+    from tensegrity_gym.cli import main
+
+    data, model = tmp_path / "D.npz", tmp_path / "F.json"
+    data.write_bytes(b"not touched")
+    model.write_text("{}")
+    for out in (data, model):
+        assert main(["diagnose", str(data), "--identified", str(model), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("tensegrity: error: --out") and err.count("\n") == 1
+    assert data.read_bytes() == b"not touched" and model.read_text() == "{}"

@@ -66,6 +66,7 @@ from identified.engine.integration import RodState
 from identified.fit.derivatives import iter_chunks
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
+from identified.jsonsafe import json_safe
 from identified.model import IdentifiedModel
 from identified.predict import quat_distance, rollout
 from identified.rotation import matrix_apply
@@ -218,7 +219,7 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
         "best_feature": one["best_feature"],
         "plot_data": {"residual_time": one["time_series"], "feature": one["scatter"]},
     }
-    return _jsonable(result)
+    return json_safe(result)
 
 
 def write_report(result: dict[str, Any], out_dir: str | os.PathLike) -> list[str]:
@@ -887,22 +888,3 @@ def _rms_or_none(x: np.ndarray) -> float | None:
 
 def _nan(v: list) -> np.ndarray:
     return np.array([np.nan if x is None else x for x in v], dtype=float)
-
-
-def _jsonable(x: Any) -> Any:
-    """Plain Python types, ``None`` for NaN and infinities."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return _finite(x)
-    if x is None or isinstance(x, str):
-        return x
-    return str(x)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import Dataset, atomic_write
+from identified.jsonsafe import json_safe
 from identified.topology import Topology
 
 __all__ = ["Context", "Result", "format_table", "generate", "single_thread", "to_jsonable", "write_json"]
@@ -107,22 +108,8 @@ def _check_motion(data: Dataset, split: str) -> None:
         raise DatasetError(f"the {split} data hold no motion: choose another --seed")
 
 
-def to_jsonable(x: Any) -> Any:
-    """Numbers and arrays as plain JSON (non-finite floats as null)."""
-    if isinstance(x, dict):
-        return {str(k): to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return to_jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    return x
+# one definition of "JSON that is always valid" (NaN and infinities as null)
+to_jsonable = json_safe
 
 
 def write_json(path: str, result: Result) -> None:

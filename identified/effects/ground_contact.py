@@ -138,14 +138,19 @@ class GroundContact(Effect):
                                 t(self.options["ground_height"]))
         return self._cache[key]
 
+    def _end_spheres(self, state: Any, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World centre (..., R, 2, 3) and penetration depth (..., R, 2) of every capsule end sphere."""
+        radius, seg, n, _, _, height = self._geom(state.pos)
+        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)
+        return centre, radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+
     def contacts(self, state: Any, ctx: Any) -> dict[str, torch.Tensor]:
         """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3); per rod the
         contact-space inverse effective-mass matrix of both ends, ``A`` (..., R, 6, 6), rows
         (end, direction) with directions (n, t1, t2), from the model's M and I."""
-        radius, seg, n, t1, t2, height = self._geom(state.pos)
+        _, _, n, t1, _, _ = self._geom(state.pos)
         rot = ctx.rot
-        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3)
-        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        centre, depth = self._end_spheres(state, rot)
         # the force acts on the rod's axis at the end sphere's centre: a contact at the capsule's
         # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
         # small for the data to identify and which the plant's torsional friction holds still
@@ -269,9 +274,7 @@ class GroundContact(Effect):
 
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
-        radius, seg, n, _, _, height = self._geom(state.pos)
-        centre = state.pos.unsqueeze(-2) + matrix_apply(ctx.rot.unsqueeze(-3), seg)
-        depth = radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+        _, depth = self._end_spheres(state, ctx.rot)
         return (depth > -margin).any(-1)
 
     # ------------------------------------------------------------------ fit on the residual

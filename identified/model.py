@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import atomic_write
+from identified.effects import KNOWN_NAMES
 from identified.jsonsafe import json_safe
 from identified.topology import Rod, Spring, Topology
 
@@ -255,9 +256,8 @@ def load_model(path: str | os.PathLike) -> IdentifiedModel:
     return model
 
 
-#: the effects an identified model may list (DESIGN.md, "Files")
-KNOWN_EFFECTS = ("ground_contact", "linear_drag", "quadratic_drag", "cable_friction", "cable_slack",
-                 "constant_force", "actuator_lag")
+#: the effects an identified model may list (DESIGN.md, "Files"): the effect library's names
+KNOWN_EFFECTS = KNOWN_NAMES
 
 
 def validate_fields(model: IdentifiedModel) -> None:

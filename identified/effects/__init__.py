@@ -41,7 +41,7 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (GroundContact, LinearDrag, QuadraticDrag, CableFriction, CableSlack, ConstantForce)
 }
-#: names the model file may use (DESIGN.md); actuator_lag is reserved
+#: names the model file may use (DESIGN.md), in this order; actuator_lag is reserved
 KNOWN_NAMES = tuple(EFFECTS) + ("actuator_lag",)
 
 

@@ -34,7 +34,6 @@ this law explains most of the contact force (``explained_variance`` in the fit's
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
 from typing import Any
 
 import numpy as np
@@ -63,7 +62,8 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
     Raises :class:`GeometryError` (one line) when there is no ground plane or a rod has no capsule.
     """
     from identified.mjcf import parse_mjcf, read_mjcf_text
-    from identified.topology import _frame, _vec
+    from identified.rotation import quat_to_matrix
+    from identified.topology import _vec
 
     root = parse_mjcf(read_mjcf_text(mjcf, GeometryError), GeometryError)
     world = root.find("worldbody")
@@ -73,9 +73,7 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
     g = planes[0]
     pos = _vec(g.get("pos"), 3)
     q = _vec(g.get("quat"), 4) if g.get("quat") else np.array([1.0, 0, 0, 0])
-    fake = ET.Element("body", {"pos": " ".join(map(str, pos)), "quat": " ".join(map(str, q))})
-    _, rot = _frame(fake)
-    normal = rot[:, 2]
+    normal = quat_to_matrix(q / np.linalg.norm(q))[:, 2]
     radius, segment = [], []
     bodies = {b.get("name"): b for b in world.findall("body")}
     for name in rod_names:

@@ -25,7 +25,6 @@ structured and no effect of the library explains it.
 
 from __future__ import annotations
 
-import copy
 import os
 import time
 from collections.abc import Sequence
@@ -295,10 +294,3 @@ def _relative_residual(model: IdentifiedModel | None) -> float | None:
 
 def _json_float(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
-
-
-def copy_without_effects(model: IdentifiedModel) -> IdentifiedModel:
-    """The same model with no effects (the spring-rod model alone)."""
-    m = copy.deepcopy(model)
-    m.effects = []
-    return m

@@ -55,6 +55,8 @@ CASES = [  # (preset, kind, size, seed, the effect it should add)
     ("paper-nonuniform", "gravity", 0.1, 7, "constant_force"),
     ("paper-nonuniform", "joint_damping", 2.0, 8, "linear_drag"),
     ("paper-nonuniform", "frictionloss", 5.0, 9, "cable_friction"),
+    ("paper-nonuniform", "frictionloss", 1.0, 14, "cable_friction"),
+    ("paper-uniform", "frictionloss", 10.0, 15, "cable_friction"),
     ("paper-nonuniform", "clean", 0, 10, None),
     ("paper-nonuniform", "clean", 0, 11, None),
     ("paper-uniform", "clean", 0, 12, None),
@@ -89,9 +91,12 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--only", default=None, help="comma-separated hidden kinds to run (e.g. frictionloss,clean)")
     args = p.parse_args()
     torch.set_num_threads(1)
     cases = CASES[::3] if args.quick else CASES
+    if args.only:
+        cases = [c for c in cases if c[1] in args.only.split(",")]
     print(f"{'plant':<18} {'hidden':<14} {'size':>6} {'seed':>4}  {'added':<28} {'held-out before':>15} "
           f"{'after':>9}  {'test before':>11} {'after':>9}  {'ok':<3} {'s':>5}")
     bad = 0

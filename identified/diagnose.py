@@ -516,7 +516,8 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
             ref_f = p.mass[:, None] * (ch.acc - p.gravity)
             ref_t = p.inertia * ch.alpha_body + torch.cross(w, p.inertia * w, dim=-1)
             y = torch.cat((rf, matrix_apply(rot, rtb) / half[:, None]), -1)  # (N, R, 6) world, N
-            ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
+            ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body,
+                                     recorded_lin_acc=ch.acc, recorded_ang_acc_body=ch.alpha_body)
             # regions
             short = terms.ctx.geometry.length < ch.rest  # (N, S)
             near = _near_ground(state, rot, geometry) if geometry is not None else None
@@ -693,15 +694,19 @@ def _candidate_blocks(eff: Any, state: RodState, ctx: Any, topo: Any,
     world) and which of the candidate's parameters they belong to (w,)."""
     R = state.pos.shape[-2]
     if eff.kind == "spring":
-        f = eff.end_features(state, ctx)  # (N, S, 2, 3)
-        tau = torch.cross(ctx.ends.lever, f, dim=-1)
+        f = eff.end_features(state, ctx)  # (N, S, 2, 3) or (N, S, 2, W, 3)
+        if f.dim() == 4:
+            f = f.unsqueeze(-2)
+        W = f.shape[-2]
+        tau = torch.cross(ctx.ends.lever.unsqueeze(-2).expand_as(f), f, dim=-1)
         out = []
         for i in range(R):
             js, es = np.nonzero(topo.endpoint_rods == i)
             u, inv = np.unique(js, return_inverse=True)
-            cols = torch.cat((f[:, js, es], tau[:, js, es] / half[i]), -1)  # (N, k, 6)
-            X = torch.zeros(f.shape[0], len(u), 6, dtype=f.dtype).index_add_(1, torch.as_tensor(inv), cols)
-            out.append((X.transpose(1, 2), u))
+            cols = torch.cat((f[:, js, es], tau[:, js, es] / half[i]), -1).flatten(1, 2)  # (N, k W, 6)
+            slots = torch.as_tensor((inv[:, None] * W + np.arange(W)).reshape(-1))
+            X = torch.zeros(f.shape[0], len(u) * W, 6, dtype=f.dtype).index_add_(1, slots, cols)
+            out.append((X.transpose(1, 2), (u[:, None] * W + np.arange(W)).reshape(-1)))
         return out
     force, torque = eff.features(state, ctx)  # (N, R, W, 3) rod / (N, R, P, 3) global
     cols = torch.cat((force, torque / half[:, None, None]), -1).transpose(-1, -2)  # (N, R, 6, W)

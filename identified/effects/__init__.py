@@ -6,7 +6,7 @@ name                      what it adds
 ``ground_contact``        rod capsules on a ground plane (normal force, friction)
 ``linear_drag``           viscous drag per rod (translation and rotation)
 ``quadratic_drag``        drag quadratic in speed per rod-frame axis
-``cable_friction``        dry friction along each cable (smoothed)
+``cable_friction``        dry friction along each cable: it sticks, slips at F
 ``cable_slack``           a spring declared two-sided that only pulls
 ``constant_force``        a constant force per rod (gravity mismatch, tilt, wind)
 ``actuator_lag``          (not implemented: the dataset records the actual rest lengths)

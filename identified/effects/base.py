@@ -19,6 +19,12 @@ Parameter layout of an effect: its blocks concatenated, each block flattened in 
 component) order, e.g. ``linear_drag`` per rod ``[b_lin, b_rot]`` -> ``rod0.b_lin, rod0.b_rot,
 rod1.b_lin, ...``.
 
+Iterative effects (``iterative = True``: cable friction, whose law sticks or slips) have columns that
+depend on a classification of every instant made from their own values; the fit then iterates
+(:func:`identified.fit.identify.identify`: :meth:`starts` for the first classification,
+:meth:`prepare` before each pass, :meth:`reclassify` to stop) and the twin evaluates the law at the
+accelerations it produces, not the columns at recorded ones.
+
 Stages: ``stage = "joint"`` effects enter the main regression as extra columns (fitted together
 with K, c, M, I, h); ``stage = "residual"`` effects (ground contact) need the accelerations under
 every other force, so they are fitted on the residual of the jointly fitted model, on the rows
@@ -79,15 +85,26 @@ class Effect(ABC):
     stage: ClassVar[str] = "joint"
     explicit: ClassVar[bool] = True  # the implicit integrator treats its force as explicit
     needs_base_acceleration: ClassVar[bool] = False
+    iterative: ClassVar[bool] = False
 
     def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,
                  options: dict[str, Any] | None = None) -> None:
         self.n_rods, self.n_springs = int(n_rods), int(n_springs)
         self.options: dict[str, Any] = dict(options or {})
         P = self.n_params
+        self._cache: dict[tuple, Any] = {}
         self.values = None if values is None else np.asarray(values, dtype=float).reshape(P)
         self.stderr = None if stderr is None else np.asarray(stderr, dtype=float).reshape(P)
-        self._cache: dict[tuple, torch.Tensor] = {}
+
+    @property
+    def values(self) -> np.ndarray | None:
+        """The fitted parameters (P,), ``None`` before the fit; setting them drops cached tensors."""
+        return self._values
+
+    @values.setter
+    def values(self, v: np.ndarray | None) -> None:
+        self._values = v
+        self._cache = {k: x for k, x in self._cache.items() if k[0] != "theta"}
 
     # ------------------------------------------------------------------ layout
     @property
@@ -130,17 +147,30 @@ class Effect(ABC):
 
     def end_features(self, state: Any, ctx: Any) -> torch.Tensor:
         """Per-spring effects: the force on each spring end per unit of the spring's parameter,
-        (..., S, 2, 3)."""
+        (..., S, 2, 3), or per unit of each of its W parameters, (..., S, 2, W, 3)."""
         raise NotImplementedError
 
     def theta(self, like: torch.Tensor) -> torch.Tensor:
         """The fitted values as a tensor in ``like``'s dtype and device (cached)."""
         if self.values is None:
             raise ValueError(f"effect '{self.name}' has no fitted values")
-        key = (like.dtype, like.device)
+        key = ("theta", like.dtype, like.device)
         if key not in self._cache:
             self._cache[key] = torch.as_tensor(self.values, dtype=like.dtype, device=like.device)
         return self._cache[key]
+
+    def bind(self, theta: torch.Tensor | None) -> None:
+        """Let the engine use ``theta`` (P,) -- e.g. a tensor being optimised, gradients flow --
+        instead of :attr:`values`; ``None`` goes back to the values."""
+        self._cache = {k: x for k, x in self._cache.items() if k[0] != "theta"}
+        if theta is not None:
+            self._cache[("theta", theta.dtype, theta.device)] = theta
+
+    def mass_scaled_mask(self) -> np.ndarray:
+        """(P,) bool: parameters whose unit holds kg (they follow a rescaling of every mass)."""
+        per = np.array([b.mass_scaled for b in self.blocks for _ in range(b.width)])
+        n = 1 if self.kind == "global" else (self.n_rods if self.kind == "rod" else self.n_springs)
+        return np.tile(per, n)
 
     def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
         """The force and WORLD torque the effect adds to each rod, (..., R, 3) each."""
@@ -148,7 +178,11 @@ class Effect(ABC):
         if self.kind == "spring":
             from identified.engine.accelerations import rod_wrench
 
-            f = self.end_features(state, ctx) * th.view(-1, 1, 1)
+            f = self.end_features(state, ctx)
+            if self.width == 1:  # one parameter per spring: (..., S, 2, 3)
+                f = f * th.view(-1, 1, 1)
+            else:  # (..., S, 2, W, 3)
+                f = (f * th.view(self.n_springs, 1, -1, 1)).sum(-2)
             return rod_wrench(ctx.graph, f, ctx.ends.lever)
         force, torque = self.features(state, ctx)
         w = th.view(self.n_rods, -1, 1) if self.kind == "rod" else th.view(-1, 1)

@@ -97,7 +97,7 @@ class RodColumns:
         R, S = topology.n_rods, topology.n_springs
         per_rod = [topology.springs_of_rod(i) for i in range(R)]
         D = max(len(x) for x in per_rod)
-        widths = [D if e.kind == "spring" else e.width for e in layout.effects]
+        widths = [D * e.width if e.kind == "spring" else e.width for e in layout.effects]
         full = -np.ones((R, 2 * D + 5 + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
@@ -118,8 +118,10 @@ class RodColumns:
                     full[i, col : col + w] = off + np.arange(w)
                 elif eff.kind == "rod":
                     full[i, col : col + w] = off + i * w + np.arange(w)
-                else:
-                    full[i, col : col + len(js)] = off + np.array(js, dtype=np.int64)
+                else:  # slot k of the rod, component c -> parameter (spring js[k], c)
+                    W = eff.width
+                    full[i, col : col + len(js) * W] = (off + np.array(js, dtype=np.int64)[:, None] * W
+                                                        + np.arange(W)).reshape(-1)
             col += w
         return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts))
 
@@ -224,12 +226,16 @@ def _effect_columns(A: torch.Tensor, eff: Effect, c0: int, state: RodState, ctx:
     """Write an effect's columns (minus its force, minus its rod-frame torque) into ``A`` (N, 6, R, L)."""
     N, _, R, L = A.shape
     if eff.kind == "spring":
-        f = eff.end_features(state, ctx)  # (N, S, 2, 3)
-        tau = _to_body(rot[:, torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=A.device)],
-                       torch.cross(ctx.ends.lever, f, dim=-1))
-        vals = -torch.cat([f, tau], dim=-1).reshape(N, -1, 6)[:, torch.as_tensor(on, device=A.device)]
-        idx = torch.as_tensor(flat_rod * L + c0 + flat_slot, device=A.device)
-        A.view(N, 6, R * L).index_add_(2, idx, vals.transpose(1, 2))
+        f = eff.end_features(state, ctx)  # (N, S, 2, 3), or (N, S, 2, W, 3) for W parameters per spring
+        if f.dim() == 4:
+            f = f.unsqueeze(-2)
+        W = f.shape[-2]
+        rot_e = rot[:, torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=A.device)].unsqueeze(-3)
+        tau = _to_body(rot_e, torch.cross(ctx.ends.lever.unsqueeze(-2).expand_as(f), f, dim=-1))
+        vals = -torch.cat([f, tau], dim=-1).reshape(N, -1, W, 6)[:, torch.as_tensor(on, device=A.device)]
+        idx = flat_rod[:, None] * L + c0 + flat_slot[:, None] * W + np.arange(W)
+        A.view(N, 6, R * L).index_add_(2, torch.as_tensor(idx.reshape(-1), device=A.device),
+                                       vals.reshape(N, -1, 6).transpose(1, 2))
         return
     force, torque = eff.features(state, ctx)  # (N, R, W, 3) world
     W = force.shape[-2]

@@ -32,13 +32,15 @@ from identified.fit.derivatives import default_window, iter_chunks, weak_form
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.noise import with_noise_replicates
-from identified.fit.regression import Anchor, Solution, accumulate, solve
+from identified.fit.regression import Anchor, IdentifiabilityError, Solution, accumulate, solve
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
 __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
+#: fits of an iterative effect's classification (cable friction): it settles in 2-4 on clean data
+MAX_CLASSIFICATION_PASSES = 10
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,8 @@ def identify(
     device: str = "cpu",
     noise_copies: int = 1,
     effects: Sequence[Effect] = (),
+    _classified: bool = False,
+    _residual_stage: bool = True,
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -150,11 +154,18 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies, effects)
+                         chunk_steps, progress, device, noise_copies, effects, _classified)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS + ('auto',))}, got '{integrator}'")
+    iterative = [e for e in effects if e.stage == "joint" and getattr(e, "iterative", False)]
+    if iterative and not _classified:
+        def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
+            return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
+                            bar, device, noise_copies, effects, _classified=True, _residual_stage=residual_stage)
+
+        return _iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
@@ -171,7 +182,8 @@ def identify(
     for k, e in enumerate(joint):
         pinned = getattr(e, "pinned", None)
         if pinned is not None:
-            fixed.update({layout.effect_offset(k) + int(p): 0.0 for p in np.flatnonzero(pinned())})
+            held = getattr(e, "pinned_values", lambda: np.zeros(e.n_params))()
+            fixed.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(pinned())})
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -216,7 +228,7 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.integrator = integrator
-    if late:
+    if late and _residual_stage:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     apply_checks(model, sol, not_estimable, held, notes, weak)
     model.metrics["weak_window"] = weak if weak > 1 else None
@@ -225,6 +237,73 @@ def identify(
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
     return model
+
+
+def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequence[Effect],
+                            fit_once: Any, progress: bool) -> IdentifiedModel:
+    """Fit with effects whose columns depend on a classification made from their own values (the
+    cable friction's stick / slip): fit, reclassify with the new values, until they stop moving.
+
+    The first classification is searched on a part of the data (each effect's :meth:`starts`;
+    the one whose passes leave the smallest equation residual is kept); what a pass finds
+    unidentifiable of such an effect is held at the effect's pinned values and the pass redone.
+    """
+
+    def fit_holding(data: Dataset, residual_stage: bool = False, bar: bool = False) -> IdentifiedModel | None:
+        for e in iterative:
+            e.prepare(data, topology)
+        for _ in range(3):
+            try:
+                return fit_once(data, residual_stage, bar)
+            except IdentifiabilityError as err:
+                if not any(e.hold(err.names, topology) for e in iterative):
+                    return None
+        return None
+
+    def passes_from_here(data: Dataset, most: int) -> tuple[int, float]:
+        """Passes until the values settle: how many, and the last equation residual."""
+        res = np.inf
+        for n in range(1, most + 1):
+            previous = [None if e.values is None else e.values.copy() for e in iterative]
+            try:
+                fit = fit_holding(data)
+            except ValueError:
+                fit = None
+            if fit is None:
+                return n, np.inf
+            rms = fit.metrics["equation_residual_rms"]
+            res = (rms["translation"] or 0.0) + (rms["rotation"] or 0.0)
+            if not any(e.reclassify(p) for e, p in zip(iterative, previous)):
+                break
+        return n, res
+
+    if all(e.values is None for e in iterative):  # search the initial classification
+        part = dataset.select(episodes=slice(0, max(1, min(dataset.n_episodes, 4000 // dataset.n_steps))),
+                              steps=min(dataset.n_steps, 4000))
+        best: tuple[float, list | None] = (np.inf, None)
+        for start in _product([e.starts(dataset, topology) for e in iterative]):
+            for e, opt in zip(iterative, start):
+                e.options.update(opt)
+                e.values = None
+                e.release()
+            _, res = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
+            if res < best[0]:
+                best = (res, [e.values.copy() for e in iterative])
+        for e, v in zip(iterative, best[1] or [None] * len(iterative)):
+            e.values = v
+            e.release()
+    passes, _ = passes_from_here(dataset, MAX_CLASSIFICATION_PASSES)
+    model = fit_holding(dataset, residual_stage=True, bar=progress)
+    if model is None:  # let the regression say what it cannot identify
+        model = fit_once(dataset, True, progress)
+    model.metrics["classification"] = {"passes": passes + 1, **{e.name: e.unseen() for e in iterative}}
+    return model
+
+
+def _product(options: list[list[dict]]) -> list[tuple[dict, ...]]:
+    import itertools
+
+    return list(itertools.product(*options))
 
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:

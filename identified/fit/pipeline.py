@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import Dataset, DatasetError
-from identified.effects import EFFECTS, Effect, GeometryError, make_effect
+from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
 from identified.model import IdentifiedModel
@@ -151,7 +151,11 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
     for label in names:
         eff = make_effect(label.split(":")[0], topo, mjcf)
         eff.options.update(VARIANTS.get(label, {}))
-        eff.options.update((fixed or {}).get(label, {}))
+        opts = dict((fixed or {}).get(label, {}))
+        start = opts.pop("start_values", None)
+        eff.options.update(opts)
+        if start is not None:  # an iterative effect: start from a settled classification
+            eff.values = np.asarray(start, dtype=float)
         out.append(eff)
     return out
 
@@ -169,7 +173,8 @@ def select_effects(
 
     Returns the chosen names, the loop record (one entry per step: ``added``, ``error_before``,
     ``error_after``, ``candidates`` with each one's held-out error), ``explained``, and the options
-    a chosen effect's own profile scan settled (the contact regulariser), for the final fit.
+    a chosen effect's own search settled (the contact regulariser; the cable friction's values,
+    from which its later refits start their classification), for the final fit.
     """
     from identified.predict import rollout_errors
 
@@ -246,8 +251,11 @@ def select_effects(
         chosen.append(best)
         base_err, base_model = err, fits[best]
         for e in base_model.effects:
+            label = next(c for c in chosen if c.split(":")[0] == e["name"])
             if e["name"] == "ground_contact" and e["parameters"].get("epsilon") is not None:
-                fixed[best] = {"epsilon": e["parameters"]["epsilon"]}
+                fixed[label] = {"epsilon": e["parameters"]["epsilon"]}
+            if EFFECTS[e["name"]].iterative:  # later refits start from its classification
+                fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
     if bar is not None:

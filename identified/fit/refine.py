@@ -5,7 +5,8 @@ fitted by central differences) or the data are noisy, the parameters that best p
 are not quite those that best predict *many*.  :func:`refine` starts from the regression result
 and minimises the error of free runs of the differentiable engine over windows of ``horizon``
 steps (started from recorded states, driven by the recorded rest lengths and pushes), by L-BFGS
-on the logarithms of the parameters (they stay positive), with gradients through the engine.
+on the logarithms of the parameters (they stay positive) -- the effects' parameters too, the signed
+ones (a force field, a slack correction) as they are -- with gradients through the engine.
 
 Noisy data (the dataset records its sensor noise): the recorded states are then measurements,
 not exact states, and fitting free runs started from them with positions and orientations held
@@ -126,9 +127,25 @@ def refine(
 
     from identified.effects import effects_from_model
 
-    effects = effects_from_model(model)  # held at their fitted values while the spring-rod part refines
+    # the effects' parameters refine with the rest: signed ones as they are, the others on their
+    # logarithms (they stay non-negative), pinned ones held
+    effects = effects_from_model(model)
+    eff_vars: list[tuple] = []
+    for e in effects:
+        if e.values is None:
+            continue
+        v0 = torch.as_tensor(e.values, dtype=torch.float64)
+        signed = torch.as_tensor(e.signed_mask())
+        pinned = torch.as_tensor(e.pinned() if hasattr(e, "pinned") else np.zeros(e.n_params, dtype=bool))
+        raw = torch.where(signed, v0, start(v0)).clone().requires_grad_(True)
+        eff_vars.append((e, raw, signed, pinned, v0))
+
+    def bind_effects() -> None:
+        for e, raw, signed, pinned, v0 in eff_vars:
+            e.bind(torch.where(pinned, v0, torch.where(signed, raw, torch.exp(raw))))
 
     def loss_fn() -> torch.Tensor:
+        bind_effects()
         eng = SpringRodEngine(model.topology, params(), data.dt, integrator=model.integrator, effects=effects)
         if not noisy:
             s0 = eng.state(pos[:, 0], quat[:, 0], vel[:, 0] + dv0, angvel[:, 0] + dw0)
@@ -179,13 +196,14 @@ def refine(
             v.requires_grad_(True)
         with torch.no_grad():
             before = float(loss_fn())  # the regression's parameters at their best initial states
-    run(list(logs.values()) + starts, max(before, 1e-300))  # work on a loss of order one
+    run(list(logs.values()) + [v[1] for v in eff_vars] + starts, max(before, 1e-300))  # a loss of order one
     if bar is not None:
         bar.close()
     with torch.no_grad():
         p = params()
         after = float(loss_fn())
-    if not np.isfinite(after) or after > before:  # never return something worse than the start
+    keep = not np.isfinite(after) or after > before  # never return something worse than the start
+    if keep:
         p, after = base, before
     stiffness, damping = p.stiffness.detach().numpy(), p.damping.detach().numpy()
     mass, inertia = p.mass.detach().numpy(), p.inertia.detach().numpy()
@@ -193,8 +211,18 @@ def refine(
     lam = 1.0
     if anchor in ("total_mass", "normalised"):
         lam = float(model.mass.sum() / mass.sum())
+    effect_json = []
+    for e, raw, signed, pinned, v0 in eff_vars:
+        with torch.no_grad():
+            th = v0 if keep else torch.where(pinned, v0, torch.where(signed, raw, torch.exp(raw)))
+        e.bind(None)
+        e.values = th.numpy() * np.where(e.mass_scaled_mask(), lam, 1.0)
+        e.stderr = None
+        effect_json.append(e.to_json())
+    effect_json += [x for x in model.effects if x.get("parameters") is None]
     out = replace(
         model,
+        effects=effect_json if eff_vars else list(model.effects),
         stiffness=stiffness * lam, damping=damping * lam, mass=mass * lam, inertia=inertia * lam,
         control_scale=h * lam if anchor != "push" else h,
         stderr={},  # the regression's error bars no longer apply

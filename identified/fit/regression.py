@@ -56,7 +56,11 @@ EIV_TOL = 1e-10
 
 
 class IdentifiabilityError(ValueError):
-    """The data cannot identify some parameters (rank-deficient regression)."""
+    """The data cannot identify some parameters (rank-deficient regression); ``names``: all of them."""
+
+    def __init__(self, message: str, names: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.names = list(names or [])
 
 
 @dataclass
@@ -297,7 +301,7 @@ def _check_rank(bad: np.ndarray, directions: np.ndarray, scale: np.ndarray, Nul:
                 names.append(n)
     raise IdentifiabilityError(
         "the data cannot identify " + ", ".join(names[:12]) + (" ..." if len(names) > 12 else "")
-        + f" ({why}: excite these with more varied motion, pushes or longer runs)"
+        + f" ({why}: excite these with more varied motion, pushes or longer runs)", names
     )
 
 

@@ -9,6 +9,8 @@ test set of the model without and with its effects.  Clean plants: the false dis
 
     python benchmarks/bench_effects.py            # ~10 min on 2 cores
     python benchmarks/bench_effects.py --quick    # fewer cases
+    python benchmarks/bench_effects.py --only frictionloss,clean
+    python benchmarks/bench_effects.py --speed    # robot fit --effects auto (20 x 1000) and diagnose times
 """
 
 from __future__ import annotations
@@ -88,12 +90,36 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
             "test_after": after, "seconds": secs, "explained": model.metrics["effect_search"]["explained"]}
 
 
+def speed(tmp: Path) -> None:
+    """The issue's speed figures: ``fit --effects auto`` on the robot, 20 x 1000 steps, and
+    ``diagnose`` of the result on 4 fresh episodes (wall and this process's CPU seconds)."""
+    from identified.diagnose import diagnose
+
+    mjcf = tmp / "robot.xml"
+    write_model(mjcf, "ico", preset="robot", seed=0)
+    cfg = CollectConfig(episodes=20, steps=1000, seed=0, push_every=200)
+    data = collect(mjcf, cfg)
+    test = collect(mjcf, dataclasses.replace(cfg, episodes=4, seed=1000))
+    w0, c0 = time.perf_counter(), time.process_time()
+    model = fit_model(data, mjcf, effects="auto")
+    w1, c1 = time.perf_counter(), time.process_time()
+    diagnose(model, test, mjcf=str(mjcf))
+    w2, c2 = time.perf_counter(), time.process_time()
+    print(f"robot 20 x 1000 fit --effects auto: {w1 - w0:.1f} s wall, {c1 - c0:.1f} s CPU; effects "
+          f"{[e['name'] for e in model.effects]}; diagnose 4 x 1000: {w2 - w1:.1f} s wall, {c2 - c1:.1f} s CPU")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--only", default=None, help="comma-separated hidden kinds to run (e.g. frictionloss,clean)")
+    p.add_argument("--speed", action="store_true", help="only the robot's fit --effects auto and diagnose times")
     args = p.parse_args()
     torch.set_num_threads(1)
+    if args.speed:
+        with tempfile.TemporaryDirectory() as d:
+            speed(Path(d))
+        return 0
     cases = CASES[::3] if args.quick else CASES
     if args.only:
         cases = [c for c in cases if c[1] in args.only.split(",")]

@@ -1,4 +1,4 @@
-"""Twin throughput: TensegrityIco-v0 on the identified engine beside the MuJoCo plant, quiet and loaded.
+"""Twin throughput: TensegrityIco-v0 on the identified engine beside the MuJoCo plant, as found and loaded.
 
     python benchmarks/bench_twin.py [--sizes 256 1024] [--steps 200] [--repeats 2] [--no-load]
                                     [--no-ppo] [--ppo-steps 8192] [--device cpu]
@@ -12,10 +12,12 @@ env step; resets on episode end count toward the time), every row measured side 
   (``compile=False``);
 * the batched twin: ``gym.make_vec(..., num_envs=N, backend="identified")`` for each N, defaults,
   and the same with torch's own thread setting (``num_threads=None``: 2 threads here) and eager;
-* each row twice: on the machine as it is ("quiet") and with ONE busy process beside it (a
+* each row twice: on the machine as it is ("as found") and with ONE busy process beside it (a
   Python busy loop started by this script, killed at the end and ending by itself if the script
   dies),
   the situation of a laptop with a browser open;
+* where a single twin env step goes (a profiled line): the physics' share of the env step, and per
+  compiled substep torch.compile's guard check against the compiled graph;
 * SB3 PPO training steps/s (``learn``: rollouts and updates) through
   :class:`~tensegrity_gym.envs.sb3.SB3VecEnvAdapter`, on the batched twin and on the plant
   (``gym.make_vec`` of single plants), same PPO settings.
@@ -110,6 +112,53 @@ def ppo_rate(venv: gym.vector.VectorEnv, total: int, seed: int = 0) -> float:
     return model.num_timesteps / (time.perf_counter() - t0)
 
 
+def single_env_profile(twin: gym.Env, plant: gym.Env, steps: int = 50) -> None:
+    """Where a single twin env step goes: the 20 physics substeps against the rest of the env step,
+    and per compiled substep torch.compile's guard check (``TorchDynamo Cache Lookup``) against
+    the compiled graph (kernels and their Python wrapper), from the torch profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    ph = twin.unwrapped.backend.physics
+    spent: list[float] = []
+    advance = ph._advance
+
+    def timed(*a: object, **k: object) -> object:
+        t = time.perf_counter()
+        out = advance(*a, **k)
+        spent.append(time.perf_counter() - t)
+        return out
+
+    actions = np.random.default_rng(1).uniform(-1, 1, (steps,) + twin.action_space.shape).astype(np.float32)
+    twin.reset(seed=1)
+    plant.reset(seed=1)
+    ph._advance = timed
+    try:
+        t0 = time.perf_counter()
+        for a in actions:
+            twin.step(a)
+        t_twin = (time.perf_counter() - t0) / steps
+        t0 = time.perf_counter()
+        for a in actions:
+            plant.step(a)
+        t_plant = (time.perf_counter() - t0) / steps
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            for a in actions[:10]:
+                twin.step(a)
+    finally:
+        ph._advance = advance
+    n_sub = 10 * twin.unwrapped.frame_skip
+    parts = {"guards": 0.0, "graph": 0.0}
+    for ev in prof.key_averages():
+        if ev.key == "TorchDynamo Cache Lookup":
+            parts["guards"] += ev.self_cpu_time_total / n_sub
+        elif "CompiledFxGraph" in ev.key:
+            parts["graph"] += ev.cpu_time_total / n_sub
+    print(f"single env step: twin {t_twin * 1e6:,.0f} us, of which the physics (20 substeps) "
+          f"{np.mean(spent) * 1e6:,.0f} us ({np.mean(spent) / t_twin:.0%}); plant {t_plant * 1e6:,.0f} us "
+          f"(ratio {t_plant / t_twin:.2f}x); per compiled substep (profiler): guard check "
+          f"{parts['guards']:.0f} us, compiled graph {parts['graph']:.0f} us; load average {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the finally blocks (kill the load)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -138,6 +187,8 @@ def main() -> None:
     cases.append(("twin, single (defaults)", single_runner(twin, args.steps)))
     ph = twin.unwrapped.backend.physics
     print(f"single twin: compiled {ph.compiled}, compile {ph.compile_seconds:.1f} s, threads {ph.num_threads}")
+    if ph.compiled:
+        single_env_profile(twin, gym.make("TensegrityIco-v0"))
     cases.append(("twin, single, eager", single_runner(gym.make(
         "TensegrityIco-v0", backend="identified", backend_kwargs={**kw, "compile": False}), args.steps)))
     for n in args.sizes:
@@ -151,10 +202,10 @@ def main() -> None:
                 print(f"N={n}: compile {venv.physics.compile_seconds:.1f} s")
     print(f"set-up (env builds, compilation, warm-up): {time.perf_counter() - t0:.0f} s")
 
-    conditions = ["quiet"] + ([] if args.no_load else ["1 busy process"])
+    conditions = ["as found"] + ([] if args.no_load else ["1 busy process"])
     table: dict[str, dict[str, float]] = {name: {} for name, _ in cases}
     for cond in conditions:
-        with busy_process(cond != "quiet"):
+        with busy_process(cond != "as found"):
             load = os.getloadavg()[0]
             for name, run in cases:
                 table[name][cond] = max(run() for _ in range(args.repeats))
@@ -169,7 +220,7 @@ def main() -> None:
 
     if not args.no_ppo:
         for cond in conditions:
-            with busy_process(cond != "quiet"):
+            with busy_process(cond != "as found"):
                 twin_v = gym.make_vec("TensegrityIco-v0", num_envs=args.ppo_envs, backend="identified",
                                       backend_kwargs=kw)
                 plant_v = gym.make_vec("TensegrityIco-v0", num_envs=8)

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from identified.effects.base import Effect, ParamBlock
+from identified.engine.smallmat import inverse3, inverse6, mm
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
 __all__ = ["GroundContact", "read_contact_geometry"]
@@ -167,7 +168,7 @@ class GroundContact(Effect):
         body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
         B = body.reshape(body.shape[:-3] + (6, 3))
         eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
-        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
+        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + mm(B, B.transpose(-1, -2))  # J M⁻¹ Jᵀ
         return {"depth": depth, "active": depth > 0, "lever": lever, "A": A, "dirs": dirs}
 
     def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
@@ -177,19 +178,21 @@ class GroundContact(Effect):
         alpha_w = matrix_apply(ctx.rot, ctx.base_ang_acc_body)
         acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2).expand_as(lever), lever)
         dirs = c["dirs"]  # (..., R, 2, 3, 3)
-        return (dirs @ vel.unsqueeze(-1)).squeeze(-1), (dirs @ acc.unsqueeze(-1)).squeeze(-1)
+        return (dirs * vel.unsqueeze(-2)).sum(-1), (dirs * acc.unsqueeze(-2)).sum(-1)
 
     @staticmethod
     def _inverse(A: torch.Tensor, active: torch.Tensor, eps: float | torch.Tensor) -> torch.Tensor:
         """``(A + ε diag A)⁻¹`` restricted to the active contacts of each rod (zero rows and columns
         elsewhere).  Two point contacts on one rod leave its spin about the line through them free:
         ``A`` is then singular, and the small regulariser ``ε`` (identified; as MuJoCo's own
-        ``R``) picks the least-force solution."""
+        ``R``) picks the least-force solution.  Inverted by 3x3 blocks
+        (:func:`identified.engine.smallmat.inverse6`: elementwise work that fuses in the twin's
+        compiled step, where a LAPACK call per step cost half the step)."""
         m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
         m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
         A = A + eps * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
         Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
-        return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
+        return inverse6(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
 
     def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
         """Reference accelerations per unit of each linear parameter, (..., R, 2, 7, 3) contact frame."""
@@ -209,7 +212,7 @@ class GroundContact(Effect):
     def _apply(Ainv: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """``A⁻¹ g`` per rod: g (..., R, 2, [K,] 3) in (end, direction) -> forces of the same shape."""
         if g.dim() == Ainv.dim():  # (..., R, 2, 3)
-            return (Ainv @ g.reshape(g.shape[:-2] + (6, 1))).reshape(g.shape)
+            return (Ainv * g.reshape(g.shape[:-2] + (1, 6))).sum(-1).reshape(g.shape)
         K = g.shape[-2]
         flat = g.transpose(-2, -3).reshape(g.shape[:-3] + (K, 6))  # (..., R, K, 6)
         return (flat @ Ainv.transpose(-1, -2)).reshape(g.shape[:-3] + (K, 2, 3)).transpose(-2, -3)
@@ -227,7 +230,7 @@ class GroundContact(Effect):
         and WORLD torque about its centre of mass, (..., R, 3) or (..., R, K, 3)."""
         lever = c["lever"]
         if local.dim() == lever.dim():
-            world = (local.unsqueeze(-2) @ c["dirs"]).squeeze(-2)
+            world = (local.unsqueeze(-1) * c["dirs"]).sum(-2)
         else:
             world = local @ c["dirs"]
         if local.dim() == lever.dim():
@@ -267,8 +270,56 @@ class GroundContact(Effect):
         return c, self._bound(raw, th[NL])
 
     def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        c, f = self.contact_forces(state, ctx)
-        return self._to_wrench(c, f)
+        """The law's force and WORLD torque on each rod, (..., R, 3): the same law as
+        :meth:`contact_forces` (then :meth:`_to_wrench`), which the fit uses, written for the
+        engine's step with no per-parameter columns: the reference accelerations contracted as
+        they are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves
+        by 3x3 blocks, elementwise work that fuses under ``torch.compile``
+        (tests/test_twin_speed.py checks the two forms agree)."""
+        # the cached parameter tensor, read without touching the numpy ``values`` (which a compiled
+        # step would guard by converting it on every call)
+        th = self._cache.get((state.pos.dtype, state.pos.device))
+        if th is None:
+            th = self.theta(state.pos)
+        radius, seg, n, t1, _, height = self._geom(state.pos)
+        rot = ctx.rot
+        lever = matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3): COM -> end-sphere centre
+        depth = radius.unsqueeze(-1) - (((state.pos.unsqueeze(-2) + lever) * n).sum(-1) - height)  # (..., R, 2)
+        axis = rot[..., :, 2]
+        along = axis - (axis * n).sum(-1, keepdim=True) * n
+        norm = along.norm(dim=-1, keepdim=True)
+        along = torch.where(norm > 1e-6, along / norm.clamp_min(1e-12), t1)
+        nn = n.expand_as(along)
+        dirs = torch.stack((nn, along, torch.linalg.cross(nn, along)), -2)  # (..., R, 3, 3): rows n, a, p
+        p = ctx.params
+        # B_e (3 directions x 3 body axes) = Rᵀ (ρ_e × u) / sqrt(I); blocks of J M⁻¹ Jᵀ: I/M + B_e B_fᵀ
+        rxu = torch.linalg.cross(lever.unsqueeze(-2), dirs.unsqueeze(-3))  # (..., R, 2, 3, 3)
+        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / p.inertia.sqrt().unsqueeze(-2).unsqueeze(-2)
+        b0, b1 = body.unbind(-3)
+        inv_m = (1.0 / p.mass).unsqueeze(-1).unsqueeze(-1)
+        eye = torch.eye(3, dtype=lever.dtype, device=lever.device)
+        eps = th[NL + 1]
+        P = inv_m * eye + mm(b0, b0.transpose(-1, -2))
+        Q = inv_m * eye + mm(b0, b1.transpose(-1, -2))
+        W = inv_m * eye + mm(b1, b1.transpose(-1, -2))
+        P = P + eps * P * eye  # the regulariser on the diagonal
+        W = W + eps * W * eye
+        # reference accelerations g = κ d n - β v - γ a0 per direction, from the contact point's
+        # velocity and its acceleration under every other force (ctx.base_*)
+        vel = state.vel.unsqueeze(-2) + torch.linalg.cross(state.angvel.unsqueeze(-2), lever)
+        alpha_w = matrix_apply(rot, ctx.base_ang_acc_body)
+        acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2), lever)
+        v = (dirs.unsqueeze(-3) * vel.unsqueeze(-2)).sum(-1)  # (..., R, 2, 3) along (n, a, p)
+        a0 = (dirs.unsqueeze(-3) * acc.unsqueeze(-2)).sum(-1)
+        g = -(th[1:NL:2] * v + th[2:NL:2] * a0)
+        g = torch.cat(((g[..., 0] + th[0] * depth).unsqueeze(-1), g[..., 1:]), -1)
+        active = depth > 0
+        raw = _masked_block_solve(P, Q, W, active, g)
+        # solved again with the pulling ends released (always: one graph)
+        raw = _masked_block_solve(P, Q, W, active & (raw[..., 0] > 0), g)
+        f = self._bound(raw, th[NL])
+        world = (f.unsqueeze(-1) * dirs.unsqueeze(-3)).sum(-2)  # (..., R, 2, 3)
+        return world.sum(-2), torch.linalg.cross(lever, world).sum(-2)
 
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
@@ -320,6 +371,29 @@ class GroundContact(Effect):
         self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan]])
         return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
                 "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(grid)} (no standard errors)"}
+
+
+def _masked_block_solve(P: torch.Tensor, Q: torch.Tensor, W: torch.Tensor, active: torch.Tensor,
+                        g: torch.Tensor) -> torch.Tensor:
+    """``x = A⁻¹ g`` restricted to the active ends (as :meth:`GroundContact._inverse` then
+    :meth:`GroundContact._apply`), for ``A = [[P, Q], [Qᵀ, W]]`` symmetric, by 3x3 blocks.
+
+    ``P``, ``Q``, ``W`` (..., R, 3, 3); ``active`` (..., R, 2) bool; ``g`` (..., R, 2, 3) ->
+    (..., R, 2, 3), zero at inactive ends.  An inactive end's rows and columns are replaced by the
+    identity's (its unknowns decouple and are zeroed)."""
+    m = active.to(g.dtype)
+    m0, m1 = m[..., 0, None, None], m[..., 1, None, None]
+    eye = torch.eye(3, dtype=g.dtype, device=g.device)
+    Pm = m0 * P + (1.0 - m0) * eye
+    Qm = (m0 * m1) * Q
+    Wm = m1 * W + (1.0 - m1) * eye
+    g0, g1 = (g * m.unsqueeze(-1)).unbind(-2)
+    Pi = inverse3(Pm)
+    X = mm(Pi, Qm)  # P⁻¹ Q; (Qᵀ P⁻¹) = Xᵀ, P symmetric
+    Si = inverse3(Wm - mm(Qm.transpose(-1, -2), X))
+    x1 = (Si * (g1 - (X * g0.unsqueeze(-1)).sum(-2)).unsqueeze(-2)).sum(-1)
+    x0 = (Pi * (g0 - (Qm * x1.unsqueeze(-2)).sum(-1)).unsqueeze(-2)).sum(-1)
+    return torch.stack((x0, x1), -2) * m.unsqueeze(-1)
 
 
 def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:

@@ -170,8 +170,8 @@ class IdentifiedBackend(Backend):
     ``springlength`` for actuated cables and ``model.rest_length`` for the other springs.
 
     The twin never steps MuJoCo. It draws through MuJoCo (the base class's hook,
-    :meth:`drawing_model`): the source MJCF with the twin's rod states put in. Note that the
-    drawing shows the MJCF's ground plane even while the twin has no ground contact.
+    :meth:`drawing_model`): the source MJCF with the twin's rod states put in. The drawing shows
+    the MJCF's ground plane whether or not the model has ``ground_contact`` (the shipped one has).
 
     Divergence: once a state is not finite the backend returns NaN states until :meth:`reset`.
     """

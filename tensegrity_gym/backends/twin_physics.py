@@ -256,9 +256,13 @@ class TwinPhysics:
                              ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
         """The first step with ``compile``: compile the substep (timed), check it runs, keep it;
         on any failure warn once and stay eager."""
+        # one eager substep first: effects fill their lazy caches (geometry, parameter tensors)
+        # eagerly, so the compiled substep reads them as constants and stays ONE graph (a cache
+        # filled inside the traced call is numpy work that breaks the graph)
+        self._eager_substep(*state, rest, rest_act, target, pf, pp)
         t0 = time.perf_counter()
         try:
-            fn = torch.compile(self._eager_substep, dynamic=False)
+            fn = torch.compile(self._eager_substep, dynamic=False, options=self._inductor_options())
             out = fn(*state, rest, rest_act, target, pf, pp)
         except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
             self._fall_back(exc)
@@ -269,6 +273,16 @@ class TwinPhysics:
         for _ in range(n - 1):
             pos, quat, vel, angvel, rest, rest_act = fn(pos, quat, vel, angvel, rest, rest_act, target, pf, pp)
         return RodState(pos, quat, vel, angvel), rest, rest_act
+
+    def _inductor_options(self) -> dict[str, Any]:
+        """Inductor settings for the substep. Batched on a CPU: scalar loops (``cpp.simdlen=1``).
+        Every tensor of the step ends in a dimension of 3 (a vector, a 3x3 block), and inductor
+        vectorises that innermost dimension: a 16-lane masked vector op for 3 numbers. Scalar
+        loops over the batch measured 1.4-1.5x faster at 256 and 1024 envs; the single env (6
+        rods) is faster with the default."""
+        if self.engine.device.type == "cpu" and self.batch is not None:
+            return {"cpp.simdlen": 1}
+        return {}
 
     # ------------------------------------------------------------------ read-out
     def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -151,13 +151,15 @@ class Effect(ABC):
         raise NotImplementedError
 
     def theta(self, like: torch.Tensor) -> torch.Tensor:
-        """The fitted values as a tensor in ``like``'s dtype and device (cached)."""
-        if self.values is None:
-            raise ValueError(f"effect '{self.name}' has no fitted values")
+        """The fitted values as a tensor in ``like``'s dtype and device (cached; the cache is read
+        first, so a compiled step never touches the numpy ``values``)."""
         key = ("theta", like.dtype, like.device)
-        if key not in self._cache:
-            self._cache[key] = torch.as_tensor(self.values, dtype=like.dtype, device=like.device)
-        return self._cache[key]
+        th = self._cache.get(key)
+        if th is None:
+            if self.values is None:
+                raise ValueError(f"effect '{self.name}' has no fitted values")
+            th = self._cache[key] = torch.as_tensor(self.values, dtype=like.dtype, device=like.device)
+        return th
 
     def bind(self, theta: torch.Tensor | None) -> None:
         """Let the engine use ``theta`` (P,) -- e.g. a tensor being optimised, gradients flow --

@@ -276,11 +276,7 @@ class GroundContact(Effect):
         they are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves
         by 3x3 blocks, elementwise work that fuses under ``torch.compile``
         (tests/test_twin_speed.py checks the two forms agree)."""
-        # the cached parameter tensor, read without touching the numpy ``values`` (which a compiled
-        # step would guard by converting it on every call)
-        th = self._cache.get((state.pos.dtype, state.pos.device))
-        if th is None:
-            th = self.theta(state.pos)
+        th = self.theta(state.pos)  # the cached tensor: a compiled step never converts ``values``
         radius, seg, n, t1, _, height = self._geom(state.pos)
         rot = ctx.rot
         lever = matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3): COM -> end-sphere centre

@@ -40,7 +40,11 @@ __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "selec
 
 SOLVERS = ("lstsq", "adam")
 #: fits of an iterative effect's classification (cable friction): it settles in 2-4 on clean data
-MAX_CLASSIFICATION_PASSES = 10
+MAX_CLASSIFICATION_PASSES = 8
+#: passes on all the data once the search on a part has settled a classification (measured: 1-2)
+MAX_FULL_PASSES = 3
+#: steps of the part of the data the first classification is searched on
+SEARCH_STEPS = 4000
 
 
 @dataclass(frozen=True)
@@ -277,9 +281,11 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
                 break
         return n, res
 
-    if all(e.values is None for e in iterative):  # search the initial classification
-        part = dataset.select(episodes=slice(0, max(1, min(dataset.n_episodes, 4000 // dataset.n_steps))),
-                              steps=min(dataset.n_steps, 4000))
+    searched = all(e.values is None for e in iterative)
+    if searched:  # search the initial classification
+        n = SEARCH_STEPS
+        part = dataset.select(episodes=slice(0, max(1, min(dataset.n_episodes, n // dataset.n_steps))),
+                              steps=min(dataset.n_steps, n))
         best: tuple[float, list | None] = (np.inf, None)
         for start in _product([e.starts(dataset, topology) for e in iterative]):
             for e, opt in zip(iterative, start):
@@ -292,7 +298,13 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         for e, v in zip(iterative, best[1] or [None] * len(iterative)):
             e.values = v
             e.release()
-    passes, _ = passes_from_here(dataset, MAX_CLASSIFICATION_PASSES)
+    if searched:
+        for e in iterative:
+            e.prepare(part, topology)
+    if searched and all(e.inert() for e in iterative):
+        passes = 0  # the search found nothing to classify (no cable ever sticks): one final fit
+    else:
+        passes, _ = passes_from_here(dataset, MAX_FULL_PASSES if searched else MAX_CLASSIFICATION_PASSES)
     model = fit_holding(dataset, residual_stage=True, bar=progress)
     if model is None:  # let the regression say what it cannot identify
         model = fit_once(dataset, True, progress)

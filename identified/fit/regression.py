@@ -135,7 +135,9 @@ def accumulate(
                 x = An[part, i, k][:, local[b]]
                 # Householder: a block is (nearly) rank-deficient by one on clean data -- its rows
                 # are satisfied exactly by the true parameters -- so Gram/Cholesky shortcuts fail here
-                Rg.append(_square(np.linalg.qr(x, mode="r"), len(local[b])))
+                # a run shorter than the block's columns keeps its rows' factor unpadded: many
+                # one-step runs (randomly drawn steps) would otherwise hold a full square each
+                Rg.append(np.linalg.qr(x, mode="r"))
                 rows[b] += x.shape[0]
                 if D:
                     dx = [d[part, i, k][:, local[b]] for d in D]

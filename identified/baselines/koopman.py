@@ -73,6 +73,7 @@ class KoopmanInt:
         self.validation_: dict[float, list[float]] = {}
         self.validation_mse_: list[float] | None = None
         self.fit_seconds_: float | None = None
+        self.chunk: int | None = None  # pairs per streamed block (None: ~20M basis numbers)
 
     # ------------------------------------------------------------------ basis
     def scalars(self, state: RodState, rest: torch.Tensor) -> torch.Tensor:
@@ -134,7 +135,7 @@ class KoopmanInt:
             tri[g] = scipy.linalg.qr(stack, mode="r", check_finite=False, overwrite_a=True)[0][: F + 6]
             buf[g], nbuf[g] = [], 0
 
-        for phi, y in self._pairs(train):
+        for phi, y in self._pairs(train, self.chunk):
             rows = torch.cat([phi, y], dim=-1).numpy()  # (N, R, F + 6)
             del phi, y
             for g in range(groups):
@@ -159,7 +160,7 @@ class KoopmanInt:
         err = {lam: np.zeros(6) for lam in RIDGES}
         count = 0
         with np.errstate(over="ignore", invalid="ignore"):
-            for phi, y in self._pairs(val):
+            for phi, y in self._pairs(val, self.chunk):
                 for lam, coef in coefs.items():
                     pred = self._apply(coef, phi)
                     err[lam] += ((pred - y) ** 2).reshape(-1, 6).sum(0).numpy()

@@ -162,7 +162,7 @@ def neural_budget(quick: bool, seed: int) -> Budget:
     if quick:
         return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=20, patience=10, batch=256,
                       max_seconds_per_lr=float("inf"), seed=seed)
-    return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=12, patience=5, batch=4096,
+    return Budget(lrs=(3e-3, 1e-3, 3e-4), max_epochs=10, patience=5, batch=4096,
                   max_seconds_per_lr=float("inf"), seed=seed)
 
 
@@ -171,13 +171,13 @@ def lr_selection(quick: bool) -> dict[str, int] | None:
     ``val`` validation trajectories, every rate of the grid up to ``max_epochs`` epochs with
     early stopping), then one run at that rate trains on all the data.  Training every rate on
     all 2M pairs would triple the cost.  With batch 4096 the whole budget (grid on the subset, then
-    at most 12 epochs of 2M pairs) is at most 15 epochs of the full data per network, measured
+    at most 10 epochs of 2M pairs) is at most 12.4 epochs of the full data per network, measured
     ~10 s (MLP) and ~25 s (interaction network) per epoch on one loaded core: the four networks
     in well under an hour.  ``None``: the grid
     runs on all the data (``--quick``)."""
     if quick:
         return None
-    return {"train": 100, "val": 20, "max_epochs": 10, "patience": 5}
+    return {"train": 100, "val": 20, "max_epochs": 8, "patience": 5}
 
 
 def _head(p, n: int):

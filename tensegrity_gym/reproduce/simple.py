@@ -246,6 +246,9 @@ def simple_physics(ctx: Context) -> Result:
                                        "train_pairs": sel["train"] * sz["steps"], "val_pairs": sel["val"] * sz["steps"]}
                 row["val_curve"] = curve
             rows.append(row)
+            ctx.log(f"  row: {name}: pos mean {row['pos_mean']:.4g} final {row['pos_final']:.4g}, quat mean "
+                    f"{row['quat_mean']:.4g} final {row['quat_final']:.4g}, lr {tr.lr:g}, best epoch {tr.epochs}, "
+                    f"{row['stopped_by']}, {tr.seconds:.0f} s")
             curves[name] = errs["per_step"]
         ctx.log("simple-physics: Koopman+Int")
         t0 = time.perf_counter()

@@ -24,7 +24,7 @@ def markdown(rows: list[dict]) -> str:
     """Rows as a Markdown table (``X ± X_std`` merged; numbers to 4 significant digits)."""
     cols = list(dict.fromkeys(k for r in rows for k in r))
     cols = [c for c in cols if not (c.endswith("_std") and c[:-4] in cols) and c != "note"
-            and not any(isinstance(r.get(c), dict) for r in rows)]
+            and not any(isinstance(r.get(c), (dict, list)) for r in rows)]
 
     def fmt(v):
         if v is None:

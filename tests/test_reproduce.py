@@ -13,6 +13,7 @@ import torch
 from identified.baselines import (
     CMAES,
     LBFGSB,
+    MLP,
     Budget,
     ClosedForm,
     InteractionInt,
@@ -110,6 +111,50 @@ def test_koopman_recovers_the_linear_acceleration_exactly(simple):
             err = ((k._apply(k.coef_, phi) - y)[..., :3] ** 2).mean() / (y[..., :3] ** 2).mean()
             assert float(err) < tol
     assert max(k.validation_mse_[3:]) > 1e-6  # α is not: the basis has no gyroscopic term
+
+
+def test_koopman_streamed_fit_does_not_depend_on_the_block_size(simple):
+    """Paper scale streams the rows through the QR and the validation pass in blocks: the ridges
+    and coefficients must be those of one block."""
+    _, topo, tr, va = simple
+    whole = KoopmanInt(topo, tr.dt, degree=2, aggregate=True)
+    whole.chunk = 10 ** 7
+    whole.fit(tr, va)
+    streamed = KoopmanInt(topo, tr.dt, degree=2, aggregate=True)
+    streamed.chunk = 300  # several blocks per trajectory
+    streamed.fit(tr, va)
+    assert streamed.ridge_ == whole.ridge_
+    for phi, _ in whole._pairs(va):  # the same predictions (the basis is rank deficient: the
+        a, b = streamed._apply(streamed.coef_, phi), whole._apply(whole.coef_, phi)  # coefficients may not be)
+        assert float((a - b).norm() / b.norm()) < 1e-6
+    for lam, mse in whole.validation_.items():
+        assert np.allclose(streamed.validation_[lam], mse, rtol=1e-4, atol=1e-10)  # rounding-level a errors
+
+
+def test_paper_scale_neural_budget_picks_the_rate_on_a_subset(simple, monkeypatch):
+    """Paper scale: the grid on the first trajectories, then one run at the chosen rate on all."""
+    from tensegrity_gym.reproduce import simple as sim
+    from tensegrity_gym.reproduce.common import Context
+
+    assert sim.lr_selection(True) is None and sim.lr_selection(False)["train"] < sim.physics_sizes(False)["train"]
+    _, topo, tr, va = simple
+    P, V = make_pairs(tr), make_pairs(va)
+    assert len(sim._head(P, tr.n_steps)) == tr.n_steps
+    ctx = Context(quick=False, seed=0, out=None, workdir=".", progress=False)
+    sel = {"train": 1, "val": 1, "max_epochs": 2, "patience": 1}
+    res, chosen, curve = sim._train_neural(ctx, "MLP", lambda: MLP(topo, tr.dt), P, V,
+                                           Budget(lrs=(3e-3, 3e-4), max_epochs=2, patience=1, batch=256), sel,
+                                           tr.n_steps)
+    assert res.lr == chosen.lr and set(chosen.per_lr) == {3e-3, 3e-4} and list(res.per_lr) == [chosen.lr]
+    assert len(curve) == res.per_lr[res.lr]["epochs"] and res.seconds >= chosen.seconds
+
+
+def test_bound_heap_applies_on_glibc():
+    import sys
+
+    from tensegrity_gym.reproduce.common import bound_heap
+
+    assert bound_heap() is sys.platform.startswith("linux")
 
 
 def test_closed_form_solver_recovers_the_ratios(simple):

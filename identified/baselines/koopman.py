@@ -73,6 +73,7 @@ class KoopmanInt:
         self.validation_: dict[float, list[float]] = {}
         self.validation_mse_: list[float] | None = None
         self.fit_seconds_: float | None = None
+        self.chunk: int | None = None  # pairs per streamed block (None: ~20M basis numbers)
 
     # ------------------------------------------------------------------ basis
     def scalars(self, state: RodState, rest: torch.Tensor) -> torch.Tensor:
@@ -93,9 +94,12 @@ class KoopmanInt:
         return torch.cat([torch.ones_like(z[..., :1]), z, prod], dim=-1)
 
     # ------------------------------------------------------------------ data
-    def _pairs(self, data: Dataset, chunk: int = 20000):
-        """Yield (Φ (N, R, F), targets (N, R, 6)) over the data's (S_t, S_{t+1}) pairs."""
+    def _pairs(self, data: Dataset, chunk: int | None = None):
+        """Yield (Φ (N, R, F), targets (N, R, 6)) over the data's (S_t, S_{t+1}) pairs, in chunks of
+        about ``chunk`` pairs (default: a basis block of ~20M numbers, 160 MB, whatever F is)."""
         t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=self.dtype)
+        if chunk is None:
+            chunk = max(256, int(2e7 // (self.topology.n_rods * self.n_features)))
         per = max(1, chunk // max(data.n_steps, 1))
         for e0 in range(0, data.n_episodes, per):
             sl = slice(e0, e0 + per)
@@ -119,31 +123,57 @@ class KoopmanInt:
         groups = 1 if self.aggregate else R
         tri: list[np.ndarray | None] = [None] * groups
         sq = np.zeros((groups, F))
-        for phi, y in self._pairs(train):
+        # rows are buffered per group and folded into the triangular factor once a block of
+        # `fold` rows has gathered: memory stays O(fold x F) whatever the data size, and each QR
+        # is tall enough (20x its width at least) that carrying the (F + 6)-row factor along costs
+        # little (per rod at 1378 features: 6 buffers of 27,700 rows, 1.8 GB)
+        fold = max(20 * (F + 6), int(6e7 // ((F + 6) * groups)))
+        buf: list[list[np.ndarray]] = [[] for _ in range(groups)]
+        nbuf = [0] * groups
+
+        def reduce(g: int) -> None:
+            stack = np.vstack(([tri[g]] if tri[g] is not None else []) + buf[g])
+            tri[g] = scipy.linalg.qr(stack, mode="r", check_finite=False, overwrite_a=True)[0][: F + 6]
+            buf[g], nbuf[g] = [], 0
+
+        for phi, y in self._pairs(train, self.chunk):
             rows = torch.cat([phi, y], dim=-1).numpy()  # (N, R, F + 6)
+            del phi, y
             for g in range(groups):
-                m = rows.reshape(-1, F + 6) if self.aggregate else rows[:, g]
+                m = rows.reshape(-1, F + 6) if self.aggregate else np.ascontiguousarray(rows[:, g])
                 sq[g] += np.sum(m[:, :F] ** 2, axis=0)
-                stack = m if tri[g] is None else np.vstack([tri[g], m])
-                tri[g] = scipy.linalg.qr(stack, mode="r", check_finite=False)[0][: F + 6]
-        val_rows = list(self._pairs(val))
+                buf[g].append(m)
+                nbuf[g] += m.shape[0]
+                if nbuf[g] >= fold:
+                    reduce(g)
+            del rows
+        for g in range(groups):
+            if buf[g]:
+                reduce(g)
         # each of the six outputs is its own regression: its ridge is chosen on its own
-        # validation error (one shared ridge would let a badly extrapolating α spoil an exact a)
+        # validation error (one shared ridge would let a badly extrapolating α spoil an exact a);
+        # one streamed pass over the validation data scores every ridge
+        svds = [self._svd(tri[g], np.sqrt(sq[g]), F) for g in range(groups)]
+        coefs = {}
+        for lam in RIDGES:
+            coef = np.stack([self._coef(svd, lam) for svd in svds])
+            coefs[lam] = torch.as_tensor(coef[0] if self.aggregate else coef)
+        err = {lam: np.zeros(6) for lam in RIDGES}
+        count = 0
+        with np.errstate(over="ignore", invalid="ignore"):
+            for phi, y in self._pairs(val, self.chunk):
+                for lam, coef in coefs.items():
+                    pred = self._apply(coef, phi)
+                    err[lam] += ((pred - y) ** 2).reshape(-1, 6).sum(0).numpy()
+                count += y.numel() // 6
         best_err = np.full(6, np.inf)
         best_lam = np.zeros(6)
         coef_best = None
-        svds = [self._svd(tri[g], np.sqrt(sq[g]), F) for g in range(groups)]
         for lam in RIDGES:
-            coef = np.stack([self._coef(svd, lam) for svd in svds])
-            coef = coef[0] if self.aggregate else coef
-            err, count = np.zeros(6), 0
-            for phi, y in val_rows:
-                pred = self._apply(torch.as_tensor(coef), phi)
-                err += ((pred - y) ** 2).reshape(-1, 6).sum(0).numpy()
-                count += y.numel() // 6
-            mse = np.where(np.isfinite(err), err / max(count, 1), np.inf)
+            mse = np.where(np.isfinite(err[lam]), err[lam] / max(count, 1), np.inf)
             self.validation_[lam] = mse.tolist()
             better = mse < best_err
+            coef = coefs[lam].numpy()
             if coef_best is None:
                 coef_best = coef.copy()
             coef_best[..., better] = coef[..., better]

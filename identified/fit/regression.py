@@ -139,7 +139,10 @@ def accumulate(
                 x = An[part, i, k][:, local[b]]
                 # Householder: a block is (nearly) rank-deficient by one on clean data -- its rows
                 # are satisfied exactly by the true parameters -- so Gram/Cholesky shortcuts fail here
-                Rg.append(_square(np.linalg.qr(x, mode="r"), len(local[b])))
+                # a run with no more rows than the block's columns keeps its rows as they are (the
+                # same RᵀR as their factor, no QR, no padding): many one-step runs (randomly drawn
+                # steps) would otherwise cost a QR and hold a full square each
+                Rg.append(x if x.shape[0] <= x.shape[1] else np.linalg.qr(x, mode="r"))
                 rows[b] += x.shape[0]
                 if D:
                     dx = [d[part, i, k][:, local[b]] for d in D]

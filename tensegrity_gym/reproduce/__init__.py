@@ -14,7 +14,7 @@ import os
 import time
 from collections.abc import Callable
 
-from tensegrity_gym.reproduce.common import Context, Result, format_table, scratch, write_json
+from tensegrity_gym.reproduce.common import Context, Result, bound_heap, format_table, scratch, write_json
 
 __all__ = ["EXPERIMENTS", "Result", "run"]
 
@@ -57,6 +57,8 @@ def run(name: str, quick: bool = False, seed: int = 0, out: str | None = None, j
         raise ValueError(f"--seed must be >= 0, got {seed}")
     if out:
         os.makedirs(out, exist_ok=True)
+    if not quick:
+        bound_heap()  # paper scale: keep the resident memory near the data's size
     with scratch() as work:
         ctx = Context(quick=quick, seed=seed, out=out, workdir=work, progress=progress)
         t0 = time.perf_counter()

@@ -26,7 +26,7 @@ from identified.dataset import Dataset, atomic_write
 from identified.jsonsafe import json_safe
 from identified.topology import Topology
 
-__all__ = ["Context", "Result", "format_table", "generate", "single_thread", "to_jsonable", "write_json"]
+__all__ = ["Context", "Result", "bound_heap", "format_table", "generate", "single_thread", "to_jsonable", "write_json"]
 
 
 @dataclass
@@ -108,6 +108,27 @@ def _check_motion(data: Dataset, split: str) -> None:
         raise DatasetError(f"the {split} data hold no motion: choose another --seed")
 
 
+def bound_heap(threshold: int = 1 << 20) -> bool:
+    """Stop glibc from keeping freed memory: a fixed mmap threshold (1 MB).
+
+    By default glibc raises its mmap threshold (up to 32 MB) each time a large block is freed,
+    so the fit's many chunk-sized temporaries end up on the heap, which fragments and is never
+    given back: at paper scale (2M steps) that kept ~11 GB resident for data of 2.3 GB.  With
+    the threshold fixed, blocks over 1 MB are mapped and unmapped, and the resident memory stays
+    near the data's size (measured: 200k steps of the icosahedron, fit peak +1.15 GB -> +0.13 GB).
+    Returns whether it was applied (glibc only)."""
+    import ctypes
+    import ctypes.util
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(-3, int(threshold)))  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        return False
+
+
 # one definition of "JSON that is always valid" (NaN and infinities as null)
 to_jsonable = json_safe
 
@@ -138,7 +159,7 @@ def format_table(rows: list[dict[str, Any]], columns: list[str] | None = None) -
         return "(no rows)"
     cols = columns or list(dict.fromkeys(k for r in rows for k in r))
     cols = [c for c in cols if not (c.endswith("_std") and c[:-4] in cols)
-            and not any(isinstance(r.get(c), dict) for r in rows)]  # details (per-lr logs) stay in the JSON
+            and not any(isinstance(r.get(c), (dict, list)) for r in rows)]  # details (per-lr logs) stay in the JSON
     cells = [[c for c in cols]]
     for r in rows:
         line = []

@@ -65,6 +65,7 @@ __all__ = [
     "TrainResult",
     "checkpoint_path",
     "load_policy",
+    "snapshot_path",
     "plant_mjcf",
     "torch_threads",
     "train",
@@ -74,11 +75,11 @@ ENV_ID = "TensegrityIco-v0"
 POLICY_FORMAT = "tensegrity-policy/1"
 POLICY_ENTRY = "tensegrity.json"
 ALGORITHMS = ("ppo", "sac")
-#: Transitions collected per PPO update (SB3's default 2048 steps x 8 envs), whatever ``envs`` is.
-DEFAULT_ROLLOUT = 16_384
+#: Transitions collected per PPO update (64 steps x 64 twins, 512 x 8 plants), whatever ``envs`` is.
+DEFAULT_ROLLOUT = 4096
 DEFAULT_ENVS = {("ppo", False): 64, ("ppo", True): 8, ("sac", False): 8, ("sac", True): 4}
 PPO_HYPERPARAMETERS: dict[str, Any] = {
-    "learning_rate": 3e-4, "batch_size": 64, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
+    "learning_rate": 3e-4, "batch_size": 128, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
     "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
 }
 SAC_HYPERPARAMETERS: dict[str, Any] = {
@@ -117,6 +118,9 @@ class TrainConfig:
         env_kwargs: keyword arguments of the env (``frame_skip``, reward weights, ...).
         hyperparameters: overrides of :data:`PPO_HYPERPARAMETERS` / :data:`SAC_HYPERPARAMETERS`.
         backend_kwargs: keyword arguments of the twin's backend (``dtype``, ``effects``, ``mjcf``).
+        snapshots: also keep the policy after every update as :func:`snapshot_path` ``(out, N)``
+            (``P.step<N>.zip``, N the steps trained so far): learning curves, e.g. the plant steps
+            direct training needs to reach a given progress (benchmarks/bench_train.py).
     """
 
     timesteps: int
@@ -132,6 +136,7 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     backend_kwargs: dict[str, Any] = field(default_factory=dict)
+    snapshots: bool = False
 
     def validate(self) -> None:
         """ValueError with one line for every setting out of range."""
@@ -201,6 +206,11 @@ def plant_mjcf(identified: str | None) -> str:
 def checkpoint_path(out: str) -> str:
     """Where training keeps its last complete checkpoint of the policy ``out`` (``P.ckpt.zip``)."""
     return out.removesuffix(".zip") + ".ckpt.zip"
+
+
+def snapshot_path(out: str, steps: int) -> str:
+    """Where ``snapshots=True`` keeps the policy ``out`` after ``steps`` steps (``P.step<N>.zip``)."""
+    return f"{out.removesuffix('.zip')}.step{int(steps)}.zip"
 
 
 def _algo_class(algo: str) -> type:
@@ -374,6 +384,8 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             # after an update: the policy is complete, keep it (atomically) in case of an interrupt
             if self.num_timesteps > 0 and self.num_timesteps != self.last_checkpoint:
                 _write_policy(checkpoint_path(out), self.model, meta())
+                if cfg.snapshots:
+                    _write_policy(snapshot_path(out, self.num_timesteps), self.model, meta())
                 self.last_checkpoint = self.num_timesteps
             if self.progress:
                 self.logger.record("rollout/progress_m", float(np.mean(self.progress)))

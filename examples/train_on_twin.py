@@ -105,15 +105,15 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=10, help="evaluation episodes on each")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true",
-                    help="small budget: 20,480 training steps in updates of 4,096, 4 x 3000 collection steps, "
+                    help="small budget: 20,480 training steps (5 updates of 4,096), 4 x 3000 collection steps, "
                     "3 evaluation episodes")
     ap.add_argument("--wrong-twin", action="store_true",
                     help="also train on twins with parameters 30 %% off: without effects (no ground) and with the "
                     "identified ground contact")
     args = ap.parse_args()
     rollout = DEFAULT_ROLLOUT
-    if args.quick:  # five smaller updates instead of one full-size one (a demo, not a result)
-        args.timesteps, args.collect_episodes, args.episodes, rollout = 20_480, 4, 3, 4096
+    if args.quick:  # five updates (a demo, not a result)
+        args.timesteps, args.collect_episodes, args.episodes = 20_480, 4, 3
     os.makedirs(args.out, exist_ok=True)
     path = lambda name: os.path.join(args.out, name)
     t_start = time.perf_counter()

@@ -15,8 +15,9 @@ One run, one machine, the same algorithm with the same settings (``tensegrity tr
    policy evaluated on the plant from the same reset seeds: the plant-trained policy's progress
    versus the plant steps it was trained on.
 
-It prints the wall clock and CPU time (this process and its children: the plant's workers) of
-each training and their ratio, the learning curve of direct training on the plant, the first
+It prints the wall clock and CPU time (this process and the plant's SubprocVecEnv workers) of
+each training and their ratio (on a machine shared with other jobs the plant's 8 worker processes
+take a larger share of the cores than the twin's one process: read the CPU time there), the learning curve of direct training on the plant, the first
 plant step count at which that curve reaches the twin policy's plant progress (and ``--target``),
 and the plant data the twin pipeline used: the collection of ``scripts/make_shipped_model.sh``
 (10 episodes x 3000 physics steps of 1 ms = 30 s of robot time = 1,500 control steps), against
@@ -43,10 +44,38 @@ sys.path.insert(0, ROOT)
 COLLECTION = {"episodes": 10, "physics_steps": 3000, "physics_dt_s": 0.001}
 
 
+#: CPU seconds of SubprocVecEnv workers, read just before they close: SB3 starts them through a
+#: forkserver, so they are not this process's children and RUSAGE_CHILDREN misses them.
+WORKER_CPU = [0.0]
+
+
+def _proc_cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
+def count_worker_cpu() -> None:
+    """Make SubprocVecEnv.close add its workers' CPU time to :data:`WORKER_CPU` (Linux /proc)."""
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    close = SubprocVecEnv.close
+
+    def counted(self) -> None:
+        for proc in getattr(self, "processes", []):
+            try:
+                WORKER_CPU[0] += _proc_cpu_s(proc.pid)
+            except (OSError, ValueError, IndexError):
+                pass
+        close(self)
+
+    SubprocVecEnv.close = counted  # type: ignore[method-assign]
+
+
 def cpu_s() -> float:
-    """CPU seconds of this process and its (finished) children."""
+    """CPU seconds of this process, its finished children and the SubprocVecEnv workers."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime + WORKER_CPU[0]
 
 
 def plant_progress(policy: str, identified: str, episodes: int) -> float:
@@ -72,7 +101,11 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=8,
                     help="snapshots of the plant run evaluated (evenly spaced; plus the final policy)")
     ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
+    ap.add_argument("--no-curve", action="store_true",
+                    help="wall clock and CPU only: no evaluation, no learning curve of the plant run")
     args = ap.parse_args()
+    if sys.platform.startswith("linux"):
+        count_worker_cpu()
 
     import tensegrity_gym  # noqa: F401
     from tensegrity_gym.gap import measure_gap
@@ -84,7 +117,7 @@ def main() -> None:
     for where in ("twin", "plant"):
         out = os.path.join(args.out, f"{where}.zip")
         cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified,
-                          plant=where == "plant", snapshots=where == "plant")
+                          plant=where == "plant", snapshots=where == "plant" and not args.no_curve)
         c0, t0 = cpu_s(), time.perf_counter()
         r = train(cfg, out, progress=False)
         wall, cpu = time.perf_counter() - t0, cpu_s() - c0
@@ -96,6 +129,10 @@ def main() -> None:
     ratio = rows["plant"]["wall_s"] / rows["twin"]["wall_s"]
     print(f"twin {ratio:.2f}x faster than the plant (wall clock), "
           f"{rows['plant']['cpu_s'] / rows['twin']['cpu_s']:.2f}x in CPU time")
+    if args.no_curve:
+        with open(os.path.join(args.out, "bench_train.json"), "w") as fh:
+            json.dump({"rows": rows, "twin_over_plant_speed": ratio}, fh, indent=1)
+        return
 
     gap = measure_gap(rows["twin"]["policy"], args.identified, args.episodes, seed=0, progress=False)
     twin_on_plant = gap["plant"]["progress_m"]

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_train.py [--identified identified/data/robot.json] [--timesteps 100000]
                                      [--seed 0] [--episodes 10] [--target 0.5] [--points 8]
-                                     [--out runs/bench_train]
+                                     [--threads 1] [--no-curve] [--out runs/bench_train]
 
 One run, one machine, the same algorithm with the same settings (``tensegrity train``'s PPO,
 :data:`tensegrity_gym.training.PPO_HYPERPARAMETERS`, one torch thread), one after the other:
@@ -101,6 +101,7 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=8,
                     help="snapshots of the plant run evaluated (evenly spaced; plus the final policy)")
     ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of both trainings (default 1)")
     ap.add_argument("--no-curve", action="store_true",
                     help="wall clock and CPU only: no evaluation, no learning curve of the plant run")
     args = ap.parse_args()
@@ -112,12 +113,14 @@ def main() -> None:
     from tensegrity_gym.training import TrainConfig, snapshot_path, train
 
     os.makedirs(args.out, exist_ok=True)
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
+          f"{args.threads} torch thread(s)")
     rows = {}
     for where in ("twin", "plant"):
         out = os.path.join(args.out, f"{where}.zip")
         cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified,
-                          plant=where == "plant", snapshots=where == "plant" and not args.no_curve)
+                          plant=where == "plant", snapshots=where == "plant" and not args.no_curve,
+                          threads=args.threads)
         c0, t0 = cpu_s(), time.perf_counter()
         r = train(cfg, out, progress=False)
         wall, cpu = time.perf_counter() - t0, cpu_s() - c0

@@ -69,8 +69,8 @@ __all__ = [
     "TrainResult",
     "checkpoint_path",
     "load_policy",
-    "snapshot_path",
     "plant_mjcf",
+    "snapshot_path",
     "torch_threads",
     "train",
 ]

@@ -402,9 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
     t.add_argument("--envs", type=int, default=None, metavar="K",
                    help="envs stepped in parallel (default: ppo 64 on the twin, 8 on the plant; sac 8 / 4)")
-    t.add_argument("--rollout", type=int, default=16_384, metavar="N",
-                   help="ppo: transitions per update over all envs (default 16384 = 2048 x 8; a shorter run "
-                   "makes one rollout of its length)")
+    t.add_argument("--rollout", type=int, default=4096, metavar="N",
+                   help="ppo: transitions per update over all envs (default 4096 = 64 x 64 twins or 512 x 8 "
+                   "plants; a shorter run makes one rollout of its length)")
     t.add_argument("--episode-steps", type=int, default=1000, metavar="T",
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")

@@ -114,8 +114,9 @@ def main() -> int:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--only", default=None, help="comma-separated hidden kinds to run (e.g. frictionloss,clean)")
     p.add_argument("--speed", action="store_true", help="only the robot's fit --effects auto and diagnose times")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = p.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
     if args.speed:
         with tempfile.TemporaryDirectory() as d:
             speed(Path(d))

@@ -51,8 +51,12 @@ def floating():
 def _episode(model, xml, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray, ...]:
     """N twins from perturbed nominal poses under random cable targets (new ones every 0.5 s):
     the (STEPS, N, R, ·) positions, rod axes, velocities and rest lengths, float64."""
-    b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False)
-    engine = SpringRodEngine.from_model(model, dtype=dtype)
+    return _run(IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False), dtype, compile)
+
+
+def _run(b: IdentifiedBackend, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray, ...]:
+    """The episode of :func:`_episode` on ``b``'s model and motors, in ``dtype``."""
+    engine = SpringRodEngine.from_model(b.model, dtype=dtype)
     ph = TwinPhysics(engine, b.motor, b.actuated_index, batch=N, compile=compile)
     rng = np.random.default_rng(0)
     starts = [perturb_start(b.nominal_states(), rng, 0.05) for _ in range(N)]
@@ -198,22 +202,7 @@ def contact_backend():
 def _contact_episode(b: IdentifiedBackend, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray, ...]:
     """As :func:`_episode`, on the shipped model: the robot falls onto, stands and rolls on the
     ground (its end caps touch down and lift off), 2 s of random cable commands."""
-    engine = SpringRodEngine.from_model(b.model, dtype=dtype)
-    ph = TwinPhysics(engine, b.motor, b.actuated_index, batch=N, compile=compile)
-    rng = np.random.default_rng(0)
-    starts = [perturb_start(b.nominal_states(), rng, 0.05) for _ in range(N)]
-    ph.reset(*(np.stack([getattr(s, f) for s in starts]) for f in ("pos", "quat", "vel", "angvel")),
-             np.tile(b.nominal_rest_lengths(), (N, 1)))
-    out = []
-    for k in range(STEPS):
-        if k % 25 == 0:
-            targets = action_to_rest(rng.uniform(-1, 1, (N, b.motor.n)), b.motor.rest_min, b.motor.rest_max)
-        ph.set_targets(targets)
-        ph.step(SUBSTEPS)
-        pos, quat, vel, _ = ph.states_numpy()
-        out.append((pos, quat_to_matrix(quat)[..., 2], vel, ph.rest_numpy()))
-    assert not ph.diverged.any()
-    return tuple(np.stack(x) for x in zip(*out))
+    return _run(b, dtype, compile)
 
 
 @pytest.mark.parametrize("compile", [False, pytest.param(True, marks=pytest.mark.skipif(

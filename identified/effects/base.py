@@ -161,6 +161,14 @@ class Effect(ABC):
             th = self._cache[key] = torch.as_tensor(self.values, dtype=like.dtype, device=like.device)
         return th
 
+    def pinned(self) -> np.ndarray:
+        """(P,) bool: parameters the fit holds at :meth:`pinned_values` (none by default)."""
+        return np.zeros(self.n_params, dtype=bool)
+
+    def pinned_values(self) -> np.ndarray:
+        """(P,) the values of the held parameters (0 by default)."""
+        return np.zeros(self.n_params)
+
     def bind(self, theta: torch.Tensor | None) -> None:
         """Let the engine use ``theta`` (P,) -- e.g. a tensor being optimised, gradients flow --
         instead of :attr:`values`; ``None`` goes back to the values."""

@@ -9,6 +9,7 @@ rollouts (:mod:`identified.fit.refine`), and returns an :class:`~identified.mode
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -184,10 +185,8 @@ def identify(
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     for k, e in enumerate(joint):
-        pinned = getattr(e, "pinned", None)
-        if pinned is not None:
-            held = getattr(e, "pinned_values", lambda: np.zeros(e.n_params))()
-            fixed.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(pinned())})
+        held = e.pinned_values()
+        fixed.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(e.pinned())})
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -282,12 +281,13 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         return n, res
 
     searched = all(e.values is None for e in iterative)
+    inert = False
     if searched:  # search the initial classification
         n = SEARCH_STEPS
         part = dataset.select(episodes=slice(0, max(1, min(dataset.n_episodes, n // dataset.n_steps))),
                               steps=min(dataset.n_steps, n))
         best: tuple[float, list | None] = (np.inf, None)
-        for start in _product([e.starts(dataset, topology) for e in iterative]):
+        for start in itertools.product(*[e.starts(dataset, topology) for e in iterative]):
             for e, opt in zip(iterative, start):
                 e.options.update(opt)
                 e.values = None
@@ -298,24 +298,17 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         for e, v in zip(iterative, best[1] or [None] * len(iterative)):
             e.values = v
             e.release()
-    if searched:
-        for e in iterative:
             e.prepare(part, topology)
-    if searched and all(e.inert() for e in iterative):
-        passes = 0  # the search found nothing to classify (no cable ever sticks): one final fit
-    else:
+        # nothing to classify (no cable ever sticks): no more passes, one final fit
+        inert = all(e.inert() for e in iterative)
+    passes = 0
+    if not inert:
         passes, _ = passes_from_here(dataset, MAX_FULL_PASSES if searched else MAX_CLASSIFICATION_PASSES)
     model = fit_holding(dataset, residual_stage=True, bar=progress)
     if model is None:  # let the regression say what it cannot identify
         model = fit_once(dataset, True, progress)
     model.metrics["classification"] = {"passes": passes + 1, **{e.name: e.unseen() for e in iterative}}
     return model
-
-
-def _product(options: list[list[dict]]) -> list[tuple[dict, ...]]:
-    import itertools
-
-    return list(itertools.product(*options))
 
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:

@@ -136,7 +136,7 @@ def refine(
             continue
         v0 = torch.as_tensor(e.values, dtype=torch.float64)
         signed = torch.as_tensor(e.signed_mask())
-        pinned = torch.as_tensor(e.pinned() if hasattr(e, "pinned") else np.zeros(e.n_params, dtype=bool))
+        pinned = torch.as_tensor(e.pinned())
         raw = torch.where(signed, v0, start(v0)).clone().requires_grad_(True)
         eff_vars.append((e, raw, signed, pinned, v0))
 

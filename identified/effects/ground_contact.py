@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from identified.effects.base import Effect, ParamBlock
-from identified.engine.smallmat import inverse3, inverse6, mm
+from identified.engine.smallmat import inverse3, mm
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
 __all__ = ["GroundContact", "read_contact_geometry"]
@@ -48,6 +48,8 @@ __all__ = ["GroundContact", "read_contact_geometry"]
 #: the regulariser ε (relative, on the diagonal of the contact-space inverse mass) is identified
 #: by a profile scan over these values; MuJoCo's own is (1 - d) / d ≈ 0.05 at its default impedance
 EPSILONS = (0.003, 0.01, 0.02, 0.05, 0.1, 0.2)
+#: the friction coefficients scanned by the fit (its profile over μ)
+MU_GRID = np.geomspace(0.05, 3.0, 40)
 LINEAR = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p")
 NL = len(LINEAR)
 
@@ -168,7 +170,7 @@ class GroundContact(Effect):
         body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
         B = body.reshape(body.shape[:-3] + (6, 3))
         eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
-        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + mm(B, B.transpose(-1, -2))  # J M⁻¹ Jᵀ
+        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
         return {"depth": depth, "active": depth > 0, "lever": lever, "A": A, "dirs": dirs}
 
     def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
@@ -185,14 +187,13 @@ class GroundContact(Effect):
         """``(A + ε diag A)⁻¹`` restricted to the active contacts of each rod (zero rows and columns
         elsewhere).  Two point contacts on one rod leave its spin about the line through them free:
         ``A`` is then singular, and the small regulariser ``ε`` (identified; as MuJoCo's own
-        ``R``) picks the least-force solution.  Inverted by 3x3 blocks
-        (:func:`identified.engine.smallmat.inverse6`: elementwise work that fuses in the twin's
-        compiled step, where a LAPACK call per step cost half the step)."""
+        ``R``) picks the least-force solution.  The fit's form, on many instants at once (batched
+        LAPACK); the twin's step solves the same system by 3x3 blocks (:func:`_masked_block_solve`)."""
         m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
         m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
         A = A + eps * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
         Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
-        return inverse6(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
+        return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
 
     def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
         """Reference accelerations per unit of each linear parameter, (..., R, 2, 7, 3) contact frame."""
@@ -341,7 +342,8 @@ class GroundContact(Effect):
                            base_ang_acc_body=sub(ctx.base_ang_acc_body))
         force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
         scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
-        Y = torch.cat((force, torque / scale), -1)[sel].reshape(-1).numpy()
+        Yw = torch.cat((force, torque / scale), -1)[sel]  # (rows, 6)
+        Y = Yw.reshape(-1).numpy()
         g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
         if Y.shape[0] < 50 * 6:
             raise ValueError("too few contact rows to identify ground_contact")
@@ -354,12 +356,9 @@ class GroundContact(Effect):
                 X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
                 theta = np.linalg.lstsq(X, Y, rcond=None)[0]
                 cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0, eps]])))
-                for mu in np.geomspace(0.05, 3.0, 40):
-                    Fm, Tm = self._to_wrench(cc, self._bound(raw, float(mu)))
-                    r = torch.cat((force - Fm, (torque - Tm) / scale), -1)[sel].reshape(-1).numpy()
-                    sse = float(r @ r)
-                    if sse < best[0]:
-                        best = (sse, theta, mu, eps, X)
+                sse, mu = _mu_scan(cc, raw, sel, Yw, scale)
+                if sse < best[0]:
+                    best = (sse, theta, mu, eps, X)
         sse, theta, mu, eps, X = best
         cov = _cluster_cov(X, Y - X @ theta, g)
         self.values = np.concatenate([theta, [mu, eps]])
@@ -367,6 +366,36 @@ class GroundContact(Effect):
         self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan]])
         return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
                 "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(grid)} (no standard errors)"}
+
+
+def _mu_scan(c: dict, raw: torch.Tensor, sel: torch.Tensor, target: torch.Tensor, scale: float,
+             mus: np.ndarray = MU_GRID) -> tuple[float, float]:
+    """The friction coefficient of the grid whose bounded law (:meth:`GroundContact._bound`)
+    leaves the least squared residual wrench on the rows ``sel``: (sse, μ).
+
+    The bound scales each contact's unbounded tangential force by ``s = min(1, μ f_n / |f_t|)``,
+    so each end's wrench is that of its normal force plus ``s`` times that of its tangential force:
+    both are formed once and every μ costs a few elementwise operations on the selected rows."""
+    lever, dirs, raw = c["lever"][sel], c["dirs"][sel], raw[sel]  # (S, 2, 3), (S, 2, 3, 3), (S, 2, 3)
+    fn = raw[..., 0].clamp_min(0.0)
+    tnorm = raw[..., 1:].norm(dim=-1).clamp_min(1e-12)
+
+    def end_wrench(local: torch.Tensor) -> torch.Tensor:  # (S, 2, 3) contact frame -> (S, 2, 6)
+        world = (local.unsqueeze(-1) * dirs).sum(-2)
+        return torch.cat((world, torch.linalg.cross(lever, world) / scale), -1)
+
+    zero = torch.zeros_like(fn)
+    w_n = end_wrench(torch.stack((fn, zero, zero), -1))
+    w_t = end_wrench(torch.cat((zero.unsqueeze(-1), raw[..., 1:]), -1))
+    base = target - w_n.sum(-2)  # (S, 6)
+    best = (np.inf, float(mus[0]))
+    for mu in mus:
+        s = torch.clamp(float(mu) * fn / tnorm, max=1.0)  # (S, 2)
+        r = base - (s.unsqueeze(-1) * w_t).sum(-2)
+        sse = float((r * r).sum())
+        if sse < best[0]:
+            best = (sse, float(mu))
+    return best
 
 
 def _masked_block_solve(P: torch.Tensor, Q: torch.Tensor, W: torch.Tensor, active: torch.Tensor,

@@ -42,7 +42,10 @@ __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "selec
 SOLVERS = ("lstsq", "adam")
 #: fits of an iterative effect's classification (cable friction): it settles in 2-4 on clean data
 MAX_CLASSIFICATION_PASSES = 8
-#: passes on all the data once the search on a part has settled a classification (measured: 1-2)
+#: passes on all the data from a settled classification -- the search's on a part, or one given as
+#: the effect's values (a refit, or the effect search's next round) -- measured: 1-2 where the law
+#: is there; where it is not (F ~ 0) the classification of the rows near |m L̈ + d L̇| ~ F flickers
+#: and the passes stop at this cap
 MAX_FULL_PASSES = 3
 #: steps of the part of the data the first classification is searched on
 SEARCH_STEPS = 4000
@@ -184,9 +187,7 @@ def identify(
     layout = ParameterLayout.for_topology(topology, regressors, joint)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
-    for k, e in enumerate(joint):
-        held = e.pinned_values()
-        fixed.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(e.pinned())})
+    fixed.update(_pinned(joint, layout))
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -214,9 +215,23 @@ def identify(
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
             factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
-            sol = solve(factors, layout, anchor, fixed)
+
+            def solve_holding(f: dict[int, float]) -> Any:
+                """Solve; parameters of an iterative effect the data cannot identify are held
+                (:meth:`Effect.hold`) and the same rows solved again."""
+                for _ in range(3):
+                    try:
+                        return solve(factors, layout, anchor, f)
+                    except IdentifiabilityError as err:
+                        if not any(e.hold(err.names, topology) for e in joint if e.iterative):
+                            raise
+                        f = {**f, **_pinned(joint, layout)}
+                return solve(factors, layout, anchor, f)
+
+            sol = solve_holding(fixed)
+            fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
-            sol, notes, held = constrain_inertias(sol, lambda f: solve(factors, layout, anchor, f),
+            sol, notes, held = constrain_inertias(sol, solve_holding,
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
             sol = widen_for_overlap(sol, weak)
         else:
@@ -255,13 +270,10 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
     def fit_holding(data: Dataset, residual_stage: bool = False, bar: bool = False) -> IdentifiedModel | None:
         for e in iterative:
             e.prepare(data, topology)
-        for _ in range(3):
-            try:
-                return fit_once(data, residual_stage, bar)
-            except IdentifiabilityError as err:
-                if not any(e.hold(err.names, topology) for e in iterative):
-                    return None
-        return None
+        try:  # what the pass finds unidentifiable of these effects it holds (identify's solve_holding)
+            return fit_once(data, residual_stage, bar)
+        except IdentifiabilityError:
+            return None
 
     def passes_from_here(data: Dataset, most: int) -> tuple[int, float]:
         """Passes until the values settle: how many, and the last equation residual."""
@@ -303,12 +315,21 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         inert = all(e.inert() for e in iterative)
     passes = 0
     if not inert:
-        passes, _ = passes_from_here(dataset, MAX_FULL_PASSES if searched else MAX_CLASSIFICATION_PASSES)
+        passes, _ = passes_from_here(dataset, MAX_FULL_PASSES)
     model = fit_holding(dataset, residual_stage=True, bar=progress)
     if model is None:  # let the regression say what it cannot identify
         model = fit_once(dataset, True, progress)
     model.metrics["classification"] = {"passes": passes + 1, **{e.name: e.unseen() for e in iterative}}
     return model
+
+
+def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:
+    """The effects' held parameters (:meth:`Effect.pinned`) as fixed values by layout index."""
+    out = {}
+    for k, e in enumerate(joint):
+        held = e.pinned_values()
+        out.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(e.pinned())})
+    return out
 
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:

@@ -12,7 +12,9 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    cheap batched rollout); the best is added if it lowers the full held-out free-run error by at
    least the factor ``min_gain`` (default 2: the effect must halve the error; a candidate whose
    parameters the data cannot identify is skipped);
-4. repeat until no candidate passes.  Each step goes into the model's ``loop`` section: the
+4. repeat until no candidate passes; an iterative candidate (the cable friction's stick / slip
+   classification) starts its next round's fit from the classification it settled this round
+   instead of searching it again.  Each step goes into the model's ``loop`` section: the
    effect added and the held-out error before and after.
 
 The evidence is out-of-sample: an effect absent from the plant fits to near zero on the fitted
@@ -256,6 +258,10 @@ def select_effects(
                 fixed[label] = {"epsilon": e["parameters"]["epsilon"]}
             if EFFECTS[e["name"]].iterative:  # later refits start from its classification
                 fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
+        for name, m in fits.items():  # an iterative candidate left out starts the next round from
+            if name != best and m is not None and EFFECTS[name.split(":")[0]].iterative:  # this round's
+                e = next(e for e in m.effects if e["name"] == name.split(":")[0])  # classification
+                fixed[name] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
     if bar is not None:

@@ -22,8 +22,9 @@ rod1.b_lin, ...``.
 Iterative effects (``iterative = True``: cable friction, whose law sticks or slips) have columns that
 depend on a classification of every instant made from their own values; the fit then iterates
 (:func:`identified.fit.identify.identify`: :meth:`starts` for the first classification,
-:meth:`prepare` before each pass, :meth:`reclassify` to stop) and the twin evaluates the law at the
-accelerations it produces, not the columns at recorded ones.
+:meth:`prepare` before each pass, :meth:`reclassify` to stop, :meth:`hold` for parameters a pass
+finds unidentifiable -- solved again on the same rows --, :meth:`release` at a new start) and the
+twin evaluates the law at the accelerations it produces, not the columns at recorded ones.
 
 Stages: ``stage = "joint"`` effects enter the main regression as extra columns (fitted together
 with K, c, M, I, h); ``stage = "residual"`` effects (ground contact) need the accelerations under

@@ -271,6 +271,33 @@ def test_robot_contact_leaves_springs_and_rods_exact_and_explains_the_ground(rob
     assert after * 10 <= before, (before, after)
 
 
+def test_air_drag_on_the_robot_is_found_beside_its_ground_contact(robot, tmp_path):
+    """Viscous air on the robot: the drag's free-run gain hides under the contact law's error, so
+    the search adds it on its held-out one-step error, and it comes out as MuJoCo's own drag."""
+    import mujoco
+
+    path, _ = robot
+    viscosity = 1.0
+    plant = tmp_path / "viscous.xml"
+    plant.write_text(path.read_text().replace("<option ", f'<option viscosity="{viscosity}" '))
+    data = collect(plant, CollectConfig(episodes=6, steps=1000, seed=21, push_every=200))
+    model = fit_model(data, path, effects="auto")  # the fit sees the MJCF without viscosity
+    assert sorted(e["name"] for e in model.effects) == ["ground_contact", "linear_drag"]
+    step = next(s for s in model.loop if s["added"] == "linear_drag")
+    assert step["evidence"] == "one step" and step["one_step_after"] < 1e-9 < step["one_step_before"]
+    assert step["error_after"] <= step["error_before"]
+    # MuJoCo's inertia-box fluid model: force -3π D μ v, torque -π D³ μ ω, D the mean side of the
+    # box with the body's mass and inertia
+    m = mujoco.MjModel.from_xml_path(str(plant))
+    bodies = [m.body(i) for i in range(m.nbody) if m.body(i).jntnum[0] > 0]
+    side = np.array([[np.sqrt(6 * max(b.inertia[(k + 1) % 3] + b.inertia[(k + 2) % 3] - b.inertia[k], 0.0)
+                              / b.mass[0]) for k in range(3)] for b in bodies])
+    D = side.mean(1)
+    drag = next(e for e in model.effects if e["name"] == "linear_drag")["parameters"]
+    np.testing.assert_allclose(np.ravel(drag["b_lin"]), 3 * np.pi * D * viscosity, rtol=1e-6)
+    np.testing.assert_allclose(np.ravel(drag["b_rot"]), np.pi * D**3 * viscosity, rtol=1e-6)
+
+
 def test_robot_twin_stands_like_the_plant(robot, tmp_path):
     import gymnasium as gym
 

@@ -78,9 +78,14 @@ class IdentifiedModel:
                 lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe())
             except ValueError:
                 lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
+        g = lambda x: "diverged" if x is None else f"{x:.4g}"  # noqa: E731  (null in JSON: inf)
         for step in self.loop:
-            lines.append(f"loop: added {step.get('added')}: held-out error {step.get('error_before'):.4g} m -> "
-                         f"{step.get('error_after'):.4g} m")
+            line = (f"loop: added {step.get('added')}: held-out free-run error {g(step.get('error_before'))} m -> "
+                    f"{g(step.get('error_after'))} m")
+            if "one_step_before" in step:
+                line += (f", one-step {g(step['one_step_before'])} -> {g(step.get('one_step_after'))} "
+                         f"(evidence: {step.get('evidence')})")
+            lines.append(line)
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ JSON

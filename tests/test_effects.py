@@ -114,6 +114,10 @@ def test_declared_effects_fit_to_zero_on_clean_data_and_round_trip(ico, tmp_path
     assert [e["name"] for e in back.effects] == [e["name"] for e in model.effects]
     for a, b in zip(back.effects, model.effects):
         assert json.dumps(a["parameters"]) == json.dumps(b["parameters"])
+    # a loop step whose error before was a diverged free run (null in the JSON) reads as such
+    back.loop = [{"added": "linear_drag", "evidence": "free run", "error_before": None, "error_after": 1e-3,
+                  "one_step_before": 0.5, "one_step_after": 1e-12}]
+    assert "held-out free-run error diverged m -> 0.001 m, one-step 0.5 -> 1e-12" in back.summary()
 
 
 def test_engine_wrench_is_the_fit_features_contracted(ico):

@@ -276,8 +276,13 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
             return None
 
     def passes_from_here(data: Dataset, most: int) -> tuple[int, float]:
-        """Passes until the values settle: how many, and the last equation residual."""
+        """Passes until the values settle: how many, and the equation residual.  The passes are a
+        fixed-point iteration that need not contract (little sticking: a cable that drops below
+        the stick rows it needs loses its stick law, and the next classification is worse); if
+        they end above the best pass's residual, the values that classified the best pass are
+        restored."""
         res = np.inf
+        best: tuple[float, list | None] = (np.inf, None)
         for n in range(1, most + 1):
             previous = [None if e.values is None else e.values.copy() for e in iterative]
             try:
@@ -288,8 +293,14 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
                 return n, np.inf
             rms = fit.metrics["equation_residual_rms"]
             res = (rms["translation"] or 0.0) + (rms["rotation"] or 0.0)
+            if all(p is not None for p in previous) and res < best[0]:
+                best = (res, previous)  # the values whose classification gave this pass's fit
             if not any(e.reclassify(p) for e, p in zip(iterative, previous)):
                 break
+        if best[1] is not None and best[0] < res:  # the passes wandered off: back to the best one
+            for e, v in zip(iterative, best[1]):
+                e.values = v
+            res = best[0]
         return n, res
 
     searched = all(e.values is None for e in iterative)

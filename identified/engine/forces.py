@@ -41,6 +41,7 @@ __all__ = [
     "end_kinematics",
     "endpoint_kinematics",
     "spring_end_forces",
+    "spring_end_forces_components",
     "spring_geometry",
     "spring_geometry_components",
     "spring_stretch",
@@ -275,6 +276,13 @@ def spring_tension(
 
 
 def spring_end_forces(unit: torch.Tensor, tension: torch.Tensor) -> torch.Tensor:
-    """Eq. 2 back to 3D: the force on each end, (..., S, 2, 3): ``+T u`` on end 0, ``-T u`` on end 1."""
-    f0 = tension.unsqueeze(-1) * unit
-    return torch.stack((f0, -f0), dim=-2)
+    """Eq. 2 back to 3D: the force on each end, (..., S, 2, 3): ``+T u`` on end 0, ``-T u`` on end 1
+    (:func:`spring_end_forces_components`, stacked)."""
+    S = tension.shape[-1]
+    return unvec(spring_end_forces_components(vec(unit), tension)).unflatten(-2, (2, S)).transpose(-3, -2)
+
+
+def spring_end_forces_components(unit: Vec, tension: torch.Tensor) -> Vec:
+    """Component form of :func:`spring_end_forces`: unit components and tension (..., S) -> the end
+    forces' components (..., 2S), end-major."""
+    return tuple(torch.cat((tension * u, -(tension * u)), -1) for u in unit)

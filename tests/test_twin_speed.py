@@ -275,7 +275,10 @@ def test_contact_substep_traces_as_one_graph(contact_backend):
     the physics compiles it: after one eager substep has filled the effects' caches."""
     b = IdentifiedBackend(compile=False)  # the twin as shipped: float32, contact on
     ph = b.physics
-    args = (*ph.state, ph.rest, ph.rest_act, ph.target, None, None)
+    assert ph._fused  # the component-form step (SpringRodEngine.step_components)
+    from tensegrity_gym.backends.twin_physics import _split
+
+    args = (_split(ph.state), ph.rest, ph.rest_act, ph.target, None, None)
     with torch.no_grad():
         ph._eager_substep(*args)
         explained = torch._dynamo.explain(ph._eager_substep)(*args)

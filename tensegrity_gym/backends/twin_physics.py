@@ -281,9 +281,14 @@ class TwinPhysics:
         return _stack(x), rest, rest_act
 
     def _inductor_options(self) -> dict[str, Any]:
-        """Inductor settings for the substep (experiment hook: TENSEGRITY_TWIN_INDUCTOR, a dict literal)."""
-        import ast
-        return ast.literal_eval(os.environ.get("TENSEGRITY_TWIN_INDUCTOR", "{}"))
+        """Inductor settings for the substep. On a CPU, a C++ wrapper (``cpp_wrapper``): the
+        compiled substep allocates its ~100 intermediate component buffers and calls its kernel
+        from C++ instead of Python, measured 7 % faster at 256 and 1024 envs and 25 % for the
+        single env (in one process, 2026-11-23), and a warm-cache compile of 1.6 s. Inductor's
+        default vectorisation (16 float32 lanes here) is kept: every tensor of the component-form
+        step is (*B, n) with no trailing 3, and the scalar loops (``cpp.simdlen=1``) the tensor
+        form needed measured 1.8x slower."""
+        return {"cpp_wrapper": True} if self.engine.device.type == "cpu" else {}
 
     # ------------------------------------------------------------------ read-out
     def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -62,7 +62,12 @@ from identified.engine.integration import (
     semi_implicit_euler_components,
 )
 from identified.engine.smallmat import Vec, mtv, vadd, vec
-from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix, quat_to_matrix_components
+from identified.rotation import (
+    matrix_apply,
+    matrix_apply_transpose,
+    quat_to_matrix,
+    quat_to_matrix_components,
+)
 from identified.topology import Topology
 
 __all__ = ["Effect", "RodState", "SpringRodEngine", "SpringRodParams", "StepContext", "StepTerms"]

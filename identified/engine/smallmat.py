@@ -11,7 +11,12 @@ Written out as broadcasts and sums, the same work is a handful of elementwise lo
 * :func:`inverse3` (..., 3, 3) by the adjugate (rows' cross products over the determinant);
 * :func:`inverse6` (..., 6, 6) by 3x3 blocks (the Schur complement of the upper-left block), for
   matrices whose upper-left 3x3 block and its Schur complement are invertible (positive-definite
-  matrices always are).
+  matrices always are);
+* the *component form* of the engine's Euler step (below :func:`inverse6`): a 3-vector as a tuple
+  of three tensors (..., n), a 3x3 matrix as a tuple of nine, with their sums, products, cross
+  products (:func:`vcross`), ``M v`` (:func:`mv`), ``Mᵀ v`` (:func:`mtv`), products
+  (:func:`mmul`), inverses (:func:`minverse`, the adjugate of :func:`inverse3`) and gathers
+  (:func:`gather`); :func:`vec`/:func:`unvec` convert from and to the tensor form.
 
 Accuracy: these are the textbook formulas; for the well-conditioned matrices they are used on
 (regularised positive-definite contact matrices, the implicit integrator's mass matrices) they
@@ -22,7 +27,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["inverse3", "inverse6", "mm"]
+__all__ = ["Mat", "Vec", "gather", "inverse3", "inverse6", "mat", "minverse", "mm", "mmul", "mtranspose", "mtv",
+           "mv", "unvec", "vadd", "vcross", "vdot", "vec", "vscale", "vsub"]
 
 
 def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

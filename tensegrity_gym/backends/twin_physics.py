@@ -20,10 +20,14 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   back (torch's thread count is process-wide: another Python thread running torch work during
   the twin's step sees the twin's count). CUDA work is not affected.
 * **Compilation** (``compile``, default ``"auto"``): one substep (motors + engine step) is compiled
-  once with ``torch.compile`` (inductor: the substep's hundred small kernels become a few fused
-  loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles in
-  seconds (timed in :attr:`TwinPhysics.compile_seconds`) and inductor's on-disk cache makes the
-  next process faster. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
+  once with ``torch.compile`` (inductor: the substep's hundreds of small kernels become a few fused
+  loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles once
+  (timed in :attr:`TwinPhysics.compile_seconds`: ~30 s with a cold inductor cache, 1.6-5 s warm,
+  measured on 2 loaded cores) and inductor's on-disk cache makes the next process faster. The
+  substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
+  one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
+  rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect
+  without a component form, another integrator) steps through ``SpringRodEngine.step``. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
   variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
   warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
   substeps agree to rounding (tests/test_twin_speed.py).

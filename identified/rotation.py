@@ -42,11 +42,13 @@ __all__ = [
     "quat_conjugate",
     "quat_exp",
     "quat_integrate",
+    "quat_integrate_components",
     "quat_multiply",
     "quat_normalize",
     "quat_rotate",
     "quat_rotate_inverse",
     "quat_to_matrix",
+    "quat_to_matrix_components",
 ]
 
 # Below this squared angle the exponential map uses its Taylor series (relative error ~ |θ|^4/400,
@@ -115,17 +117,23 @@ def quat_to_matrix(q: Array) -> Array:
         m = (outer @ _NP_TABLES["mat"]) / np.einsum("...i,...i->...", q, q)[..., None]
         return m.reshape(q.shape[:-1] + (3, 3))
     if _unrolled():
-        w, x, y, z = q.unbind(-1)
-        inv = 1.0 / (w * w + x * x + y * y + z * z)
-        ww, xx, yy, zz = w * w, x * x, y * y, z * z
-        xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-        m = torch.stack((ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy),
-                         2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx),
-                         2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz), dim=-1)
-        return (m * inv.unsqueeze(-1)).unflatten(-1, (3, 3))
+        return torch.stack(quat_to_matrix_components(q.unbind(-1)), dim=-1).unflatten(-1, (3, 3))
     outer = (q.unsqueeze(-1) * q.unsqueeze(-2)).flatten(-2)  # (..., 16)
     m = (outer @ _constant("mat", q)) / (q * q).sum(-1, keepdim=True)
     return m.unflatten(-1, (3, 3))
+
+
+def quat_to_matrix_components(q: Sequence[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+    """:func:`quat_to_matrix` in component form: the four components ``(w, x, y, z)``, each
+    (...,), -> the nine entries of ``R`` row-major, each (...,) (the engine's fused step,
+    :mod:`identified.engine.smallmat`)."""
+    w, x, y, z = q
+    inv = 1.0 / (w * w + x * x + y * y + z * z)
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return ((ww + xx - yy - zz) * inv, 2 * (xy - wz) * inv, 2 * (xz + wy) * inv,
+            2 * (xy + wz) * inv, (ww - xx + yy - zz) * inv, 2 * (yz - wx) * inv,
+            2 * (xz - wy) * inv, 2 * (yz + wx) * inv, (ww - xx - yy + zz) * inv)
 
 
 def matrix_to_quat(m: np.ndarray) -> np.ndarray:
@@ -241,17 +249,18 @@ def quat_exp(theta: Array) -> Array:
         c = np.where(small, 1.0 - a2 / 8.0, np.cos(0.5 * a))
         s = np.where(small, 0.5 - a2 / 48.0, np.sin(0.5 * a) / a)
         return np.concatenate((c[..., None], s[..., None] * th), axis=-1)
-    a2 = (theta * theta).sum(-1)
+    c, s = _exp_coefficients((theta * theta).sum(-1))
+    return torch.cat((c.unsqueeze(-1), s.unsqueeze(-1) * theta), dim=-1)
+
+
+def _exp_coefficients(a2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``cos(|θ|/2)`` and ``sin(|θ|/2)/|θ|`` from ``|θ|²`` (torch), Taylor series for tiny angles."""
     small = a2 < _SMALL_ANGLE_SQ
     a = torch.sqrt(torch.where(small, torch.ones_like(a2), a2))  # never sqrt(0): finite gradient
     half = 0.5 * a
-    c_big = torch.cos(half)
-    s_big = torch.sin(half) / a
-    c_small = 1.0 - a2 / 8.0
-    s_small = 0.5 - a2 / 48.0
-    c = torch.where(small, c_small, c_big)
-    s = torch.where(small, s_small, s_big)
-    return torch.cat((c.unsqueeze(-1), s.unsqueeze(-1) * theta), dim=-1)
+    c = torch.where(small, 1.0 - a2 / 8.0, torch.cos(half))
+    s = torch.where(small, 0.5 - a2 / 48.0, torch.sin(half) / a)
+    return c, s
 
 
 def quat_integrate(q: Array, angvel_body: Array, dt: float | torch.Tensor) -> Array:
@@ -261,3 +270,14 @@ def quat_integrate(q: Array, angvel_body: Array, dt: float | torch.Tensor) -> Ar
     ``mju_normalize4`` (``mj_integratePos`` for a ball or free joint).
     """
     return quat_normalize(quat_multiply(q, quat_exp(angvel_body * dt)))
+
+
+def quat_integrate_components(q: Sequence[torch.Tensor], angvel_body: Sequence[torch.Tensor],
+                              dt: float | torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """:func:`quat_integrate` in component form (torch): ``q`` four components, ``angvel_body``
+    three, each (...,) -> the four components of ``normalise(q ⊗ exp(dt·w_b))``."""
+    theta = tuple(w * dt for w in angvel_body)
+    c, s = _exp_coefficients(theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2])
+    out = _hamilton(tuple(q), (c, s * theta[0], s * theta[1], s * theta[2]))
+    norm = torch.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3])
+    return tuple(x / norm for x in out)

@@ -259,6 +259,32 @@ def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
     torch.testing.assert_close(torque, torque0, rtol=0, atol=1e-12 * scale)
 
 
+def test_fused_step_equals_the_engine_step(contact_backend):
+    """The twin's step in component form (``SpringRodEngine.step_components``, what the compiled
+    substep runs) equals the identification engine's ``step`` (``dynamics`` then
+    ``semi_implicit_euler``, the tensor form) in float64, with ground contact and a push at a point,
+    on states with end caps in the ground."""
+    from identified.engine.smallmat import unvec, vec
+
+    b = contact_backend
+    e = b.engine
+    assert e.fused
+    rng = np.random.default_rng(2)
+    n = 32
+    st = [perturb_start(b.nominal_states(), rng, 0.3) for _ in range(n)]
+    s = e.state(*(np.stack([getattr(x, f) for x in st]) for f in ("pos", "quat", "vel", "angvel")))
+    s.pos[..., 2] -= torch.as_tensor(rng.uniform(0, 0.3, (n, 1)))
+    s.vel += torch.as_tensor(rng.normal(0, 0.5, s.vel.shape))
+    s.angvel += torch.as_tensor(rng.normal(0, 1.0, s.angvel.shape))
+    rest = torch.as_tensor(np.tile(b.nominal_rest_lengths(), (n, 1)))
+    push, point = torch.as_tensor(rng.normal(0, 5, (n, 6, 3))), torch.as_tensor(rng.normal(0, 0.2, (n, 6, 3)))
+    for pf, pp in ((None, None), (push, None), (push, point)):
+        want = e.step(s, rest, pf, pp)
+        got = e.step_components(vec(s.pos), tuple(s.quat.unbind(-1)), vec(s.vel), vec(s.angvel), rest, pf, pp)
+        for a, w in zip(got, want):
+            torch.testing.assert_close(unvec(a), w, rtol=1e-12, atol=1e-12 * float(w.abs().max()))
+
+
 def test_block_inverses_equal_lapack():
     from identified.engine.smallmat import inverse3, inverse6, mm
 
@@ -275,7 +301,10 @@ def test_contact_substep_traces_as_one_graph(contact_backend):
     the physics compiles it: after one eager substep has filled the effects' caches."""
     b = IdentifiedBackend(compile=False)  # the twin as shipped: float32, contact on
     ph = b.physics
-    args = (*ph.state, ph.rest, ph.rest_act, ph.target, None, None)
+    assert ph._fused  # the component-form step (SpringRodEngine.step_components)
+    from tensegrity_gym.backends.twin_physics import _split
+
+    args = (_split(ph.state), ph.rest, ph.rest_act, ph.target, None, None)
     with torch.no_grad():
         ph._eager_substep(*args)
         explained = torch._dynamo.explain(ph._eager_substep)(*args)

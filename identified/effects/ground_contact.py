@@ -40,7 +40,23 @@ import numpy as np
 import torch
 
 from identified.effects.base import Effect, ParamBlock
-from identified.engine.smallmat import inverse3, mm
+from identified.engine.smallmat import (
+    Mat,
+    Vec,
+    mat,
+    minverse,
+    mmul,
+    mtranspose,
+    mtv,
+    mv,
+    unvec,
+    vadd,
+    vcross,
+    vdot,
+    vec,
+    vscale,
+    vsub,
+)
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
 __all__ = ["GroundContact", "read_contact_geometry"]
@@ -271,52 +287,86 @@ class GroundContact(Effect):
         return c, self._bound(raw, th[NL])
 
     def wrench(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        """The law's force and WORLD torque on each rod, (..., R, 3): the same law as
+        """The law's force and WORLD torque on each rod, (..., R, 3): :meth:`wrench_components`
+        on the components of the state and the context, stacked."""
+        force, torque = self.wrench_components(
+            vec(state.pos), vec(state.vel), vec(state.angvel), mat(ctx.rot),
+            vec(ctx.base_lin_acc), vec(ctx.base_ang_acc_body), ctx.params.mass, vec(ctx.params.inertia))
+        return unvec(force), unvec(torque)
+
+    def wrench_components(self, pos: Vec, vel: Vec, angvel: Vec, rot: Mat, base_lin_acc: Vec,
+                          base_ang_acc_body: Vec, mass: torch.Tensor, inertia: Vec) -> tuple[Vec, Vec]:
+        """The law's force and WORLD torque on each rod in component form (every argument's
+        components (..., R); ``mass`` and ``inertia`` the identified rods'): the same law as
         :meth:`contact_forces` (then :meth:`_to_wrench`), which the fit uses, written for the
-        engine's step with no per-parameter columns: the reference accelerations contracted as
-        they are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves
-        by 3x3 blocks, elementwise work that fuses under ``torch.compile``
-        (tests/test_twin_speed.py checks the two forms agree)."""
-        th = self.theta(state.pos)  # the cached tensor: a compiled step never converts ``values``
-        radius, seg, n, t1, _, height = self._geom(state.pos)
-        rot = ctx.rot
-        lever = matrix_apply(rot.unsqueeze(-3), seg)  # (..., R, 2, 3): COM -> end-sphere centre
-        depth = radius.unsqueeze(-1) - (((state.pos.unsqueeze(-2) + lever) * n).sum(-1) - height)  # (..., R, 2)
-        axis = rot[..., :, 2]
-        along = axis - (axis * n).sum(-1, keepdim=True) * n
-        norm = along.norm(dim=-1, keepdim=True)
-        along = torch.where(norm > 1e-6, along / norm.clamp_min(1e-12), t1)
-        nn = n.expand_as(along)
-        dirs = torch.stack((nn, along, torch.linalg.cross(nn, along)), -2)  # (..., R, 3, 3): rows n, a, p
-        p = ctx.params
-        # B_e (3 directions x 3 body axes) = Rᵀ (ρ_e × u) / sqrt(I); blocks of J M⁻¹ Jᵀ: I/M + B_e B_fᵀ
-        rxu = torch.linalg.cross(lever.unsqueeze(-2), dirs.unsqueeze(-3))  # (..., R, 2, 3, 3)
-        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / p.inertia.sqrt().unsqueeze(-2).unsqueeze(-2)
-        b0, b1 = body.unbind(-3)
-        inv_m = (1.0 / p.mass).unsqueeze(-1).unsqueeze(-1)
-        eye = torch.eye(3, dtype=lever.dtype, device=lever.device)
-        eps = th[NL + 1]
-        P = inv_m * eye + mm(b0, b0.transpose(-1, -2))
-        Q = inv_m * eye + mm(b0, b1.transpose(-1, -2))
-        W = inv_m * eye + mm(b1, b1.transpose(-1, -2))
-        P = P + eps * P * eye  # the regulariser on the diagonal
-        W = W + eps * W * eye
-        # reference accelerations g = κ d n - β v - γ a0 per direction, from the contact point's
-        # velocity and its acceleration under every other force (ctx.base_*)
-        vel = state.vel.unsqueeze(-2) + torch.linalg.cross(state.angvel.unsqueeze(-2), lever)
-        alpha_w = matrix_apply(rot, ctx.base_ang_acc_body)
-        acc = ctx.base_lin_acc.unsqueeze(-2) + torch.linalg.cross(alpha_w.unsqueeze(-2), lever)
-        v = (dirs.unsqueeze(-3) * vel.unsqueeze(-2)).sum(-1)  # (..., R, 2, 3) along (n, a, p)
-        a0 = (dirs.unsqueeze(-3) * acc.unsqueeze(-2)).sum(-1)
-        g = -(th[1:NL:2] * v + th[2:NL:2] * a0)
-        g = torch.cat(((g[..., 0] + th[0] * depth).unsqueeze(-1), g[..., 1:]), -1)
-        active = depth > 0
-        raw = _masked_block_solve(P, Q, W, active, g)
+        engine's step with no per-parameter columns: the reference accelerations contracted as they
+        are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves by
+        3x3 blocks, all elementwise over rods and envs, which ``torch.compile`` fuses and
+        vectorises (tests/test_twin_speed.py checks the two forms agree)."""
+        th = self.theta(pos[0])  # the cached tensor: a compiled step never converts ``values``
+        radius, seg, n, t1, height = self._geom_components(pos[0])
+        # friction axes per rod: along the rod's shadow on the ground (a) and across it (p)
+        axis = (rot[2], rot[5], rot[8])
+        an = vdot(axis, n)
+        along = tuple(a - an * c for a, c in zip(axis, n))
+        norm = torch.sqrt(vdot(along, along))
+        inv = 1.0 / norm.clamp_min(1e-12)
+        along = tuple(torch.where(norm > 1e-6, a * inv, t) for a, t in zip(along, t1))
+        dirs = (n, along, vcross(n, along))  # rows n, a, p
+        alpha_w = mv(rot, base_ang_acc_body)
+        sqrt_i = tuple(torch.sqrt(i) for i in inertia)
+        levers, depths, bodies, refs = [], [], [], []
+        for e in range(2):
+            lever = mv(rot, seg[e])  # COM -> end-sphere centre
+            depths.append(radius - (vdot(vadd(pos, lever), n) - height))
+            # B_e (3 directions x 3 body axes) = Rᵀ (ρ_e × u) / sqrt(I)
+            bodies.append(tuple(x / si for d in dirs for x, si in zip(mtv(rot, vcross(lever, d)), sqrt_i)))
+            # reference accelerations g = κ d n - β v - γ a0 per direction, from the contact point's
+            # velocity and its acceleration under every other force
+            v = vadd(vel, vcross(angvel, lever))
+            a0 = vadd(base_lin_acc, vcross(alpha_w, lever))
+            refs.append(tuple(-(th[1 + 2 * k] * vdot(d, v) + th[2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
+            levers.append(lever)
+        refs[0] = (refs[0][0] + th[0] * depths[0], *refs[0][1:])
+        refs[1] = (refs[1][0] + th[0] * depths[1], *refs[1][1:])
+        inv_m, eps = 1.0 / mass, th[NL + 1]
+
+        def block(b: Mat, c: Mat, regularised: bool) -> Mat:  # I/M + B_b B_cᵀ (ε on the diagonal)
+            out = []
+            for i in range(3):
+                for j in range(3):
+                    x = b[3 * i] * c[3 * j] + b[3 * i + 1] * c[3 * j + 1] + b[3 * i + 2] * c[3 * j + 2]
+                    if i == j:
+                        x = x + inv_m
+                        x = x + eps * x if regularised else x
+                    out.append(x)
+            return tuple(out)
+
+        P, Q, W = block(bodies[0], bodies[0], True), block(bodies[0], bodies[1], False), block(bodies[1], bodies[1], True)
+        active = (depths[0] > 0, depths[1] > 0)
+        raw = _masked_block_solve(P, Q, W, active, refs)
         # solved again with the pulling ends released (always: one graph)
-        raw = _masked_block_solve(P, Q, W, active & (raw[..., 0] > 0), g)
-        f = self._bound(raw, th[NL])
-        world = (f.unsqueeze(-1) * dirs.unsqueeze(-3)).sum(-2)  # (..., R, 2, 3)
-        return world.sum(-2), torch.linalg.cross(lever, world).sum(-2)
+        raw = _masked_block_solve(P, Q, W, (active[0] & (raw[0][0] > 0), active[1] & (raw[1][0] > 0)), refs)
+        mu = th[NL]
+        force: Vec = (0.0, 0.0, 0.0)
+        torque: Vec = (0.0, 0.0, 0.0)
+        for lever, (rn, ra, rp) in zip(levers, raw):
+            # the bounds, as :meth:`_bound`: f_n >= 0, |f_t| <= μ f_n
+            fn = rn.clamp_min(0.0)
+            scale = torch.clamp(mu * fn / torch.sqrt(ra * ra + rp * rp).clamp_min(1e-12), max=1.0)
+            world = tuple(fn * a + ra * scale * b + rp * scale * c for a, b, c in zip(*dirs))
+            force, torque = vadd(force, world), vadd(torque, vcross(lever, world))
+        return force, torque
+
+    def _geom_components(self, like: torch.Tensor) -> tuple[Any, ...]:
+        """:meth:`_geom` for :meth:`wrench_components`: radius (R,), the two segment ends' rod-frame
+        components, the plane's normal, first tangent (floats) and height."""
+        key = ("geom_components", like.dtype, like.device)
+        if key not in self._cache:
+            radius, seg, n, t1, _, height = self._geom(like)
+            self._cache[key] = (radius, [tuple(seg[:, e, k].contiguous() for k in range(3)) for e in range(2)],
+                                tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
+        return self._cache[key]
 
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
@@ -398,27 +448,28 @@ def _mu_scan(c: dict, raw: torch.Tensor, sel: torch.Tensor, target: torch.Tensor
     return best
 
 
-def _masked_block_solve(P: torch.Tensor, Q: torch.Tensor, W: torch.Tensor, active: torch.Tensor,
-                        g: torch.Tensor) -> torch.Tensor:
+def _masked_block_solve(P: Mat, Q: Mat, W: Mat, active: tuple[torch.Tensor, torch.Tensor],
+                        g: list) -> tuple[Vec, Vec]:
     """``x = A⁻¹ g`` restricted to the active ends (as :meth:`GroundContact._inverse` then
-    :meth:`GroundContact._apply`), for ``A = [[P, Q], [Qᵀ, W]]`` symmetric, by 3x3 blocks.
+    :meth:`GroundContact._apply`), for ``A = [[P, Q], [Qᵀ, W]]`` symmetric, by 3x3 blocks, in
+    component form.
 
-    ``P``, ``Q``, ``W`` (..., R, 3, 3); ``active`` (..., R, 2) bool; ``g`` (..., R, 2, 3) ->
-    (..., R, 2, 3), zero at inactive ends.  An inactive end's rows and columns are replaced by the
-    identity's (its unknowns decouple and are zeroed)."""
-    m = active.to(g.dtype)
-    m0, m1 = m[..., 0, None, None], m[..., 1, None, None]
-    eye = torch.eye(3, dtype=g.dtype, device=g.device)
-    Pm = m0 * P + (1.0 - m0) * eye
-    Qm = (m0 * m1) * Q
-    Wm = m1 * W + (1.0 - m1) * eye
-    g0, g1 = (g * m.unsqueeze(-1)).unbind(-2)
-    Pi = inverse3(Pm)
-    X = mm(Pi, Qm)  # P⁻¹ Q; (Qᵀ P⁻¹) = Xᵀ, P symmetric
-    Si = inverse3(Wm - mm(Qm.transpose(-1, -2), X))
-    x1 = (Si * (g1 - (X * g0.unsqueeze(-1)).sum(-2)).unsqueeze(-2)).sum(-1)
-    x0 = (Pi * (g0 - (Qm * x1.unsqueeze(-2)).sum(-1)).unsqueeze(-2)).sum(-1)
-    return torch.stack((x0, x1), -2) * m.unsqueeze(-1)
+    ``P``, ``Q``, ``W`` nine components (..., R) each; ``active`` two (..., R) bool; ``g`` the
+    two ends' reference accelerations (three components each) -> the two ends' forces, zero at
+    inactive ends.  An inactive end's rows and columns are replaced by the identity's (its
+    unknowns decouple and are zeroed)."""
+    m0, m1 = (a.to(P[0].dtype) for a in active)
+    eye = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    Pm = tuple(m0 * x + (1.0 - m0) * i for x, i in zip(P, eye))
+    Qm = tuple((m0 * m1) * x for x in Q)
+    Wm = tuple(m1 * x + (1.0 - m1) * i for x, i in zip(W, eye))
+    g0, g1 = vscale(g[0], m0), vscale(g[1], m1)
+    Pi = minverse(Pm)
+    X = mmul(Pi, Qm)  # P⁻¹ Q; (Qᵀ P⁻¹) = Xᵀ, P symmetric
+    Si = minverse(tuple(w - x for w, x in zip(Wm, mmul(mtranspose(Qm), X))))
+    x1 = mv(Si, vsub(g1, mtv(X, g0)))
+    x0 = mv(Pi, vsub(g0, mv(Qm, x1)))
+    return vscale(x0, m0), vscale(x1, m1)
 
 
 def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:

@@ -8,8 +8,12 @@ Modules (one per block of the paper's Fig. "architecture"):
   ``push_wrench``, ``rod_accelerations``;
 * :mod:`identified.engine.integration` — semi-implicit Euler as MuJoCo's ``mj_Euler``:
   ``semi_implicit_euler``, ``RodState``;
-* :mod:`identified.engine.engine` — ``SpringRodEngine`` (``step``, ``rollout``, ``dynamics``),
-  ``SpringRodParams``, the ``Effect`` plug-in protocol and its ``StepContext``.
+* :mod:`identified.engine.engine` — ``SpringRodEngine`` (``step``, ``rollout``, ``dynamics``,
+  ``step_components``), ``SpringRodParams``, the ``Effect`` plug-in protocol and its ``StepContext``;
+* :mod:`identified.engine.smallmat` — small matrices as elementwise work, and the component form
+  (a 3-vector as a tuple of three tensors) in which the Euler step's formulas are written once:
+  each tensor-form function above unbinds into components and stacks back, and the twin's
+  compiled substep (``step_components``) runs the components directly.
 
 Conventions: quaternions w-x-y-z, angular velocity in the WORLD frame in every state, rod-frame
 (body) quantities named ``*_body``; batched over any leading dimensions.

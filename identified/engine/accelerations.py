@@ -23,10 +23,11 @@ from __future__ import annotations
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph
-from identified.rotation import matrix_apply, matrix_apply_transpose
+from identified.engine.smallmat import Mat, Vec, mat, mtv, mv, unvec, vcross, vec
 from identified.topology import Topology
 
-__all__ = ["push_wrench", "rod_accelerations", "rod_wrench"]
+__all__ = ["push_wrench", "push_wrench_components", "rod_accelerations", "rod_accelerations_components",
+           "rod_wrench", "rod_wrench_components"]
 
 
 def rod_wrench(
@@ -37,17 +38,29 @@ def rod_wrench(
     """Aggregate spring-end forces on the rods: force and WORLD torque about each rod's COM.
 
     ``end_forces`` (..., S, 2, 3), ``lever`` (..., S, 2, 3) world lever arms ``R o_e`` -> force
-    (..., R, 3), torque (..., R, 3).  Ends on fixed anchors are ignored.
+    (..., R, 3), torque (..., R, 3).  Ends on fixed anchors are ignored.  The formulas are
+    :func:`rod_wrench_components`.
     """
     g = as_graph(graph, end_forces)
-    batch = end_forces.shape[:-3]
-    f = end_forces.reshape(batch + (-1, 3)).index_select(-2, g.end_index)  # (..., E, 3)
-    r = lever.reshape(batch + (-1, 3)).index_select(-2, g.end_index)
-    tau = torch.cross(r, f, dim=-1)
-    zeros = end_forces.new_zeros(batch + (g.n_rods, 3))
-    force = zeros.index_add(-2, g.end_rod, f)
-    torque = zeros.index_add(-2, g.end_rod, tau)
-    return force, torque
+
+    def end_major(x: torch.Tensor) -> Vec:  # (..., S, 2, 3) -> components (..., 2S), end-major
+        return vec(x.transpose(-3, -2).flatten(-3, -2))
+
+    force, torque = rod_wrench_components(g, end_major(end_forces), end_major(lever))
+    return unvec(force), unvec(torque)
+
+
+def rod_wrench_components(g: SpringGraph, end_forces: Vec, lever: Vec) -> tuple[Vec, Vec]:
+    """Component form of :func:`rod_wrench`: forces and levers of the spring ends, components
+    (..., 2S) end-major -> force and WORLD torque per rod, components (..., R).  Each rod sums the
+    ends it holds (``graph.rod_ends``: a gather and a short sum, no scatter)."""
+    torque = vcross(lever, end_forces)
+    R, K = g.rod_ends.shape
+
+    def per_rod(x: torch.Tensor) -> torch.Tensor:
+        return (x.index_select(-1, g.rod_ends.reshape(-1)).unflatten(-1, (R, K)) * g.rod_ends_weight).sum(-1)
+
+    return tuple(per_rod(x) for x in end_forces), tuple(per_rod(x) for x in torque)
 
 
 def push_wrench(
@@ -63,10 +76,10 @@ def push_wrench(
     ``h f_u`` (..., R, 3), torque ``(R r_u) × (h f_u)`` (..., R, 3).
     """
     h = torch.as_tensor(control_scale, dtype=push_force.dtype, device=push_force.device)
-    force = h.unsqueeze(-1).unsqueeze(-1) * push_force
-    if push_point is None:
-        return force, torch.zeros_like(force)
-    return force, torch.cross(matrix_apply(rot, push_point), force, dim=-1)
+    force, torque = push_wrench_components(mat(rot), vec(push_force), None if push_point is None else vec(push_point),
+                                           h.unsqueeze(-1))
+    force_t = unvec(force)
+    return force_t, torch.zeros_like(force_t) if torque is None else unvec(torque)
 
 
 def rod_accelerations(
@@ -83,11 +96,29 @@ def rod_accelerations(
     ``force`` (..., R, 3) and ``torque`` (..., R, 3): everything but gravity, world frame; ``rot``
     (..., R, 3, 3); ``angvel_body`` (..., R, 3) = ``Rᵀ w``; ``mass`` (R,) or (..., R);
     ``inertia`` (R, 3) or (..., R, 3) rod-frame diagonal; ``gravity`` (3,) or (..., 3).
-    Returns ``a = (F + M g) / M`` (..., R, 3) and ``α_b = I⁻¹ (Rᵀ τ - w_b × I w_b)`` (..., R, 3).
+    Returns ``a = (F + M g) / M`` (..., R, 3) and ``α_b = I⁻¹ (Rᵀ τ - w_b × I w_b)`` (..., R, 3);
+    the formulas are :func:`rod_accelerations_components`.
     """
-    m = mass.unsqueeze(-1)
-    lin_acc = (force + m * gravity.unsqueeze(-2)) / m
-    tau_b = matrix_apply_transpose(rot, torque)
-    gyro = torch.cross(angvel_body, inertia * angvel_body, dim=-1)
-    ang_acc_body = (tau_b - gyro) / inertia
-    return lin_acc, ang_acc_body
+    lin, ang = rod_accelerations_components(vec(force), vec(torque), mat(rot), vec(angvel_body), mass,
+                                            vec(inertia), tuple(gravity.unsqueeze(-2).unbind(-1)))
+    return unvec(lin), unvec(ang)
+
+
+def rod_accelerations_components(force: Vec, torque: Vec, rot: Mat, angvel_body: Vec, mass: torch.Tensor,
+                                 inertia: Vec, gravity: Vec) -> tuple[Vec, Vec]:
+    """Component form of :func:`rod_accelerations`: every argument's components (..., R) (or
+    broadcastable: ``gravity`` (..., 1), ``mass`` and ``inertia`` (R,))."""
+    lin = tuple((f + mass * g) / mass for f, g in zip(force, gravity))
+    tau_b = mtv(rot, torque)
+    gyro = vcross(angvel_body, tuple(i * w for i, w in zip(inertia, angvel_body)))
+    return lin, tuple((t - gy) / i for t, gy, i in zip(tau_b, gyro, inertia))
+
+
+def push_wrench_components(rot: Mat, push_force: Vec, push_point: Vec | None,
+                           control_scale: torch.Tensor) -> tuple[Vec, Vec | None]:
+    """Component form of :func:`push_wrench` (``control_scale`` a scalar tensor); the torque is
+    ``None`` for a push at the centre of mass."""
+    force = tuple(control_scale * f for f in push_force)
+    if push_point is None:
+        return force, None
+    return force, vcross(mv(rot, push_point), force)

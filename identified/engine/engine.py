@@ -33,14 +33,24 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from identified.engine.accelerations import push_wrench, rod_accelerations, rod_wrench
+from identified.engine.accelerations import (
+    push_wrench,
+    push_wrench_components,
+    rod_accelerations,
+    rod_accelerations_components,
+    rod_wrench,
+    rod_wrench_components,
+)
 from identified.engine.forces import (
     EndpointKinematics,
     SpringGeometry,
     SpringGraph,
+    end_kinematics,
     endpoint_kinematics,
     spring_end_forces,
+    spring_end_forces_components,
     spring_geometry,
+    spring_geometry_components,
     spring_tension,
 )
 from identified.engine.integration import (
@@ -49,8 +59,15 @@ from identified.engine.integration import (
     implicit_accelerations,
     runge_kutta4,
     semi_implicit_euler,
+    semi_implicit_euler_components,
 )
-from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix
+from identified.engine.smallmat import Vec, mtv, vadd, vec
+from identified.rotation import (
+    matrix_apply,
+    matrix_apply_transpose,
+    quat_to_matrix,
+    quat_to_matrix_components,
+)
 from identified.topology import Topology
 
 __all__ = ["Effect", "RodState", "SpringRodEngine", "SpringRodParams", "StepContext", "StepTerms"]
@@ -385,6 +402,52 @@ class SpringRodEngine:
         terms = self.dynamics(state, rest_length, push_force, push_point)
         return semi_implicit_euler(state.pos, state.quat, state.vel, terms.ctx.angvel_body,
                                    terms.lin_acc, terms.ang_acc_body, self.dt)
+
+    # ------------------------------------------------------------------ the fused step
+    @property
+    def fused(self) -> bool:
+        """True when :meth:`step_components` steps this engine: the Euler integrator and every
+        effect a constraint-like one with a component-form wrench (``wrench_components``: ground
+        contact) and no implicit damping. Otherwise the twin steps through :meth:`step`."""
+        return self.integrator == "euler" and all(
+            getattr(e, "needs_base_acceleration", False) and hasattr(e, "wrench_components")
+            and getattr(e, "implicit_damping", None) is None for e in self.effects)
+
+    def step_components(self, pos: Vec, quat: tuple, vel: Vec, angvel: Vec, rest_length: torch.Tensor,
+                        push_force: torch.Tensor | None = None, push_point: torch.Tensor | None = None
+                        ) -> tuple[Vec, tuple, Vec, Vec]:
+        """:meth:`step` in component form, for an engine that is :attr:`fused`: the state as the
+        components of ``pos``, ``quat`` (four), ``vel``, ``angvel`` (WORLD), each (..., R) in the
+        engine's dtype; ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None.
+        Returns the new state's components.
+
+        The same formulas as :meth:`dynamics` then :func:`semi_implicit_euler` (the tensor-form
+        functions are these component functions, stacked), with nothing stacked in between: under
+        ``torch.compile`` a whole step is a few loops over rods and envs, vectorised (the twin's
+        substep, :mod:`tensegrity_gym.backends.twin_physics`)."""
+        p, g = self.params, self.graph
+        rot = quat_to_matrix_components(quat)
+        w_b = mtv(rot, angvel)
+        point, velocity, lever = end_kinematics(g, pos, vel, angvel, rot)
+        S = g.n_springs
+        length, rate, unit = spring_geometry_components(
+            tuple(x[..., :S] for x in point), tuple(x[..., S:] for x in point),
+            tuple(x[..., :S] for x in velocity), tuple(x[..., S:] for x in velocity))
+        tension = spring_tension(length, rate, rest_length, p.stiffness, p.damping, g.pull_only)
+        force, torque = rod_wrench_components(g, spring_end_forces_components(unit, tension), lever)
+        if push_force is not None:
+            pf, pt = push_wrench_components(rot, vec(push_force), None if push_point is None else vec(push_point),
+                                            p.control_scale.unsqueeze(-1))
+            force = vadd(force, pf)
+            torque = torque if pt is None else vadd(torque, pt)
+        inertia, gravity = vec(p.inertia), tuple(p.gravity.unsqueeze(-2).unbind(-1))
+        lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity)
+        if self.effects:  # constraint-like effects see the accelerations under every other force
+            for effect in self.effects:
+                ef, et = effect.wrench_components(pos, vel, angvel, rot, lin_acc, ang_acc_b, p.mass, inertia)
+                force, torque = vadd(force, ef), vadd(torque, et)
+            lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity)
+        return semi_implicit_euler_components(pos, quat, vel, w_b, lin_acc, ang_acc_b, self.dt)
 
     # ------------------------------------------------------------------ many steps
     def rollout(

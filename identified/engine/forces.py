@@ -30,16 +30,20 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from identified.rotation import matrix_apply, quat_to_matrix
+from identified.engine.smallmat import Mat, Vec, gather, mat, mv, unvec, vadd, vcross, vdot, vec, vsub
+from identified.rotation import quat_to_matrix
 from identified.topology import Topology
 
 __all__ = [
     "EndpointKinematics",
     "SpringGeometry",
     "SpringGraph",
+    "end_kinematics",
     "endpoint_kinematics",
     "spring_end_forces",
+    "spring_end_forces_components",
     "spring_geometry",
+    "spring_geometry_components",
     "spring_stretch",
     "spring_tension",
 ]
@@ -53,6 +57,12 @@ class SpringGraph:
     range; ``on_rod`` (S, 2) bool: the end is on a rod (False: fixed anchor); ``offsets`` (S, 2, 3):
     rod-frame point, or the anchor's world position; ``pull_only`` (S,) bool; ``end_index`` (E,)
     long: flat index ``2 j + e`` of every end that is on a rod; ``end_rod`` (E,) long: its rod.
+
+    The same in the component form of the fused step (ends END-MAJOR: the S ends 0, then the S
+    ends 1): ``ends_rod`` (2S,) long (anchors 0), ``ends_on`` (2S,) bool, ``ends_offset`` (3, 2S);
+    ``rod_ends`` (R, K) long: the end-major index of every end on each rod, padded with 0 to the
+    largest count K, and ``rod_ends_weight`` (R, K): 1 for an end, 0 for padding (the sum of the
+    forces on a rod's ends is a gather and a short sum, no scatter).
     """
 
     n_rods: int
@@ -63,6 +73,11 @@ class SpringGraph:
     pull_only: torch.Tensor
     end_index: torch.Tensor
     end_rod: torch.Tensor
+    ends_rod: torch.Tensor
+    ends_on: torch.Tensor
+    ends_offset: torch.Tensor
+    rod_ends: torch.Tensor
+    rod_ends_weight: torch.Tensor
 
     @classmethod
     def from_topology(
@@ -95,6 +110,14 @@ class SpringGraph:
             raise ValueError(f"endpoint_rods must lie in [-1, {n_rods - 1}]")
         on_rod = rods >= 0
         flat = np.flatnonzero(on_rod.reshape(-1))
+        em_rods, em_on = rods.T.reshape(-1), on_rod.T.reshape(-1)  # end-major
+        lists = [np.flatnonzero(em_on & (em_rods == r)) for r in range(int(n_rods))]
+        K = max([len(x) for x in lists] + [1])
+        rod_ends = np.zeros((int(n_rods), K), dtype=np.int64)
+        weight = np.zeros((int(n_rods), K))
+        for r, ends in enumerate(lists):
+            rod_ends[r, :len(ends)] = ends
+            weight[r, :len(ends)] = 1.0
         return cls(
             n_rods=int(n_rods),
             n_springs=int(S),
@@ -104,6 +127,12 @@ class SpringGraph:
             pull_only=torch.as_tensor(pull, device=device),
             end_index=torch.as_tensor(flat, device=device),
             end_rod=torch.as_tensor(rods.reshape(-1)[flat], device=device),
+            ends_rod=torch.as_tensor(np.where(em_on, em_rods, 0), device=device),
+            ends_on=torch.as_tensor(em_on, device=device),
+            ends_offset=torch.as_tensor(offsets.transpose(2, 1, 0).reshape(3, 2 * S).copy(), dtype=dtype,
+                                        device=device),
+            rod_ends=torch.as_tensor(rod_ends, device=device),
+            rod_ends_weight=torch.as_tensor(weight, dtype=dtype, device=device),
         )
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> SpringGraph:
@@ -118,6 +147,11 @@ class SpringGraph:
             pull_only=self.pull_only.to(dev),
             end_index=self.end_index.to(dev),
             end_rod=self.end_rod.to(dev),
+            ends_rod=self.ends_rod.to(dev),
+            ends_on=self.ends_on.to(dev),
+            ends_offset=self.ends_offset.to(device=dev, dtype=dtype or self.offsets.dtype),
+            rod_ends=self.rod_ends.to(dev),
+            rod_ends_weight=self.rod_ends_weight.to(device=dev, dtype=dtype or self.offsets.dtype),
         )
 
 
@@ -163,34 +197,56 @@ def endpoint_kinematics(
 
     ``pos`` (..., R, 3), ``quat`` (..., R, 4) w-x-y-z, ``vel`` (..., R, 3) world, ``angvel``
     (..., R, 3) WORLD frame; ``rot`` (..., R, 3, 3), optional, ``quat_to_matrix(quat)`` if already
-    computed.  Returns :class:`EndpointKinematics` with fields (..., S, 2, 3).
+    computed.  Returns :class:`EndpointKinematics` with fields (..., S, 2, 3).  The formulas are
+    :func:`end_kinematics` (component form), stacked.
     """
     g = as_graph(graph, pos)
     if rot is None:
         rot = quat_to_matrix(quat)
+    point, velocity, lever = end_kinematics(g, vec(pos), vec(vel), vec(angvel), mat(rot))
     S = g.n_springs
-    idx = g.endpoint_rods.reshape(-1)  # (2S,)
-    on = g.on_rod.reshape(-1, 1)  # (2S, 1)
-    off = g.offsets.reshape(-1, 3)  # (2S, 3)
-    lever = matrix_apply(rot.index_select(-3, idx), off)
-    lever = torch.where(on, lever, 0.0)
-    point = torch.where(on, pos.index_select(-2, idx) + lever, off)
-    velocity = vel.index_select(-2, idx) + torch.cross(angvel.index_select(-2, idx), lever, dim=-1)
-    velocity = torch.where(on, velocity, 0.0)
-    shape = point.shape[:-2] + (S, 2, 3)
-    return EndpointKinematics(point.reshape(shape), velocity.reshape(shape), lever.reshape(shape))
+
+    def spring_major(v: Vec) -> torch.Tensor:  # (..., 2S) x 3, end-major -> (..., S, 2, 3)
+        return unvec(v).unflatten(-2, (2, S)).transpose(-3, -2)
+
+    return EndpointKinematics(spring_major(point), spring_major(velocity), spring_major(lever))
+
+
+def end_kinematics(g: SpringGraph, pos: Vec, vel: Vec, angvel: Vec, rot: Mat) -> tuple[Vec, Vec, Vec]:
+    """Component form of :func:`endpoint_kinematics`: rod states as components (..., R) (``rot``
+    the nine entries of ``R(q)``) -> world point, velocity and lever arm of every spring end,
+    components (..., 2S), END-MAJOR (the S ends 0, then the S ends 1).
+
+    ``lever = R o``, ``point = p + lever``, ``velocity = v + w × lever`` for an end on a rod; an
+    anchor's point is its world position, its lever and velocity zero."""
+    idx, on = g.ends_rod, g.ends_on
+    off = tuple(g.ends_offset.unbind(0))
+    lever = tuple(torch.where(on, x, 0.0) for x in mv(gather(rot, idx), off))
+    point = tuple(torch.where(on, p + lv, o) for p, lv, o in zip(gather(pos, idx), lever, off))
+    velocity = vadd(gather(vel, idx), vcross(gather(angvel, idx), lever))
+    velocity = tuple(torch.where(on, x, 0.0) for x in velocity)
+    return point, velocity, lever
 
 
 def spring_geometry(ends: EndpointKinematics) -> SpringGeometry:
     """Eq. 1: length ``L = |p_1 - p_0|``, rate ``L̇ = (v_1 - v_0)·u`` and unit ``u`` of each spring.
 
     A zero-length spring has no direction: its ``unit`` and ``rate`` are NaN (no exception).
+    The formulas are :func:`spring_geometry_components`.
     """
-    delta = ends.point[..., 1, :] - ends.point[..., 0, :]
-    length = torch.linalg.vector_norm(delta, dim=-1)
-    unit = delta / length.unsqueeze(-1)
-    rate = ((ends.velocity[..., 1, :] - ends.velocity[..., 0, :]) * unit).sum(-1)
-    return SpringGeometry(length, rate, unit)
+    length, rate, unit = spring_geometry_components(
+        vec(ends.point[..., 0, :]), vec(ends.point[..., 1, :]),
+        vec(ends.velocity[..., 0, :]), vec(ends.velocity[..., 1, :]))
+    return SpringGeometry(length, rate, unvec(unit))
+
+
+def spring_geometry_components(p0: Vec, p1: Vec, v0: Vec, v1: Vec) -> tuple[torch.Tensor, torch.Tensor, Vec]:
+    """Eq. 1 in component form: end points and velocities (..., S) each -> ``L``, ``L̇`` (..., S)
+    and the unit vector's components."""
+    delta = vsub(p1, p0)
+    length = torch.sqrt(vdot(delta, delta))
+    unit = (delta[0] / length, delta[1] / length, delta[2] / length)
+    return length, vdot(vsub(v1, v0), unit), unit
 
 
 def spring_stretch(length: torch.Tensor, rest_length: torch.Tensor, pull_only: torch.Tensor) -> torch.Tensor:
@@ -220,6 +276,13 @@ def spring_tension(
 
 
 def spring_end_forces(unit: torch.Tensor, tension: torch.Tensor) -> torch.Tensor:
-    """Eq. 2 back to 3D: the force on each end, (..., S, 2, 3): ``+T u`` on end 0, ``-T u`` on end 1."""
-    f0 = tension.unsqueeze(-1) * unit
-    return torch.stack((f0, -f0), dim=-2)
+    """Eq. 2 back to 3D: the force on each end, (..., S, 2, 3): ``+T u`` on end 0, ``-T u`` on end 1
+    (:func:`spring_end_forces_components`, stacked)."""
+    S = tension.shape[-1]
+    return unvec(spring_end_forces_components(vec(unit), tension)).unflatten(-2, (2, S)).transpose(-3, -2)
+
+
+def spring_end_forces_components(unit: Vec, tension: torch.Tensor) -> Vec:
+    """Component form of :func:`spring_end_forces`: unit components and tension (..., S) -> the end
+    forces' components (..., 2S), end-major."""
+    return tuple(torch.cat((tension * u, -(tension * u)), -1) for u in unit)

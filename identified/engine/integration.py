@@ -43,7 +43,15 @@ from collections.abc import Callable
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph
-from identified.rotation import matrix_apply, matrix_apply_transpose, quat_integrate, quat_to_matrix
+from identified.engine.smallmat import Vec, mv, unvec, vec
+from identified.rotation import (
+    matrix_apply,
+    matrix_apply_transpose,
+    quat_integrate,
+    quat_integrate_components,
+    quat_to_matrix,
+    quat_to_matrix_components,
+)
 from identified.state import RodState  # the one state type (re-exported here for the engine)
 
 __all__ = [
@@ -54,6 +62,7 @@ __all__ = [
     "implicit_rate_correction",
     "runge_kutta4",
     "semi_implicit_euler",
+    "semi_implicit_euler_components",
     "spring_rate_rows",
 ]
 
@@ -75,12 +84,20 @@ def semi_implicit_euler(
     ``ang_acc_body`` (..., R, 3) ROD frame; ``dt`` s.  Returns the new :class:`RodState` with the
     angular velocity in the WORLD frame.
     """
-    vel_next = vel + dt * lin_acc
-    w_next = angvel_body + dt * ang_acc_body
-    pos_next = pos + dt * vel_next
-    quat_next = quat_integrate(quat, w_next, dt)
-    angvel_next = matrix_apply(quat_to_matrix(quat_next), w_next)
-    return RodState(pos_next, quat_next, vel_next, angvel_next)
+    out = semi_implicit_euler_components(vec(pos), tuple(quat.unbind(-1)), vec(vel), vec(angvel_body),
+                                         vec(lin_acc), vec(ang_acc_body), dt)
+    return RodState(*(unvec(x) for x in out))
+
+
+def semi_implicit_euler_components(pos: Vec, quat: tuple, vel: Vec, angvel_body: Vec, lin_acc: Vec,
+                                   ang_acc_body: Vec, dt: float | torch.Tensor) -> tuple[Vec, tuple, Vec, Vec]:
+    """Component form of :func:`semi_implicit_euler`: every argument's components (..., R);
+    returns the components of the new position, quaternion, velocity and WORLD angular velocity."""
+    vel_next = tuple(v + dt * a for v, a in zip(vel, lin_acc))
+    w_next = tuple(w + dt * a for w, a in zip(angvel_body, ang_acc_body))
+    pos_next = tuple(p + dt * v for p, v in zip(pos, vel_next))
+    quat_next = quat_integrate_components(quat, w_next, dt)
+    return pos_next, quat_next, vel_next, mv(quat_to_matrix_components(quat_next), w_next)
 
 
 Accelerations = Callable[[RodState, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]

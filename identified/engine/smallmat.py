@@ -11,7 +11,12 @@ Written out as broadcasts and sums, the same work is a handful of elementwise lo
 * :func:`inverse3` (..., 3, 3) by the adjugate (rows' cross products over the determinant);
 * :func:`inverse6` (..., 6, 6) by 3x3 blocks (the Schur complement of the upper-left block), for
   matrices whose upper-left 3x3 block and its Schur complement are invertible (positive-definite
-  matrices always are).
+  matrices always are);
+* the *component form* of the engine's Euler step (below :func:`inverse6`): a 3-vector as a tuple
+  of three tensors (..., n), a 3x3 matrix as a tuple of nine, with their sums, products, cross
+  products (:func:`vcross`), ``M v`` (:func:`mv`), ``Mᵀ v`` (:func:`mtv`), products
+  (:func:`mmul`), inverses (:func:`minverse`, the adjugate of :func:`inverse3`) and gathers
+  (:func:`gather`); :func:`vec`/:func:`unvec` convert from and to the tensor form.
 
 Accuracy: these are the textbook formulas; for the well-conditioned matrices they are used on
 (regularised positive-definite contact matrices, the implicit integrator's mass matrices) they
@@ -22,7 +27,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["inverse3", "inverse6", "mm"]
+__all__ = ["Mat", "Vec", "gather", "inverse3", "inverse6", "mat", "minverse", "mm", "mmul", "mtranspose", "mtv",
+           "mv", "unvec", "vadd", "vcross", "vdot", "vec", "vscale", "vsub"]
 
 
 def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -54,3 +60,87 @@ def inverse6(m: torch.Tensor) -> torch.Tensor:
     bl = -mm(Si, Y)
     tl = Pi - mm(tr, Y)
     return torch.cat((torch.cat((tl, tr), -1), torch.cat((bl, Si), -1)), -2)
+
+
+# ---------------------------------------------------------------------- component form
+# The twin's fused step keeps every 3-vector as a tuple of three tensors (x, y, z) and every 3x3
+# matrix as a tuple of nine (row-major), each of shape (..., n): "struct of arrays". Every
+# operation is then elementwise over the batch and the rods, with no trailing dimension of 3, so
+# that ``torch.compile`` turns a whole substep into a few long loops it vectorises across envs and
+# rods (a trailing dimension of 3 became a masked 16-lane vector op for 3 numbers, or a scalar
+# loop). The tensor form (``(..., 3)``, ``(..., 3, 3)``) of the engine's public functions unbinds
+# into these and stacks back: each formula is written once, here or in the function that uses it.
+Vec = tuple  # (x, y, z), each (..., n)
+Mat = tuple  # (m00, m01, m02, m10, ..., m22), each (..., n)
+
+
+def vec(x: torch.Tensor) -> Vec:
+    """(..., 3) -> the tuple of its three components (views)."""
+    return tuple(x.unbind(-1))
+
+
+def unvec(v: Vec) -> torch.Tensor:
+    """A tuple of components -> (..., k) (stacked on a new last dimension)."""
+    return torch.stack(tuple(v), -1)
+
+
+def mat(m: torch.Tensor) -> Mat:
+    """(..., 3, 3) -> its nine entries, row-major (views)."""
+    return tuple(m.flatten(-2).unbind(-1))
+
+
+def vadd(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def vsub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def vscale(a: Vec, s: torch.Tensor | float) -> Vec:
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+def vdot(a: Vec, b: Vec) -> torch.Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def vcross(a: Vec, b: Vec) -> Vec:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def mv(m: Mat, v: Vec) -> Vec:
+    """``M v``."""
+    return (m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
+            m[3] * v[0] + m[4] * v[1] + m[5] * v[2],
+            m[6] * v[0] + m[7] * v[1] + m[8] * v[2])
+
+
+def mtv(m: Mat, v: Vec) -> Vec:
+    """``Mᵀ v``."""
+    return (m[0] * v[0] + m[3] * v[1] + m[6] * v[2],
+            m[1] * v[0] + m[4] * v[1] + m[7] * v[2],
+            m[2] * v[0] + m[5] * v[1] + m[8] * v[2])
+
+
+def mmul(a: Mat, b: Mat) -> Mat:
+    """``A B``."""
+    return tuple(a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j]
+                 for i in range(3) for j in range(3))
+
+
+def mtranspose(a: Mat) -> Mat:
+    return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
+
+
+def minverse(m: Mat) -> Mat:
+    """The inverse by the adjugate, as :func:`inverse3` (rows' cross products over the determinant)."""
+    r0, r1, r2 = m[0:3], m[3:6], m[6:9]
+    c0, c1, c2 = vcross(r1, r2), vcross(r2, r0), vcross(r0, r1)
+    d = 1.0 / vdot(r0, c0)
+    return (c0[0] * d, c1[0] * d, c2[0] * d, c0[1] * d, c1[1] * d, c2[1] * d, c0[2] * d, c1[2] * d, c2[2] * d)
+
+
+def gather(v: tuple, index: torch.Tensor) -> tuple:
+    """Every component of ``v`` indexed along its last dimension (rods -> spring ends)."""
+    return tuple(c.index_select(-1, index) for c in v)

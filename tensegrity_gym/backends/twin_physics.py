@@ -20,10 +20,14 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   back (torch's thread count is process-wide: another Python thread running torch work during
   the twin's step sees the twin's count). CUDA work is not affected.
 * **Compilation** (``compile``, default ``"auto"``): one substep (motors + engine step) is compiled
-  once with ``torch.compile`` (inductor: the substep's hundred small kernels become a few fused
-  loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles in
-  seconds (timed in :attr:`TwinPhysics.compile_seconds`) and inductor's on-disk cache makes the
-  next process faster. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
+  once with ``torch.compile`` (inductor: the substep's hundreds of small kernels become a few fused
+  loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles once
+  (timed in :attr:`TwinPhysics.compile_seconds`: ~30 s with a cold inductor cache, 1.6-5 s warm,
+  measured on 2 loaded cores) and inductor's on-disk cache makes the next process faster. The
+  substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
+  one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
+  rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect
+  without a component form, another integrator) steps through ``SpringRodEngine.step``. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
   variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
   warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
   substeps agree to rounding (tests/test_twin_speed.py).
@@ -150,6 +154,7 @@ class TwinPhysics:
         self._substep: Callable[..., tuple[torch.Tensor, ...]] = self._eager_substep
         self._compiled_substep: Callable[..., tuple[torch.Tensor, ...]] | None = None
         self._first_call = True
+        self._fused = engine.fused
 
     # ------------------------------------------------------------------ conversions
     def tensor(self, x: Any) -> torch.Tensor:
@@ -213,24 +218,26 @@ class TwinPhysics:
     def _advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
                  target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
                  ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
-        """``n`` substeps (motors, then one engine step) of a block of copies."""
+        """``n`` substeps (motors, then one engine step) of a block of copies. The substeps work on
+        the state's components (:mod:`identified.engine.smallmat`: one contiguous tensor (*B, R)
+        per coordinate), split once before and stacked once after."""
+        comps = _split(state)
         if self._first_call:
             self._first_call = False
             if self.compiled:
-                return self._compile_and_advance(n, state, rest, rest_act, target, pf, pp)
+                return self._compile_and_advance(n, comps, rest, rest_act, target, pf, pp)
         sub = self._substep
-        pos, quat, vel, angvel = state
-        r, ra = rest, rest_act
+        x, r, ra = comps, rest, rest_act
         try:
             for _ in range(n):
-                pos, quat, vel, angvel, r, ra = sub(pos, quat, vel, angvel, r, ra, target, pf, pp)
+                x, r, ra = sub(x, r, ra, target, pf, pp)
         except Exception as exc:
             if sub is self._eager_substep:
                 raise
             # a later compilation (a push, a new block shape) failed: eager from the same inputs
             self._fall_back(exc)
             return self._advance(n, state, rest, rest_act, target, pf, pp)
-        return RodState(pos, quat, vel, angvel), r, ra
+        return _stack(x), r, ra
 
     def _fall_back(self, exc: Exception) -> None:
         """Stop compiling (warn once) and step eagerly from now on."""
@@ -240,18 +247,21 @@ class TwinPhysics:
         warnings.warn(f"torch.compile of the twin's substep failed ({type(exc).__name__}: {msg}); the twin "
                       "runs eagerly (compile=False silences this)", stacklevel=5)
 
-    def _eager_substep(self, pos: torch.Tensor, quat: torch.Tensor, vel: torch.Tensor, angvel: torch.Tensor,
-                       rest: torch.Tensor, rest_act: torch.Tensor, target: torch.Tensor,
-                       pf: torch.Tensor | None, pp: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
-        """One substep: the motors move the actuated rest lengths, then one engine step."""
+    def _eager_substep(self, state: tuple, rest: torch.Tensor, rest_act: torch.Tensor, target: torch.Tensor,
+                       pf: torch.Tensor | None, pp: torch.Tensor | None) -> tuple[tuple, torch.Tensor, torch.Tensor]:
+        """One substep: the motors move the actuated rest lengths, then one engine step
+        (:meth:`~identified.engine.SpringRodEngine.step_components` when the engine is fused, else
+        :meth:`~identified.engine.SpringRodEngine.step` on the stacked state). ``state`` and the
+        result: the components of (pos, quat, vel, angvel), each (*B, R)."""
         e = self.engine
         if self.motor.n:
             rest_act = motor_step(rest_act, target, self.motor.speed, e.dt, self._lo, self._hi)
             rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)
-        s = e.step(RodState(pos, quat, vel, angvel), rest, pf, pp)
-        return s.pos, s.quat, s.vel, s.angvel, rest, rest_act
+        if self._fused:
+            return e.step_components(*state, rest, pf, pp), rest, rest_act
+        return _split(e.step(_stack(state), rest, pf, pp)), rest, rest_act
 
-    def _compile_and_advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
+    def _compile_and_advance(self, n: int, comps: tuple, rest: torch.Tensor, rest_act: torch.Tensor,
                              target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
                              ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
         """The first step with ``compile``: compile the substep (timed), check it runs, keep it;
@@ -259,30 +269,30 @@ class TwinPhysics:
         # one eager substep first: effects fill their lazy caches (geometry, parameter tensors)
         # eagerly, so the compiled substep reads them as constants and stays ONE graph (a cache
         # filled inside the traced call is numpy work that breaks the graph)
-        self._eager_substep(*state, rest, rest_act, target, pf, pp)
+        self._eager_substep(comps, rest, rest_act, target, pf, pp)
         t0 = time.perf_counter()
         try:
             fn = torch.compile(self._eager_substep, dynamic=False, options=self._inductor_options())
-            out = fn(*state, rest, rest_act, target, pf, pp)
+            out = fn(comps, rest, rest_act, target, pf, pp)
         except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
             self._fall_back(exc)
-            return self._advance(n, state, rest, rest_act, target, pf, pp)
+            return self._advance(n, _stack(comps), rest, rest_act, target, pf, pp)
         self.compile_seconds = time.perf_counter() - t0
         self._substep = self._compiled_substep = fn
-        pos, quat, vel, angvel, rest, rest_act = out
+        x, rest, rest_act = out
         for _ in range(n - 1):
-            pos, quat, vel, angvel, rest, rest_act = fn(pos, quat, vel, angvel, rest, rest_act, target, pf, pp)
-        return RodState(pos, quat, vel, angvel), rest, rest_act
+            x, rest, rest_act = fn(x, rest, rest_act, target, pf, pp)
+        return _stack(x), rest, rest_act
 
     def _inductor_options(self) -> dict[str, Any]:
-        """Inductor settings for the substep. Batched on a CPU: scalar loops (``cpp.simdlen=1``).
-        Every tensor of the step ends in a dimension of 3 (a vector, a 3x3 block), and inductor
-        vectorises that innermost dimension: a 16-lane masked vector op for 3 numbers. Scalar
-        loops over the batch measured 1.4-1.5x faster at 256 and 1024 envs; the single env (6
-        rods) is faster with the default."""
-        if self.engine.device.type == "cpu" and self.batch is not None:
-            return {"cpp.simdlen": 1}
-        return {}
+        """Inductor settings for the substep. On a CPU, a C++ wrapper (``cpp_wrapper``): the
+        compiled substep allocates its ~100 intermediate component buffers and calls its kernel
+        from C++ instead of Python, measured 7 % faster at 256 and 1024 envs and 25 % for the
+        single env (in one process, 2026-11-23), and a warm-cache compile of 1.6 s. Inductor's
+        default vectorisation (16 float32 lanes here) is kept: every tensor of the component-form
+        step is (*B, n) with no trailing 3, and the scalar loops (``cpp.simdlen=1``) the tensor
+        form needed measured 1.8x slower."""
+        return {"cpp_wrapper": True} if self.engine.device.type == "cpu" else {}
 
     # ------------------------------------------------------------------ read-out
     def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -297,3 +307,13 @@ class TwinPhysics:
     def rest_numpy(self) -> np.ndarray:
         """(*B, S) float64 rest lengths of every spring, m."""
         return self.rest.detach().to("cpu", torch.float64, copy=True).numpy()
+
+
+def _split(state: RodState) -> tuple:
+    """A stacked state -> the contiguous components of each field (the substep's form)."""
+    return tuple(tuple(c.contiguous() for c in x.unbind(-1)) for x in state)
+
+
+def _stack(comps: tuple) -> RodState:
+    """The substep's components -> a stacked :class:`RodState` (*B, R, ·)."""
+    return RodState(*(torch.stack(tuple(c), -1) for c in comps))

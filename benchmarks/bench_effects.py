@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_twin import busy_process  # benchmarks/, the script's directory
 
-from bench_twin import busy_process  # noqa: E402  (benchmarks/ is the script's directory)
 from identified.fit.pipeline import fit_model
 from identified.predict import rollout_errors
 from tensegrity_gym.collect import CollectConfig, collect

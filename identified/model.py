@@ -78,7 +78,7 @@ class IdentifiedModel:
                 lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe())
             except ValueError:
                 lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
-        g = lambda x: "diverged" if x is None else f"{x:.4g}"  # noqa: E731  (null in JSON: inf)
+        g = lambda x: "diverged" if x is None else f"{x:.4g}"
         for step in self.loop:
             line = (f"loop: added {step.get('added')}: held-out free-run error {g(step.get('error_before'))} m -> "
                     f"{g(step.get('error_after'))} m")

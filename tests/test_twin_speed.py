@@ -232,9 +232,12 @@ def test_float32_contact_twin_agrees_with_float64_over_an_episode(contact_backen
 
 
 def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
-    """The engine's form of the contact law (:meth:`GroundContact.wrench`: no per-parameter columns,
-    3x3 blocks) equals the form the fit uses (``contact_forces`` then ``_to_wrench``) in float64,
-    on states that put end caps into the ground, moving."""
+    """The twin's form of the contact law (:meth:`GroundContact.wrench_components`: component form,
+    no per-parameter columns, 3x3 blocks) equals the form the fit and the eager engine use
+    (``contact_forces`` then ``_to_wrench``) in float64, on states that put end caps into the
+    ground, moving."""
+    from identified.engine.smallmat import mat, unvec, vec
+
     b = contact_backend
     e = b.engine
     gc = e.effects[0]
@@ -250,7 +253,9 @@ def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
     ctx = t.ctx._replace(base_lin_acc=t.lin_acc, base_ang_acc_body=t.ang_acc_body)
     c, f = gc.contact_forces(s, ctx)
     force0, torque0 = gc._to_wrench(c, f)
-    force, torque = gc.wrench(s, ctx)
+    force, torque = (unvec(x) for x in gc.wrench_components(
+        vec(s.pos), vec(s.vel), vec(s.angvel), mat(ctx.rot), vec(ctx.base_lin_acc), vec(ctx.base_ang_acc_body),
+        ctx.params.mass, vec(ctx.params.inertia)))
     active = c["active"]
     assert 50 < int(active.sum()) < active.numel()  # contacts and free ends, both
     assert ((f[..., 0] == 0) & active).any()  # and ends released as pulling

@@ -156,8 +156,13 @@ def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
     tol = {"rtol": 1e-4, "atol": 1e-6}
     np.testing.assert_allclose(r["plant"]["returns"], plant[:, 0], **tol)
     np.testing.assert_allclose(r["plant"]["progress_per_episode_m"], plant[:, 1], **tol)
-    np.testing.assert_allclose(r["twin"]["returns"], twin[:, 0], **tol)
-    np.testing.assert_allclose(r["twin"]["progress_per_episode_m"], twin[:, 1], **tol)
+    # the float32 twin with ground contact carries those ~1e-7 further than the float64 plant: on
+    # a return after 30 steps, 1.2e-4 relative with the component-form step (4e-6 with the tensor
+    # form before it: float32 trajectories that round differently; the batched and the single
+    # twin step bitwise alike given the same actions); returns of other seeds differ by far more
+    twin_tol = {"rtol": 1e-3, "atol": 1e-5}
+    np.testing.assert_allclose(r["twin"]["returns"], twin[:, 0], **twin_tol)
+    np.testing.assert_allclose(r["twin"]["progress_per_episode_m"], twin[:, 1], **twin_tol)
     assert r["plant"]["return"] == pytest.approx(np.mean(r["plant"]["returns"]), rel=1e-12)
     assert r["twin"]["progress_m"] == pytest.approx(np.mean(r["twin"]["progress_per_episode_m"]), rel=1e-12)
     assert not np.allclose(plant[:, 1], twin[:, 1], **tol)  # the two evaluations are told apart

@@ -14,8 +14,10 @@ The paper's eq. 4 writes ``α = R I⁻¹ Rᵀ τ``; the gyroscopic term ``w_b ×
 equations) is added here because it is exact physics and MuJoCo includes it.  ``h`` is the paper's
 control force scalar (it scales the applied push ``f_u``, acting at the rod-frame point ``r_u``).
 
-Shapes: ``R`` rods, ``S`` springs, ``...`` leading batch dimensions.  Aggregation uses
-``index_add`` over index tensors from :class:`~identified.engine.forces.SpringGraph`.
+Shapes: ``R`` rods, ``S`` springs, ``...`` leading batch dimensions.  Aggregation is a gather and
+a short sum: each rod sums the ends it holds (``SpringGraph.rod_ends``), no scatter.  Every formula
+is written once in component form (``*_components``, :mod:`identified.engine.smallmat`); the
+tensor-form functions unbind into it and stack back.
 """
 
 from __future__ import annotations

@@ -27,8 +27,9 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
   one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
   rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect
-  without a component form, another integrator) steps through ``SpringRodEngine.step``. ``"auto"`` compiles when a C++ compiler is on the PATH and the environment
-  variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
+  without a component form, another integrator) steps through ``SpringRodEngine.step``. On a CPU
+  the compiled substep has inductor's C++ wrapper. ``"auto"`` compiles when a C++ compiler is on
+  the PATH and the environment variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
   warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
   substeps agree to rounding (tests/test_twin_speed.py).
 

@@ -40,8 +40,10 @@ from identified.topology import Topology
 __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
-#: fits of an iterative effect's classification (cable friction): it settles in 2-4 on clean data
-MAX_CLASSIFICATION_PASSES = 8
+#: fits of an iterative effect's classification (cable friction) per start of the search on a part
+#: of the data: it settles in 2-4 on clean data; where it does not (little or no sticking) the
+#: passes wander and the best one is kept
+MAX_CLASSIFICATION_PASSES = 5
 #: passes on all the data from a settled classification -- the search's on a part, or one given as
 #: the effect's values (a refit, or the effect search's next round) -- measured: 1-2 where the law
 #: is there; where it is not (F ~ 0) the classification of the rows near |m L̈ + d L̇| ~ F flickers

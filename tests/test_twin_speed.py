@@ -231,6 +231,17 @@ def test_float32_contact_twin_agrees_with_float64_over_an_episode(contact_backen
     assert np.abs(pos - pos0).max() > 0  # really two precisions
 
 
+def _states_in_the_ground(b, rng: np.random.Generator, n: int):
+    """``n`` perturbed nominal states of the contact backend's engine, lowered by up to 0.3 m (end
+    caps in the ground) and moving."""
+    st = [perturb_start(b.nominal_states(), rng, 0.3) for _ in range(n)]
+    s = b.engine.state(*(np.stack([getattr(x, f) for x in st]) for f in ("pos", "quat", "vel", "angvel")))
+    s.pos[..., 2] -= torch.as_tensor(rng.uniform(0, 0.3, (n, 1)))
+    s.vel += torch.as_tensor(rng.normal(0, 0.5, s.vel.shape))
+    s.angvel += torch.as_tensor(rng.normal(0, 1.0, s.angvel.shape))
+    return s
+
+
 def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
     """The twin's form of the contact law (:meth:`GroundContact.wrench_components`: component form,
     no per-parameter columns, 3x3 blocks) equals the form the fit and the eager engine use
@@ -243,11 +254,7 @@ def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
     gc = e.effects[0]
     rng = np.random.default_rng(1)
     n = 64
-    st = [perturb_start(b.nominal_states(), rng, 0.3) for _ in range(n)]
-    s = e.state(*(np.stack([getattr(x, f) for x in st]) for f in ("pos", "quat", "vel", "angvel")))
-    s.pos[..., 2] -= torch.as_tensor(rng.uniform(0, 0.3, (n, 1)))
-    s.vel += torch.as_tensor(rng.normal(0, 0.5, s.vel.shape))
-    s.angvel += torch.as_tensor(rng.normal(0, 1.0, s.angvel.shape))
+    s = _states_in_the_ground(b, rng, n)
     bare = SpringRodEngine(e.graph, e.params, e.dt, dtype=torch.float64)
     t = bare.dynamics(s, np.tile(b.nominal_rest_lengths(), (n, 1)))
     ctx = t.ctx._replace(base_lin_acc=t.lin_acc, base_ang_acc_body=t.ang_acc_body)
@@ -276,11 +283,7 @@ def test_fused_step_equals_the_engine_step(contact_backend):
     assert e.fused
     rng = np.random.default_rng(2)
     n = 32
-    st = [perturb_start(b.nominal_states(), rng, 0.3) for _ in range(n)]
-    s = e.state(*(np.stack([getattr(x, f) for x in st]) for f in ("pos", "quat", "vel", "angvel")))
-    s.pos[..., 2] -= torch.as_tensor(rng.uniform(0, 0.3, (n, 1)))
-    s.vel += torch.as_tensor(rng.normal(0, 0.5, s.vel.shape))
-    s.angvel += torch.as_tensor(rng.normal(0, 1.0, s.angvel.shape))
+    s = _states_in_the_ground(b, rng, n)
     rest = torch.as_tensor(np.tile(b.nominal_rest_lengths(), (n, 1)))
     push, point = torch.as_tensor(rng.normal(0, 5, (n, 6, 3))), torch.as_tensor(rng.normal(0, 0.2, (n, 6, 3)))
     for pf, pp in ((None, None), (push, None), (push, point)):

@@ -62,6 +62,7 @@ from threadpoolctl import threadpool_limits
 from identified.dataset import Dataset, DatasetError, atomic_write
 from identified.effects import EFFECTS, GeometryError, effects_from_model, make_effect, read_contact_geometry
 from identified.engine import SpringRodEngine
+from identified.engine.accelerations import inertial_wrench
 from identified.engine.integration import RodState
 from identified.fit.derivatives import iter_chunks
 from identified.fit.features import RodColumns, equation_rows
@@ -512,9 +513,7 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
             rtb = p.inertia * (ch.alpha_body - terms.ang_acc_body)
             if scheme == "central":  # the engine saw the push at the COM: its torque is the recorded one
                 rtb = rtb - p.control_scale * ch.push_torque_body
-            w = ch.angvel_body
-            ref_f = p.mass[:, None] * (ch.acc - p.gravity)
-            ref_t = p.inertia * ch.alpha_body + torch.cross(w, p.inertia * w, dim=-1)
+            ref_f, ref_t = inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body)
             y = torch.cat((rf, matrix_apply(rot, rtb) / half[:, None]), -1)  # (N, R, 6) world, N
             ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body,
                                      recorded_lin_acc=ch.acc, recorded_ang_acc_body=ch.alpha_body)

@@ -23,7 +23,7 @@ recorded instant, the force is linear in the parameters -- ``F_j sign`` where it
 columns enter the paper's regression with K, c, M, I.  Which cables stick follows from the
 parameters themselves (``|m L̈ + d L̇| < F``), so the fit iterates: the first pass calls a cable
 stuck while ``|L̈ + b L̇| < θ``, with ``b`` read off the data (:meth:`CableFriction.starts`: a
-sticking cable's rate decays as ``e^{-bt}``, a sharp mode of ``-L̈ / L̇``) and three widths ``θ``
+sticking cable's rate decays as ``e^{-bt}``, a sharp peak of ``-L̈ / L̇``) and four widths ``θ``
 tried on a part of the data; every later pass classifies with the previous pass's parameters,
 until they stop moving (:meth:`CableFriction.reclassify`;
 :func:`identified.fit.identify._iterate_classification`).  Cables the data never show sticking

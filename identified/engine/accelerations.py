@@ -28,8 +28,8 @@ from identified.engine.forces import SpringGraph, as_graph
 from identified.engine.smallmat import Mat, Vec, mat, mtv, mv, unvec, vcross, vec
 from identified.topology import Topology
 
-__all__ = ["push_wrench", "push_wrench_components", "rod_accelerations", "rod_accelerations_components",
-           "rod_wrench", "rod_wrench_components"]
+__all__ = ["inertial_wrench", "push_wrench", "push_wrench_components", "rod_accelerations",
+           "rod_accelerations_components", "rod_wrench", "rod_wrench_components"]
 
 
 def rod_wrench(
@@ -82,6 +82,16 @@ def push_wrench(
                                            h.unsqueeze(-1))
     force_t = unvec(force)
     return force_t, torch.zeros_like(force_t) if torque is None else unvec(torque)
+
+
+def inertial_wrench(mass: torch.Tensor, inertia: torch.Tensor, gravity: torch.Tensor, lin_acc: torch.Tensor,
+                    ang_acc_body: torch.Tensor, angvel_body: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eqs. 3-4 read backwards: the wrench every force but gravity must add for the given motion,
+    ``M (a - g)`` (..., R, 3) world and ``I α_b + w_b × I w_b`` (..., R, 3) ROD frame (shapes as
+    :func:`rod_accelerations`).  The residual-stage fit, the effect search's one-step error and
+    ``diagnose`` compare a model's forces with it."""
+    return mass.unsqueeze(-1) * (lin_acc - gravity), inertia * ang_acc_body + torch.cross(
+        angvel_body, inertia * angvel_body, dim=-1)
 
 
 def rod_accelerations(

@@ -376,6 +376,7 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     ``model.effects`` and returns per-effect fit statistics.
     """
     from identified.engine import SpringRodEngine
+    from identified.engine.accelerations import inertial_wrench
     from identified.rotation import matrix_apply
 
     E = dataset.n_episodes
@@ -390,9 +391,7 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     with torch.no_grad():
         terms = eng.dynamics(state, ch.rest, ch.push_force, push_point)
         p = eng.params
-        need_f = p.mass[:, None] * (ch.acc - p.gravity)
-        w = ch.angvel_body
-        need_tb = p.inertia * ch.alpha_body + torch.cross(w, p.inertia * w, dim=-1)
+        need_f, need_tb = inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body)
         need_t = matrix_apply(terms.ctx.rot, need_tb)
         ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
         stats = {}

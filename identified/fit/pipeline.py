@@ -304,6 +304,7 @@ def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps:
 
     from identified.effects import effects_from_model
     from identified.engine import SpringRodEngine
+    from identified.engine.accelerations import inertial_wrench
     from identified.engine.integration import RodState
     from identified.fit.derivatives import iter_chunks
 
@@ -327,11 +328,9 @@ def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps:
             eng = SpringRodEngine.from_model(m, dtype=torch.float64)
             p = eng.params
             terms = eng.dynamics(state, ch.rest, ch.push_force, point)
-            w = ch.angvel_body
             res = torch.cat((p.mass[:, None] * (ch.acc - terms.lin_acc),
                              p.inertia * (ch.alpha_body - terms.ang_acc_body)), -1)
-            ref = torch.cat((p.mass[:, None] * (ch.acc - p.gravity),
-                             p.inertia * ch.alpha_body + torch.cross(w, p.inertia * w, dim=-1)), -1)
+            ref = torch.cat(inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body), -1)
             for e in effects_from_model(m):
                 rows = e.rows_affected(state, terms.ctx) if e.stage != "joint" else None
                 if rows is not None:

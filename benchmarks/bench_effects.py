@@ -11,7 +11,7 @@ test set of the model without and with its effects.  Clean plants: the false dis
     python benchmarks/bench_effects.py --quick    # fewer cases
     python benchmarks/bench_effects.py --only frictionloss,clean
     python benchmarks/bench_effects.py --case paper-uniform,frictionloss,2.5,41 --case robot,viscosity,1,42
-    python benchmarks/bench_effects.py --speed [--busy]  # robot fit --effects auto (20 x 1000), diagnose times
+    python benchmarks/bench_effects.py --speed [--busy] [--jobs N]  # robot fit --effects auto (20 x 1000), diagnose times
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import copy
 import dataclasses
 import os
 import re
+import resource
 import sys
 import tempfile
 import time
@@ -107,10 +108,16 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
             "test_after": after, "seconds": secs, "explained": model.metrics["effect_search"]["explained"]}
 
 
-def speed(tmp: Path, busy: bool = False) -> None:
+def children_cpu() -> float:
+    """CPU seconds of this process's finished child processes (the search's workers)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def speed(tmp: Path, busy: bool = False, jobs: int | str = "auto") -> None:
     """The issue's speed figures: ``fit --effects auto`` on the robot, 20 x 1000 steps, and
-    ``diagnose`` of the result on 4 fresh episodes (wall and this process's CPU seconds); with
-    ``busy``, again with one busy process beside it (``bench_twin.busy_process``)."""
+    ``diagnose`` of the result on 4 fresh episodes (wall and CPU seconds, the search's worker
+    processes apart); with ``busy``, again with one busy process beside it (``bench_twin.busy_process``)."""
     from identified.diagnose import diagnose
 
     mjcf = tmp / "robot.xml"
@@ -121,13 +128,14 @@ def speed(tmp: Path, busy: bool = False) -> None:
     for cond in ("as found", "1 busy process") if busy else ("as found",):
         with busy_process(cond != "as found"):
             load = os.getloadavg()[0]
-            w0, c0 = time.perf_counter(), time.process_time()
-            model = fit_model(data, mjcf, effects="auto")
-            w1, c1 = time.perf_counter(), time.process_time()
+            w0, c0, k0 = time.perf_counter(), time.process_time(), children_cpu()
+            model = fit_model(data, mjcf, effects="auto", jobs=jobs)
+            w1, c1, k1 = time.perf_counter(), time.process_time(), children_cpu()
             diagnose(model, test, mjcf=str(mjcf))
             w2, c2 = time.perf_counter(), time.process_time()
-        print(f"[{cond}, load {load:.1f} -> {os.getloadavg()[0]:.1f}] robot 20 x 1000 fit --effects auto: "
-              f"{w1 - w0:.1f} s wall, {c1 - c0:.1f} s CPU; effects {[e['name'] for e in model.effects]}; "
+        print(f"[{cond}, load {load:.1f} -> {os.getloadavg()[0]:.1f}] robot 20 x 1000 fit --effects auto "
+              f"--jobs {jobs}: {w1 - w0:.1f} s wall, {c1 - c0:.1f} s CPU here + {k1 - k0:.1f} s in workers; "
+              f"effects {[e['name'] for e in model.effects]}; "
               f"diagnose 4 x 1000: {w2 - w1:.1f} s wall, {c2 - c1:.1f} s CPU", flush=True)
 
 
@@ -140,11 +148,12 @@ def main() -> int:
     p.add_argument("--case", action="append", default=None, metavar="PRESET,KIND,SIZE,SEED",
                    help="run this case instead of the table's (repeatable), e.g. paper-uniform,frictionloss,2.5,41")
     p.add_argument("--busy", action="store_true", help="with --speed: also time it beside one busy process")
+    p.add_argument("--jobs", default="auto", help="with --speed: the fit's --jobs (default auto)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     if args.speed:
         with tempfile.TemporaryDirectory() as d:
-            speed(Path(d), args.busy)
+            speed(Path(d), args.busy, args.jobs if args.jobs == "auto" else int(args.jobs))
         return 0
     cases = CASES[::3] if args.quick else CASES
     if args.only:

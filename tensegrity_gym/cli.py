@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from identified.jsonsafe import json_safe
-from tensegrity_gym.options import count, finite_float, noise, seed
+from tensegrity_gym.options import count, finite_float, jobs, noise, seed
 
 __all__ = ["build_parser", "main"]
 
@@ -103,7 +103,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     # --integrator it first picks the one whose equations fit the data (fit_model)
     model = fit_model(data, args.model, effects=args.effects, regressors=args.regressors, scale=scale,
                       solver=args.solver, weak_window=weak, integrator=args.integrator, scheme=args.scheme,
-                      refine=args.refine, progress=not args.quiet)
+                      refine=args.refine, progress=not args.quiet, jobs=args.jobs)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
@@ -344,6 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="none: the spring-rod model alone (default); auto: search the effect library for what "
                    "the data show (held-out free-run error, see the README); or effect names: ground_contact, "
                    "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
+    f.add_argument("--jobs", type=jobs, default="auto", metavar="N|auto",
+                   help="processes the effect search fits its candidates in (default auto: one per core "
+                   "this process may use; the model is the same with any N)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 

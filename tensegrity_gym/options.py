@@ -10,7 +10,7 @@ import argparse
 import math
 from collections.abc import Callable
 
-__all__ = ["count", "finite_float", "noise", "seed"]
+__all__ = ["count", "finite_float", "jobs", "noise", "seed"]
 
 #: largest seed numpy's generators take
 MAX_SEED = 2**63 - 1
@@ -34,6 +34,16 @@ def count(minimum: int = 1) -> Callable[[str], int]:
 
     parse.__name__ = "count"
     return parse
+
+
+def jobs(text: str) -> int | str:
+    """``auto`` or a whole number >= 1 of processes."""
+    if text.strip() == "auto":
+        return "auto"
+    v = _int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be auto or a whole number >= 1, got {text}")
+    return v
 
 
 def seed(text: str) -> int:

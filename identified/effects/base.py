@@ -87,6 +87,9 @@ class Effect(ABC):
     explicit: ClassVar[bool] = True  # the implicit integrator treats its force as explicit
     needs_base_acceleration: ClassVar[bool] = False
     iterative: ClassVar[bool] = False
+    #: how long its fit takes relative to a plain linear effect's: the effect search starts the
+    #: slowest candidates first when it fits them side by side (:mod:`identified.fit.workers`)
+    fit_cost: ClassVar[float] = 1.0
 
     def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,
                  options: dict[str, Any] | None = None) -> None:

@@ -66,6 +66,7 @@ class CableFriction(Effect):
     )
     needs_base_acceleration = True  # the twin solves for the force given every other force
     iterative = True  # the fit's features depend on a classification made from its own values
+    fit_cost = 15.0  # several passes of the fit (measured ~15x a drag fit on the robot)
 
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> CableFriction:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,7 @@ from identified.dataset import Dataset, DatasetError
 from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
+from identified.fit.workers import TaskPool
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
@@ -96,12 +98,15 @@ def fit_model(
     progress: bool = False,
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
+    jobs: int | str | None = "auto",
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
     ``effects``: ``"none"``, ``"auto"`` (the search of the module docstring) or effect names.
     ``integrator``: as :func:`identified.fit.identify.identify` (default ``"euler"``, ``"auto"``
     with ``refine``); MuJoCo's ``"implicitfast"`` is the engine's ``"implicit"``.
+    ``jobs``: processes the effect search fits its candidates in (``"auto"``: the cores this
+    process may use; :mod:`identified.fit.workers`); the model does not depend on it.
     """
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
@@ -124,7 +129,7 @@ def fit_model(
     explained = None
     fixed: dict[str, dict[str, Any]] = {}
     if spec == "auto":
-        names, loop, explained, fixed = select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress)
+        names, loop, explained, fixed = select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress, jobs)
     else:
         names = [] if spec == "none" else spec
     t0 = time.perf_counter()
@@ -170,6 +175,38 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
     return out
 
 
+@dataclass(frozen=True)
+class _Search:
+    """What every fit of the effect search shares (a worker process inherits it)."""
+
+    train: Dataset
+    held: Dataset
+    topo: Topology
+    mjcf: str
+    fit_kwargs: dict[str, Any]
+    horizon: int  # steps of the held-out free run
+
+
+def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bool]
+              ) -> tuple[IdentifiedModel | None, float, float, float]:
+    """One fit of the search: ``(names, fixed, base)`` -> the model (``None``: the data cannot
+    identify it), its screen error (a candidate's) or its full free-run error (the base model's),
+    and the seconds it took."""
+    from identified.predict import rollout_errors
+
+    t0 = time.perf_counter()
+    names, fixed, base = task
+    try:
+        m = identify(ctx.train, ctx.topo, effects=_build(names, ctx.topo, ctx.mjcf, fixed), **ctx.fit_kwargs)
+    except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
+        return None, float("inf"), float("inf"), time.perf_counter() - t0
+    if not base:
+        return m, window_error(m, ctx.held, max(1, ctx.horizon // 10)), float("nan"), time.perf_counter() - t0
+    with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
+        err = float(rollout_errors(m, ctx.held, horizon=ctx.horizon)["pos_mean"])
+    return m, float("nan"), err if np.isfinite(err) else float("inf"), time.perf_counter() - t0
+
+
 def select_effects(
     data: Dataset,
     topo: Topology,
@@ -178,16 +215,16 @@ def select_effects(
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
     progress: bool = False,
+    jobs: int | str | None = "auto",
 ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]]]:
     """Forward selection of effects on held-out episodes (module docstring).
 
     Returns the chosen names, the loop record (one entry per step: ``added``, ``error_before``,
     ``error_after``, ``candidates`` with each one's held-out error), ``explained``, and the options
     a chosen effect's own search settled (the contact regulariser; the cable friction's values,
-    from which its later refits start their classification), for the final fit.
+    from which its later refits start their classification), for the final fit.  A round's fits
+    run side by side in ``jobs`` processes (:mod:`identified.fit.workers`; the same result).
     """
-    from identified.predict import rollout_errors
-
     E = data.n_episodes
     if E < 2:
         raise DatasetError("--effects auto needs at least 2 episodes (one is held out to judge each effect)")
@@ -202,55 +239,58 @@ def select_effects(
         except GeometryError:
             continue  # e.g. no ground plane: ground contact cannot be there
         candidates.append(name)
+    ctx = _Search(train, held, topo, mjcf, fit_kwargs, H)
+    with TaskPool(_fit_task, ctx, jobs) as pool:
+        return _search(ctx, pool, candidates, min_gain, progress)
+
+
+def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float, progress: bool
+            ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]]]:
+    from identified.predict import rollout_errors
 
     # settings of a chosen effect found by its own profile scan (the contact regulariser) are kept
     # for the later rounds' refits
     fixed: dict[str, dict[str, Any]] = {}
-
-    def fit(names: list[str]) -> IdentifiedModel | None:
-        try:
-            return identify(train, topo, effects=_build(names, topo, mjcf, fixed), **fit_kwargs)
-        except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
-            return None
+    held, topo = ctx.held, ctx.topo
 
     def free_run(m: IdentifiedModel | None) -> float:
         if m is None:
             return float("inf")
         with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
-            err = rollout_errors(m, held, horizon=H)["pos_mean"]
+            err = rollout_errors(m, held, horizon=ctx.horizon)["pos_mean"]
         return float(err) if np.isfinite(err) else float("inf")
 
-    def screen(m: IdentifiedModel | None) -> float:
-        return float("inf") if m is None else window_error(m, held, max(1, H // 10))
-
-    def score(names: list[str]) -> tuple[float, IdentifiedModel | None]:
-        m = fit(names)
-        return free_run(m), m
-
+    # the slowest fits start first: the last round's time of each, else its effect's fit_cost
+    cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
     chosen: list[str] = []
-    base_err, base_model = score(chosen)
-    first_err = base_err
+    base_model: IdentifiedModel | None = None
+    base_err = first_err = float("nan")
     loop: list[dict[str, Any]] = []
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(candidates), desc="effects", unit="candidate", leave=False)
+        bar = tqdm(total=len(candidates) + 1, desc="effects", unit="fit", leave=False)
     while True:
         # every remaining candidate is refitted and screened by its held-out error over short
         # windows (a tenth of the horizon, many starts); the best one must then cut the full
-        # held-out free-run error by min_gain
-        fits, screens = {}, {}
-        for name in candidates:
-            if name.split(":")[0] in {c.split(":")[0] for c in chosen}:
-                continue
-            fits[name] = fit(chosen + [name])
-            screens[name] = screen(fits[name])
-            if bar is not None:
-                bar.update(1)
-        if not screens:
+        # held-out free-run error by min_gain.  The first round fits the base model beside them.
+        names = [n for n in candidates if n.split(":")[0] not in {c.split(":")[0] for c in chosen}]
+        names.sort(key=lambda n: -cost[n])
+        if not names and base_model is not None:
             break
-        names = list(screens)
+        tasks = [(chosen + [n], dict(fixed), False) for n in names]
+        if base_model is None:
+            tasks.append((list(chosen), dict(fixed), True))
+        results = pool.map(tasks, on_done=None if bar is None else (lambda: bar.update(1)))
+        if base_model is None:
+            base_model, _, base_err, _ = results.pop()
+            first_err = base_err
+        if not names:
+            break
+        fits = {n: r[0] for n, r in zip(names, results)}
+        screens = {n: r[1] for n, r in zip(names, results)}
+        cost.update({n: r[3] for n, r in zip(names, results)})
         one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
         best = min(screens, key=screens.get)
@@ -269,7 +309,7 @@ def select_effects(
                      "error_before": _json_float(base_err), "error_after": _json_float(err),
                      "one_step_before": _json_float(one_base), "one_step_after": _json_float(ones[best]),
                      "candidates": {k: _json_float(v) for k, v in screens.items()},
-                     "screen": f"held-out error over {max(1, H // 10)}-step windows (m)",
+                     "screen": f"held-out error over {max(1, ctx.horizon // 10)}-step windows (m)",
                      "one_step": {k: _json_float(v) for k, v in ones.items()}})
         chosen.append(best)
         base_err, base_model = err, fits[best]

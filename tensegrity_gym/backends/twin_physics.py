@@ -39,12 +39,11 @@ reads as NaN until it is reset.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -52,6 +51,7 @@ import torch
 
 from identified.engine import SpringRodEngine
 from identified.state import RodState
+from identified.threads import torch_threads
 from tensegrity_gym.cables import MotorSpec, motor_step
 
 __all__ = ["COMPILE_ENV", "TwinPhysics", "compiler_available", "resolve_threads", "torch_threads"]
@@ -76,21 +76,6 @@ def resolve_threads(num_threads: int | str | None, device: torch.device) -> int 
     if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 1:
         raise ValueError(f"num_threads must be 'auto', None or an integer >= 1, got {num_threads!r}")
     return int(num_threads)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int | None) -> Iterator[None]:
-    """Run the block with ``n`` torch intra-op threads, then restore the caller's count
-    (``None`` or the current count: nothing changes)."""
-    old = torch.get_num_threads()
-    if n is None or n == old:
-        yield
-        return
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def _wants_compile(compile: bool | str, device: torch.device) -> bool:

@@ -16,7 +16,6 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +23,7 @@ import numpy as np
 
 from identified.dataset import Dataset, atomic_write
 from identified.jsonsafe import json_safe
+from identified.threads import torch_threads
 from identified.topology import Topology
 
 __all__ = ["Context", "Result", "bound_heap", "format_table", "generate", "single_thread", "to_jsonable", "write_json"]
@@ -65,17 +65,9 @@ class Result:
                             "notes": self.notes, "figures": self.figures, "seconds": round(self.seconds, 2)})
 
 
-@contextlib.contextmanager
-def single_thread(n: int = 1) -> Iterator[None]:
+def single_thread(n: int = 1) -> contextlib.AbstractContextManager[None]:
     """Torch on ``n`` threads inside the block (the machine is shared), restored after."""
-    import torch
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
+    return torch_threads(n)
 
 
 def generate(ctx: Context, system: str, preset: str, split: str, episodes: int, steps: int,

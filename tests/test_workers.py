@@ -1,0 +1,86 @@
+"""The effect search's worker pool: every task once, results in order, work shared with the
+workers, a dead worker's tasks done here, the caller's torch threads given back; and the search
+gives the same model with one process or two."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from identified.fit.workers import TaskPool, resolve_jobs
+
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+
+
+def _square(ctx: dict, task: int) -> tuple[int, int]:
+    return ctx["offset"] + task * task, os.getpid()
+
+
+def _die_in_a_worker(ctx: dict, task: int) -> tuple[int, int]:
+    if os.getpid() != ctx["parent"]:
+        os._exit(3)  # a worker killed mid-task
+    return task + 1, os.getpid()
+
+
+@linux
+def test_tasks_run_once_each_in_order_in_this_process_and_a_worker():
+    ctx = {"offset": 1000}
+    threads = torch.get_num_threads()
+    done = []
+    with TaskPool(_square, ctx, jobs=2) as pool:
+        out = pool.map(list(range(40)), on_done=lambda: done.append(1))
+    assert [v for v, _ in out] == [1000 + t * t for t in range(40)]
+    assert len(done) == 40
+    pids = {p for _, p in out}
+    assert os.getpid() in pids and len(pids) == 2  # this process takes tasks while the worker is busy
+    assert torch.get_num_threads() == threads
+
+
+@linux
+def test_a_dead_worker_s_tasks_are_done_here_with_a_warning():
+    with TaskPool(_die_in_a_worker, {"parent": os.getpid()}, jobs=2) as pool, \
+            pytest.warns(RuntimeWarning, match="worker process"):
+        out = pool.map(list(range(6)))
+    assert [v for v, _ in out] == [t + 1 for t in range(6)]
+    assert {p for _, p in out} == {os.getpid()}
+
+
+def test_one_job_runs_everything_here():
+    with TaskPool(_square, {"offset": 0}, jobs=1) as pool:
+        out = pool.map([3, 4])
+    assert out == [(9, os.getpid()), (16, os.getpid())]
+
+
+def test_jobs_option():
+    assert resolve_jobs(3) == 3
+    assert resolve_jobs("auto") >= 1
+    for bad in (0, -1, "two", 1.5, True):
+        with pytest.raises(ValueError, match="jobs"):
+            resolve_jobs(bad)
+
+
+@linux
+def test_the_search_gives_the_same_model_with_one_process_or_two(tmp_path):
+    """A hidden drag found the same way, with the same parameters and loop, whatever ``jobs``."""
+    from identified.fit.pipeline import fit_model
+    from tensegrity_gym.collect import CollectConfig, collect
+    from tensegrity_gym.models import write_model
+
+    clean = tmp_path / "ico.xml"
+    write_model(clean, "ico", preset="paper-nonuniform", seed=9)
+    plant = tmp_path / "plant.xml"
+    plant.write_text(clean.read_text().replace("<option ", '<option viscosity="0.6" '))
+    data = collect(plant, CollectConfig(episodes=4, steps=400, seed=31, push_every=100))
+    one, two = (fit_model(data, clean, effects="auto", jobs=j) for j in (1, 2))
+    assert [e["name"] for e in one.effects] == [e["name"] for e in two.effects] == ["linear_drag"]
+    assert [s["added"] for s in one.loop] == [s["added"] for s in two.loop]
+    np.testing.assert_allclose(one.stiffness, two.stiffness, rtol=1e-9)
+    for a, b in zip(one.effects, two.effects):
+        for k in a["parameters"]:
+            np.testing.assert_allclose(a["parameters"][k], b["parameters"][k], rtol=1e-9, atol=1e-12)
+    for k in ("error_before", "error_after"):
+        np.testing.assert_allclose(one.loop[0][k], two.loop[0][k], rtol=1e-6)

@@ -12,12 +12,15 @@ import pytest
 import torch
 
 from identified.fit.workers import TaskPool, resolve_jobs
+from identified.threads import torch_threads
 
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
 
 
 def _square(ctx: dict, task: int) -> tuple[int, int]:
-    return ctx["offset"] + task * task, os.getpid()
+    x = torch.linspace(0, 1, 200_000, dtype=torch.float64)  # torch work in every task: a worker's
+    assert torch.allclose(x.exp().sum() / x.numel(), torch.tensor(np.e - 1, dtype=torch.float64), rtol=1e-4)
+    return ctx["offset"] + task * task, os.getpid()  # OpenMP must run after the fork (no hang)
 
 
 def _die_in_a_worker(ctx: dict, task: int) -> tuple[int, int]:
@@ -29,15 +32,18 @@ def _die_in_a_worker(ctx: dict, task: int) -> tuple[int, int]:
 @linux
 def test_tasks_run_once_each_in_order_in_this_process_and_a_worker():
     ctx = {"offset": 1000}
-    threads = torch.get_num_threads()
     done = []
-    with TaskPool(_square, ctx, jobs=2) as pool:
-        out = pool.map(list(range(40)), on_done=lambda: done.append(1))
+    with torch_threads(4):  # this process has run OpenMP threads before the workers are forked
+        a = torch.ones(20_000_000)
+        assert float((a * 2).sum()) == 4e7
+        with TaskPool(_square, ctx, jobs=2) as pool:
+            assert torch.get_num_threads() == 1  # one core each while the pool is open
+            out = pool.map(list(range(40)), on_done=lambda: done.append(1))
+        assert torch.get_num_threads() == 4
     assert [v for v, _ in out] == [1000 + t * t for t in range(40)]
     assert len(done) == 40
     pids = {p for _, p in out}
     assert os.getpid() in pids and len(pids) == 2  # this process takes tasks while the worker is busy
-    assert torch.get_num_threads() == threads
 
 
 @linux

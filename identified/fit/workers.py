@@ -9,10 +9,10 @@ its total over ``jobs``, whichever is more.
 
 The workers are *forked* from this process: they inherit its data and imported modules, so they
 start in milliseconds, and the caller's script is never re-run (as ``spawn`` would re-import
-``__main__``).  Torch's intra-op threads are shared out: the workers and this process each run on
-``threads // jobs`` (at least 1) of the caller's count while the pool is open, so the processes
-together never ask for more threads than the caller had (torch's idle threads spin and fight each
-other for cores).  Where fork is not available (not Linux) or ``jobs`` is 1, every task runs in this
+``__main__``).  While the pool is open every process, this one included, runs torch on ONE
+intra-op thread: ``jobs`` processes then ask for ``jobs`` cores (torch's idle threads spin and
+fight each other for cores), and a forked child must not use OpenMP threads when its parent has
+(GNU libgomp's pool does not survive fork: the child hangs; ``tests/test_workers.py``).  Where fork is not available (not Linux) or ``jobs`` is 1, every task runs in this
 process.  The results do not depend on ``jobs``: each task is the same deterministic computation
 wherever it runs (``tests/test_effects.py`` compares one job and two).
 """
@@ -78,7 +78,7 @@ class TaskPool(Generic[C]):
         self.jobs = resolve_jobs(jobs)
         if not sys.platform.startswith("linux"):
             self.jobs = 1
-        self.threads = max(1, torch.get_num_threads() // self.jobs)
+        self.threads = 1  # see the module docstring: libgomp after fork, and one core a process
         self._pool: ProcessPoolExecutor | None = None
         self._stack = ExitStack()
 

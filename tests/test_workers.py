@@ -90,3 +90,17 @@ def test_the_search_gives_the_same_model_with_one_process_or_two(tmp_path):
             np.testing.assert_allclose(a["parameters"][k], b["parameters"][k], rtol=1e-9, atol=1e-12)
     for k in ("error_before", "error_after"):
         np.testing.assert_allclose(one.loop[0][k], two.loop[0][k], rtol=1e-6)
+
+
+def _pool_in_a_daemon(jobs: int) -> list:
+    torch.set_num_threads(1)  # forked after this process ran OpenMP threads (see identified.fit.workers)
+    with TaskPool(_square, {"offset": 0}, jobs=jobs) as pool:
+        return [v for v, _ in pool.map([1, 2, 3])]
+
+
+@linux
+def test_inside_a_multiprocessing_pool_worker_everything_runs_there():
+    import multiprocessing
+
+    with multiprocessing.get_context("fork").Pool(1) as outer:  # its workers are daemonic: no children
+        assert outer.apply(_pool_in_a_daemon, (2,)) == [1, 4, 9]

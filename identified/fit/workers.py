@@ -12,9 +12,12 @@ start in milliseconds, and the caller's script is never re-run (as ``spawn`` wou
 ``__main__``).  While the pool is open every process, this one included, runs torch on ONE
 intra-op thread: ``jobs`` processes then ask for ``jobs`` cores (torch's idle threads spin and
 fight each other for cores), and a forked child must not use OpenMP threads when its parent has
-(GNU libgomp's pool does not survive fork: the child hangs; ``tests/test_workers.py``).  Where fork is not available (not Linux) or ``jobs`` is 1, every task runs in this
-process.  The results do not depend on ``jobs``: each task is the same deterministic computation
-wherever it runs (``tests/test_effects.py`` compares one job and two).
+(GNU libgomp's pool does not survive fork: the child hangs; ``tests/test_workers.py``).
+
+Where fork is not available (not Linux) or ``jobs`` is 1, every task runs in this process; so do
+they inside a daemonic process (a ``multiprocessing.Pool`` worker may have no children).  The
+results do not depend on ``jobs``: each task is the same deterministic computation wherever it
+runs (``tests/test_workers.py`` compares the effect search with one job and two).
 """
 
 from __future__ import annotations
@@ -76,8 +79,8 @@ class TaskPool(Generic[C]):
     def __init__(self, fn: Callable[[C, Any], Any], context: C, jobs: int | str | None = 1) -> None:
         self.fn, self.context = fn, context
         self.jobs = resolve_jobs(jobs)
-        if not sys.platform.startswith("linux"):
-            self.jobs = 1
+        if not sys.platform.startswith("linux") or multiprocessing.current_process().daemon:
+            self.jobs = 1  # no fork; or inside a daemonic worker (a multiprocessing.Pool's), which may not fork
         self.threads = 1  # see the module docstring: libgomp after fork, and one core a process
         self._pool: ProcessPoolExecutor | None = None
         self._stack = ExitStack()

@@ -22,6 +22,9 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    instead of searching it again.  Each step goes into the model's ``loop`` section: the
    effect added and the held-out error before and after.
 
+A round's fits are independent: they run side by side in ``jobs`` processes
+(:mod:`identified.fit.workers`), and the result does not depend on ``jobs``.
+
 The evidence is out-of-sample: an effect absent from the plant fits to near zero on the fitted
 episodes and changes the held-out error by far less than 2x, so clean data get nothing added
 (measured on clean plants in tests/test_effects.py).  After the search, ``explained`` says whether

@@ -166,6 +166,7 @@ BAD_FLAGS = [
     *[("collect", "--push-magnitude", v) for v in ("nan", "inf", "-5", "0", "1e300", "x")],
     *[("fit", "--total-mass", v) for v in ("nan", "inf", "-1", "0", "1e300", "x")],
     *[("fit", "--weak-window", v) for v in ("-5", "-1", "x", "2.5")],
+    *[("fit", "--jobs", v) for v in ("0", "-2", "x", "1.5", "")],
     *[("fit", "--mass", v) for v in ("rod0=nan", "rod0=inf", "rod0=-1", "rod0=0", "rod0", "rod0=x",
                                      "rod99=3")],
     *[("fit", opt, v) for opt in ("--regressors", "--solver", "--integrator", "--scheme", "--effects")

@@ -62,7 +62,7 @@ def test_one_job_runs_everything_here():
 
 
 def test_jobs_option():
-    assert resolve_jobs(3) == 3
+    assert resolve_jobs(3) == 3 and resolve_jobs(np.int64(2)) == 2
     assert resolve_jobs("auto") >= 1
     for bad in (0, -1, "two", 1.5, True):
         with pytest.raises(ValueError, match="jobs"):

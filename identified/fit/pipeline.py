@@ -47,7 +47,7 @@ from identified.dataset import Dataset, DatasetError
 from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
-from identified.fit.workers import TaskPool
+from identified.fit.workers import TaskPool, resolve_jobs
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
@@ -114,6 +114,7 @@ def fit_model(
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
     spec = parse_effects(effects)
+    resolve_jobs(jobs)  # a bad value fails before any work
     if refine:
         from identified.fit.refine import check_refinable
 
@@ -243,6 +244,7 @@ def select_effects(
             continue  # e.g. no ground plane: ground contact cannot be there
         candidates.append(name)
     ctx = _Search(train, held, topo, mjcf, fit_kwargs, H)
+    jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
     with TaskPool(_fit_task, ctx, jobs) as pool:
         return _search(ctx, pool, candidates, min_gain, progress)
 

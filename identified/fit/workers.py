@@ -23,6 +23,7 @@ runs (``tests/test_workers.py`` compares the effect search with one job and two)
 from __future__ import annotations
 
 import multiprocessing
+import numbers
 import os
 import sys
 import warnings
@@ -53,9 +54,9 @@ def resolve_jobs(jobs: int | str | None) -> int:
             return max(1, len(os.sched_getaffinity(0)))
         except AttributeError:  # not Linux
             return max(1, os.cpu_count() or 1)
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+    if isinstance(jobs, bool) or not isinstance(jobs, numbers.Integral) or jobs < 1:
         raise ValueError(f"jobs must be 'auto' or an integer >= 1, got {jobs!r}")
-    return jobs
+    return int(jobs)
 
 
 def _start_worker(context: Any, threads: int) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -104,3 +105,21 @@ def test_inside_a_multiprocessing_pool_worker_everything_runs_there():
 
     with multiprocessing.get_context("fork").Pool(1) as outer:  # its workers are daemonic: no children
         assert outer.apply(_pool_in_a_daemon, (2,)) == [1, 4, 9]
+
+
+def _slow_in_a_worker(ctx: dict, task: int) -> int:
+    if os.getpid() != ctx["parent"]:
+        time.sleep(60)
+        return task
+    raise KeyboardInterrupt  # Ctrl-C while this process runs its own task
+
+
+@linux
+def test_ctrl_c_here_stops_the_workers_at_once():
+    import multiprocessing
+
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt), TaskPool(_slow_in_a_worker, {"parent": os.getpid()}, jobs=2) as pool:
+        pool.map([0, 1])  # the worker sleeps on 0, this process is interrupted on 1
+    assert time.perf_counter() - t0 < 10  # not the worker's 60 s
+    assert multiprocessing.active_children() == []

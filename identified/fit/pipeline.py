@@ -196,8 +196,6 @@ def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bo
     """One fit of the search: ``(names, fixed, base)`` -> the model (``None``: the data cannot
     identify it), its screen error (a candidate's) or its full free-run error (the base model's),
     and the seconds it took."""
-    from identified.predict import rollout_errors
-
     t0 = time.perf_counter()
     names, fixed, base = task
     try:
@@ -206,9 +204,18 @@ def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bo
         return None, float("inf"), float("inf"), time.perf_counter() - t0
     if not base:
         return m, window_error(m, ctx.held, max(1, ctx.horizon // 10)), float("nan"), time.perf_counter() - t0
+    return m, float("nan"), _free_run(m, ctx), time.perf_counter() - t0
+
+
+def _free_run(m: IdentifiedModel | None, ctx: _Search) -> float:
+    """The held-out free-run error (the search's metric); ``inf`` for no model or a diverged run."""
+    from identified.predict import rollout_errors
+
+    if m is None:
+        return float("inf")
     with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
         err = float(rollout_errors(m, ctx.held, horizon=ctx.horizon)["pos_mean"])
-    return m, float("nan"), err if np.isfinite(err) else float("inf"), time.perf_counter() - t0
+    return err if np.isfinite(err) else float("inf")
 
 
 def select_effects(
@@ -251,19 +258,10 @@ def select_effects(
 
 def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float, progress: bool
             ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]]]:
-    from identified.predict import rollout_errors
-
     # settings of a chosen effect found by its own profile scan (the contact regulariser) are kept
     # for the later rounds' refits
     fixed: dict[str, dict[str, Any]] = {}
     held, topo = ctx.held, ctx.topo
-
-    def free_run(m: IdentifiedModel | None) -> float:
-        if m is None:
-            return float("inf")
-        with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
-            err = rollout_errors(m, held, horizon=ctx.horizon)["pos_mean"]
-        return float(err) if np.isfinite(err) else float("inf")
 
     # the slowest fits start first: the last round's time of each, else its effect's fit_cost
     cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
@@ -299,13 +297,13 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
         best = min(screens, key=screens.get)
-        err = free_run(fits[best])
+        err = _free_run(fits[best], ctx)
         evidence = "free run" if np.isfinite(err) and base_err >= min_gain * err else None
         if evidence is None and one_base > ONE_STEP_FLOOR:
             # what the free run cannot show: an effect exact where it acts, beside another effect's
             # inexact law whose error dominates the free run (drag on a robot rolling on its ground)
             alt = min(ones, key=ones.get)
-            alt_err = err if alt == best else free_run(fits[alt])
+            alt_err = err if alt == best else _free_run(fits[alt], ctx)
             if one_base >= min_gain * ones[alt] and np.isfinite(alt_err) and alt_err <= base_err:
                 best, err, evidence = alt, alt_err, "one step"
         if evidence is None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import multiprocessing
 import numbers
 import os
+import signal
 import sys
 import warnings
 from collections import deque
@@ -63,6 +64,7 @@ def _start_worker(context: Any, threads: int) -> None:
     global _CONTEXT
     _CONTEXT = context
     torch.set_num_threads(threads)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle: it stops the workers
 
 
 def _run(fn: Callable[[Any, Any], Any], task: Any) -> Any:
@@ -93,8 +95,11 @@ class TaskPool(Generic[C]):
             self._stack.enter_context(torch_threads(self.threads))
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
         if self._pool is not None:
+            if exc_type is not None:  # an error or Ctrl-C here: the workers' fits are not wanted
+                for p in list((getattr(self._pool, "_processes", None) or {}).values()):  # no public API < 3.14
+                    p.terminate()
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         self._stack.close()
@@ -117,7 +122,7 @@ class TaskPool(Generic[C]):
                 try:
                     finish(i, f.result())
                 except BrokenProcessPool:  # a worker died (killed, out of memory): go on without them
-                    warnings.warn("a worker process of the effect search died; its fits run in this process",
+                    warnings.warn("a worker process died; its tasks run in this process",
                                   RuntimeWarning, stacklevel=2)
                     todo.appendleft(i)
                     if self._pool is not None:

@@ -3,7 +3,8 @@
 Each plant is the paper's non-uniform icosahedron (or the robot) with ONE effect put in by MuJoCo's
 own means, which the fit is never told about: fluid viscosity (-> linear drag), fluid density
 (-> quadratic drag), a gravity the dataset does not declare (-> constant force), free-joint
-damping (-> linear drag), tendon frictionloss (-> cable friction).  For each: the effect added,
+damping (-> linear drag), tendon frictionloss (-> cable friction), springs that only pull declared
+two-sided (-> cable slack).  For each: the effect added,
 the held-out free-run error (1 s) before and after from the loop, and the free-run error on a fresh
 test set of the model without and with its effects.  Clean plants: the false discoveries.
 
@@ -48,6 +49,8 @@ def plant_text(base: str, kind: str, size: float) -> str:
         return base.replace("<freejoint", f'<joint type="free" damping="{size}"')
     if kind == "frictionloss":
         return base.replace("<spatial ", f'<spatial frictionloss="{size}" ')
+    if kind == "slack":  # every spring a pull-only cable (MuJoCo's dead band), declared two-sided to the fit
+        return re.sub(r'springlength="([^" ]+)"', r'springlength="0 \1"', base)
     return base
 
 
@@ -63,6 +66,7 @@ CASES = [  # (preset, kind, size, seed, the effect it should add)
     ("paper-nonuniform", "frictionloss", 5.0, 9, "cable_friction"),
     ("paper-nonuniform", "frictionloss", 1.0, 14, "cable_friction"),
     ("paper-uniform", "frictionloss", 10.0, 15, "cable_friction"),
+    ("paper-nonuniform", "slack", 1, 16, "cable_slack"),
     ("paper-nonuniform", "clean", 0, 10, None),
     ("paper-nonuniform", "clean", 0, 11, None),
     ("paper-uniform", "clean", 0, 12, None),
@@ -72,7 +76,8 @@ CASES = [  # (preset, kind, size, seed, the effect it should add)
 
 #: the effect each hidden kind should add (the robot adds ground_contact besides)
 EXPECTED = {"viscosity": "linear_drag", "density": "quadratic_drag", "gravity": "constant_force",
-            "joint_damping": "linear_drag", "frictionloss": "cable_friction", "clean": None}
+            "joint_damping": "linear_drag", "frictionloss": "cable_friction", "slack": "cable_slack",
+            "clean": None}
 
 
 def parse_case(text: str) -> tuple[str, str, float, int, list[str]]:

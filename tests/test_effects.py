@@ -95,6 +95,21 @@ def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_pat
     np.testing.assert_allclose(force[:, 1:], 0.0, atol=1e-6)
 
 
+def test_a_spring_declared_two_sided_that_only_pulls_is_cable_slack(ico, tmp_path):
+    """The plant's springs are pull-only cables (MuJoCo's dead band ``springlength="0 L0"``); the fit
+    is given them as two-sided springs.  The search adds ``cable_slack`` with kappa = -K on every
+    spring (each goes slack in these data), K itself unchanged."""
+    plant = tmp_path / "slack.xml"
+    plant.write_text(re.sub(r'springlength="([^" ]+)"', r'springlength="0 \1"', ico.read_text()))
+    data = collect(plant, CollectConfig(episodes=4, steps=600, seed=23, push_every=100))
+    model = fit_model(data, ico, effects="auto")
+    assert [e["name"] for e in model.effects] == ["cable_slack"]
+    K = np.array([s["stiffness"] for s in preset_parameters("ico", "paper-nonuniform", seed=5)["springs"]])
+    np.testing.assert_allclose(model.effects[0]["parameters"]["kappa"], -K, rtol=1e-9)
+    np.testing.assert_allclose(model.stiffness, K, rtol=1e-9)
+    assert model.loop[0]["error_after"] * 1000 <= model.loop[0]["error_before"]
+
+
 @pytest.mark.parametrize("seed", [6, 7])
 def test_clean_data_get_nothing_added(ico, seed):
     data = collect(ico, CollectConfig(episodes=4, steps=600, seed=seed, push_every=100))

@@ -101,6 +101,11 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
     if kind == "gravity":  # the datasets declare the nominal gravity
         train = dataclasses.replace(train, gravity=np.array([0.0, 0.0, -9.81]))
         test = dataclasses.replace(test, gravity=np.array([0.0, 0.0, -9.81]))
+    # the effect's size: how far it moves the rods over the first second of the test episodes (the
+    # same starts, commands and pushes in the plant without it); the line is 1 cm
+    without = collect(clean, dataclasses.replace(cfg, episodes=4, seed=seed + 1000))
+    n = min(test.n_steps, round(1.0 / test.dt)) + 1
+    effect = float(np.linalg.norm(test.pos[:, :n] - without.pos[:, :n], axis=-1).mean())
     t0 = time.perf_counter()
     model = fit_model(train, clean, effects="auto")  # the fit sees the clean MJCF only
     secs = time.perf_counter() - t0
@@ -109,7 +114,7 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
     H = min(test.n_steps, 1000)
     before = rollout_errors(bare, test, horizon=H)["pos_mean"]
     after = rollout_errors(model, test, horizon=H)["pos_mean"]
-    return {"added": [e["name"] for e in model.effects], "loop": model.loop, "test_before": before,
+    return {"added": [e["name"] for e in model.effects], "loop": model.loop, "test_before": before, "effect": effect,
             "test_after": after, "seconds": secs, "explained": model.metrics["effect_search"]["explained"]}
 
 
@@ -165,20 +170,27 @@ def main() -> int:
         cases = [c for c in cases if c[1] in args.only.split(",")]
     if args.case:
         cases = [parse_case(c) for c in args.case]
-    print(f"{'plant':<18} {'hidden':<14} {'size':>6} {'seed':>4}  {'added':<28} {'held-out before':>15} "
-          f"{'after':>9}  {'test before':>11} {'after':>9}  {'ok':<3} {'s':>5}")
+    print(f"{'plant':<18} {'hidden':<14} {'size':>6} {'seed':>4} {'moves (m)':>9}  {'added':<28} "
+          f"{'held-out before':>15} {'after':>9}  {'test before':>11} {'after':>9}  {'ok':<8} {'s':>5}")
     bad = 0
     with tempfile.TemporaryDirectory() as d:
         for preset, kind, size, seed, want in cases:
             r = run_case(Path(d), preset, kind, size, seed)
             lp = r["loop"][0] if r["loop"] else {}
-            ok = sorted(r["added"]) == sorted(want if isinstance(want, list) else [want] if want else [])
+            wanted = want if isinstance(want, list) else [want] if want else []
+            ok = sorted(r["added"]) == sorted(wanted)
+            # a miss of an effect that moves the rods less than 1 cm over 1 s is outside the issue's
+            # line; anything added that is not there is a false discovery, whatever the size
+            small = not ok and set(r["added"]) < set(wanted) and r["effect"] < 0.01
             bad += not ok
             fmt = lambda x: "    -" if x is None else f"{x:9.3g}"
-            print(f"{preset:<18} {kind:<14} {size:>6g} {seed:>4}  {','.join(r['added']) or 'nothing':<28} "
+            verdict = "yes" if ok else "miss<1cm" if small else "NO"
+            print(f"{preset:<18} {kind:<14} {size:>6g} {seed:>4} {r['effect']:9.2g}  "
+                  f"{','.join(r['added']) or 'nothing':<28} "
                   f"{fmt(lp.get('error_before')):>15} {fmt(lp.get('error_after'))}  {fmt(r['test_before']):>11} "
-                  f"{fmt(r['test_after'])}  {'yes' if ok else 'NO':<3} {r['seconds']:5.1f}", flush=True)
-    print(f"{len(cases) - bad}/{len(cases)} cases as expected (a wrong or missing effect counts against)")
+                  f"{fmt(r['test_after'])}  {verdict:<8} {r['seconds']:5.1f}", flush=True)
+    print(f"{len(cases) - bad}/{len(cases)} cases as expected (a wrong or missing effect counts against; "
+          "'moves': the hidden effect's displacement of the rods over 1 s, mean over rods and steps)")
     return 0
 
 

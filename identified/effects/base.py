@@ -99,6 +99,9 @@ class Effect(ABC):
         self._cache: dict[tuple, Any] = {}
         self.values = None if values is None else np.asarray(values, dtype=float).reshape(P)
         self.stderr = None if stderr is None else np.asarray(stderr, dtype=float).reshape(P)
+        #: an iterative effect given ``values``: search its classification anyway, the given values
+        #: one start among its own (else the fit starts from them alone)
+        self.search_too = False
 
     @property
     def values(self) -> np.ndarray | None:

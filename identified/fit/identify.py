@@ -305,21 +305,26 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
             res = best[0]
         return n, res
 
-    searched = all(e.values is None for e in iterative)
+    warm = [None if e.values is None else e.values.copy() for e in iterative]
+    searched = any(v is None for v in warm) or any(e.search_too for e in iterative)
     inert = False
-    if searched:  # search the initial classification
-        n = SEARCH_STEPS
-        part = dataset.select(episodes=slice(0, max(1, min(dataset.n_episodes, n // dataset.n_steps))),
-                              steps=min(dataset.n_steps, n))
+    if searched:  # search the initial classification (given values, if any, are one more start)
         best: tuple[float, list | None] = (np.inf, None)
-        for start in itertools.product(*[e.starts(dataset, topology) for e in iterative]):
-            for e, opt in zip(iterative, start):
-                e.options.update(opt)
-                e.values = None
-                e.release()
-            _, res = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
-            if res < best[0]:
-                best = (res, [e.values.copy() for e in iterative])
+        starts: list[Any] = list(itertools.product(*[e.starts(dataset, topology) for e in iterative]))
+        if all(v is not None for v in warm):
+            starts.append(None)
+        for part in _search_parts(dataset):
+            for start in starts:
+                for k, e in enumerate(iterative):
+                    if start is not None:
+                        e.options.update(start[k])
+                    e.values = None if start is not None else warm[k].copy()
+                    e.release()
+                _, res = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
+                if res < best[0]:
+                    best = (res, [e.values.copy() for e in iterative])
+            if best[1] is not None:
+                break  # else no start could be fitted on this part: a larger one
         for e, v in zip(iterative, best[1] or [None] * len(iterative)):
             e.values = v
             e.release()
@@ -334,6 +339,22 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         model = fit_once(dataset, True, progress)
     model.metrics["classification"] = {"passes": passes + 1, **{e.name: e.unseen() for e in iterative}}
     return model
+
+
+def _search_parts(dataset: Dataset) -> Iterator[Dataset]:
+    """The parts of the data the first classification is searched on, smallest first:
+    ``SEARCH_STEPS`` steps (whole episodes where they are shorter), then twice the episodes, up to
+    all of them.  A larger part is tried only when no start could be fitted on the smaller one
+    (the robot on 3 s episodes: in one episode a rod that stays on the ground has no equation
+    outside the contact's rows, so its mass is unidentifiable there)."""
+    E, T = dataset.n_episodes, dataset.n_steps
+    k = max(1, min(E, SEARCH_STEPS // T))
+    while True:
+        yield dataset.select(episodes=slice(0, k), steps=min(T, SEARCH_STEPS)) if k < E or T > SEARCH_STEPS \
+            else dataset
+        if k >= E:
+            return
+        k = min(E, 2 * k)
 
 
 def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:

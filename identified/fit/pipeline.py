@@ -18,8 +18,10 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    test finds an effect exact where it acts whose gain the free run hides under another effect's
    inexact law (air drag on the robot: its ground contact law leaves ~3 cm over 1 s);
 4. repeat until no candidate passes; an iterative candidate (the cable friction's stick / slip
-   classification) starts its next round's fit from the classification it settled this round
-   instead of searching it again.  Each step goes into the model's ``loop`` section: the
+   classification) left out has the classification it settled this round as one more start of
+   its next round's search (a settled classification alone is not enough: the effect just added
+   can change it -- on the robot, ground contact takes the rods on the ground out of the joint
+   fit, and friction's classification without contact is wrong).  Each step goes into the model's ``loop`` section: the
    effect added and the held-out error before and after.
 
 A round's fits are independent: they run side by side in ``jobs`` processes
@@ -172,6 +174,7 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
         eff.options.update(VARIANTS.get(label, {}))
         opts = dict((fixed or {}).get(label, {}))
         start = opts.pop("start_values", None)
+        eff.search_too = bool(opts.pop("search_too", False))
         eff.options.update(opts)
         if start is not None:  # an iterative effect: start from a settled classification
             eff.values = np.asarray(start, dtype=float)
@@ -322,10 +325,13 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
                 fixed[label] = {"epsilon": e["parameters"]["epsilon"]}
             if EFFECTS[e["name"]].iterative:  # later refits start from its classification
                 fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
-        for name, m in fits.items():  # an iterative candidate left out starts the next round from
-            if name != best and m is not None and EFFECTS[name.split(":")[0]].iterative:  # this round's
-                e = next(e for e in m.effects if e["name"] == name.split(":")[0])  # classification
-                fixed[name] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
+        for name, m in fits.items():  # an iterative candidate left out has this round's classification
+            if name != best and m is not None and EFFECTS[name.split(":")[0]].iterative:  # as one more
+                e = next(e for e in m.effects if e["name"] == name.split(":")[0])  # start of its search:
+                # the effect just added changes which rows the fit uses (ground contact: the rods on
+                # the ground leave the joint fit), and a classification settled without it can be wrong
+                fixed[name] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist(),
+                               "search_too": True}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
     if bar is not None:

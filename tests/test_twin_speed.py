@@ -294,14 +294,21 @@ def test_fused_step_equals_the_engine_step(contact_backend):
 
 
 def test_block_inverses_equal_lapack():
-    from identified.engine.smallmat import inverse3, inverse6, mm
+    from identified.effects.ground_contact import _masked_block_solve
+    from identified.engine.smallmat import inverse3, mat, mmul, unvec, vec
 
     g = torch.Generator().manual_seed(0)
     a = torch.randn(50, 6, 6, generator=g, dtype=torch.float64)
     spd = a @ a.transpose(-1, -2) + 0.5 * torch.eye(6, dtype=torch.float64)
-    torch.testing.assert_close(inverse6(spd), torch.linalg.inv(spd), rtol=1e-9, atol=1e-9)
+    rhs = torch.randn(50, 6, generator=g, dtype=torch.float64)
+    blocks = [mat(spd[:, i:i + 3, j:j + 3].contiguous()) for i, j in ((0, 0), (0, 3), (3, 3))]
+    on = torch.ones(50, dtype=torch.bool)
+    x0, x1 = _masked_block_solve(*blocks, (on, on), [vec(rhs[:, :3]), vec(rhs[:, 3:])])
+    torch.testing.assert_close(torch.cat((unvec(x0), unvec(x1)), -1), torch.linalg.solve(spd, rhs),
+                               rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(inverse3(spd[:, :3, :3]), torch.linalg.inv(spd[:, :3, :3]), rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(mm(a[:, :2, :5], a[:, :5, :3]), a[:, :2, :5] @ a[:, :5, :3])
+    prod = torch.stack(mmul(mat(a[:, :3, :3]), mat(a[:, 3:, 3:])), -1).unflatten(-1, (3, 3))
+    torch.testing.assert_close(prod, a[:, :3, :3] @ a[:, 3:, 3:])
 
 
 def test_contact_substep_traces_as_one_graph(contact_backend):

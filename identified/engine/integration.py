@@ -43,7 +43,7 @@ from collections.abc import Callable
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph
-from identified.engine.smallmat import Vec, mv, unvec, vec
+from identified.engine.smallmat import Vec, inverse3, mv, unvec, vec
 from identified.rotation import (
     matrix_apply,
     matrix_apply_transpose,
@@ -216,14 +216,6 @@ def implicit_accelerations(
     return _solve_blocks(A, rhs)
 
 
-def _inverse3(m: torch.Tensor) -> torch.Tensor:
-    """Inverse of (..., 3, 3) matrices by the adjugate (rows' cross products over the determinant)."""
-    r0, r1, r2 = m.unbind(-2)
-    cols = torch.stack([torch.cross(r1, r2, dim=-1), torch.cross(r2, r0, dim=-1), torch.cross(r0, r1, dim=-1)], -1)
-    det = (r0 * cols[..., 0]).sum(-1)
-    return cols / det[..., None, None]
-
-
 def _solve_blocks(A: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Solve (..., 6, 6) ``A x = b`` by 3x3 blocks (Schur complement of the translational block).
 
@@ -234,8 +226,8 @@ def _solve_blocks(A: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch
     P, Q = A[..., :3, :3], A[..., :3, 3:]
     U, W = A[..., 3:, :3], A[..., 3:, 3:]
     bl, ba = b[..., :3].unsqueeze(-1), b[..., 3:].unsqueeze(-1)
-    Pinv = _inverse3(P)
+    Pinv = inverse3(P)
     UPinv = U @ Pinv
-    xa = _inverse3(W - UPinv @ Q) @ (ba - UPinv @ bl)
+    xa = inverse3(W - UPinv @ Q) @ (ba - UPinv @ bl)
     xl = Pinv @ (bl - Q @ xa)
     return xl.squeeze(-1), xa.squeeze(-1)

@@ -1,65 +1,31 @@
-"""Products and inverses of small matrices (3x3, 6x6) written as elementwise torch work.
+"""Small vectors and matrices (3-vectors, 3x3) as elementwise torch work: the *component form*.
 
 The engine and its effects work on many tiny matrices: a 3x3 rotation per rod, a 6x6 contact
 matrix per rod.  ``torch.matmul`` and ``torch.linalg.inv`` on them are library calls (batched
 GEMM, LAPACK's LU) whose fixed cost per call dwarfs the arithmetic: measured on the robot twin,
 one compiled substep spent half its time in two ``linalg.inv`` calls on six 6x6 matrices.
-Written out as broadcasts and sums, the same work is a handful of elementwise loops that
-``torch.compile`` fuses with the code around them (and, eagerly, a few small kernels).
+Written out as products and sums of components, the same work is a handful of elementwise loops
+that ``torch.compile`` fuses with the code around them.
 
-* :func:`mm` ``a @ b`` for small matrices (..., n, k) @ (..., k, m), by a broadcast product and a sum;
-* :func:`inverse3` (..., 3, 3) by the adjugate (rows' cross products over the determinant);
-* :func:`inverse6` (..., 6, 6) by 3x3 blocks (the Schur complement of the upper-left block), for
-  matrices whose upper-left 3x3 block and its Schur complement are invertible (positive-definite
-  matrices always are);
-* the *component form* of the engine's Euler step (below :func:`inverse6`): a 3-vector as a tuple
-  of three tensors (..., n), a 3x3 matrix as a tuple of nine, with their sums, products, cross
-  products (:func:`vcross`), ``M v`` (:func:`mv`), ``Mᵀ v`` (:func:`mtv`), products
-  (:func:`mmul`), inverses (:func:`minverse`, the adjugate of :func:`inverse3`) and gathers
-  (:func:`gather`); :func:`vec`/:func:`unvec` convert from and to the tensor form.
+A 3-vector is a tuple of three tensors (..., n), a 3x3 matrix a tuple of nine, with their sums,
+products, cross products (:func:`vcross`), ``M v`` (:func:`mv`), ``Mᵀ v`` (:func:`mtv`), products
+(:func:`mmul`), inverses (:func:`minverse`, by the adjugate; :func:`inverse3` the same on (..., 3, 3)
+tensors, for the implicit integrator's block solve) and gathers (:func:`gather`); :func:`vec`/:func:`unvec`
+convert from and to the tensor form.  A 6x6 contact matrix is solved by
+its 3x3 blocks (the Schur complement of the upper-left block:
+``identified.effects.ground_contact._masked_block_solve``).
 
 Accuracy: these are the textbook formulas; for the well-conditioned matrices they are used on
-(regularised positive-definite contact matrices, the implicit integrator's mass matrices) they
-agree with LAPACK to a few units of rounding of the dtype.
+(regularised positive-definite contact matrices, the implicit integrator's mass matrices) they agree with LAPACK to a few units of
+rounding of the dtype (tests/test_twin_speed.py).
 """
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["Mat", "Vec", "gather", "inverse3", "inverse6", "mat", "minverse", "mm", "mmul", "mtranspose", "mtv",
-           "mv", "unvec", "vadd", "vcross", "vdot", "vec", "vscale", "vsub"]
-
-
-def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` for small matrices, (..., n, k) @ (..., k, m) -> (..., n, m), as a broadcast
-    product summed over ``k`` (fuses under ``torch.compile``; no GEMM call)."""
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-
-
-def inverse3(m: torch.Tensor) -> torch.Tensor:
-    """Inverse of (..., 3, 3) matrices by the adjugate (rows' cross products over the determinant).
-
-    A singular matrix gives inf/NaN entries (no exception)."""
-    r0, r1, r2 = m.unbind(-2)
-    cols = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -1)
-    det = (r0 * cols[..., 0]).sum(-1)
-    return cols / det[..., None, None]
-
-
-def inverse6(m: torch.Tensor) -> torch.Tensor:
-    """Inverse of (..., 6, 6) matrices ``[[P, Q], [U, W]]`` by 3x3 blocks:
-    ``S = W - U P⁻¹ Q``, ``M⁻¹ = [[P⁻¹ + P⁻¹Q S⁻¹ U P⁻¹, -P⁻¹Q S⁻¹], [-S⁻¹ U P⁻¹, S⁻¹]]``."""
-    P, Q = m[..., :3, :3], m[..., :3, 3:]
-    U, W = m[..., 3:, :3], m[..., 3:, 3:]
-    Pi = inverse3(P)
-    X = mm(Pi, Q)  # P⁻¹ Q
-    Y = mm(U, Pi)  # U P⁻¹
-    Si = inverse3(W - mm(U, X))
-    tr = -mm(X, Si)
-    bl = -mm(Si, Y)
-    tl = Pi - mm(tr, Y)
-    return torch.cat((torch.cat((tl, tr), -1), torch.cat((bl, Si), -1)), -2)
+__all__ = ["Mat", "Vec", "gather", "inverse3", "mat", "minverse", "mmul", "mtranspose", "mtv", "mv", "unvec", "vadd",
+           "vcross", "vdot", "vec", "vscale", "vsub"]
 
 
 # ---------------------------------------------------------------------- component form
@@ -134,7 +100,8 @@ def mtranspose(a: Mat) -> Mat:
 
 
 def minverse(m: Mat) -> Mat:
-    """The inverse by the adjugate, as :func:`inverse3` (rows' cross products over the determinant)."""
+    """The inverse by the adjugate (rows' cross products over the determinant); a singular matrix
+    gives inf/NaN entries (no exception)."""
     r0, r1, r2 = m[0:3], m[3:6], m[6:9]
     c0, c1, c2 = vcross(r1, r2), vcross(r2, r0), vcross(r0, r1)
     d = 1.0 / vdot(r0, c0)
@@ -144,3 +111,8 @@ def minverse(m: Mat) -> Mat:
 def gather(v: tuple, index: torch.Tensor) -> tuple:
     """Every component of ``v`` indexed along its last dimension (rods -> spring ends)."""
     return tuple(c.index_select(-1, index) for c in v)
+
+
+def inverse3(m: torch.Tensor) -> torch.Tensor:
+    """:func:`minverse` on (..., 3, 3) tensors."""
+    return torch.stack(minverse(mat(m)), -1).unflatten(-1, (3, 3))

@@ -236,7 +236,12 @@ def _pm(se: np.ndarray | None, idx) -> str:
 
 
 def save_model(path: str | os.PathLike, model: IdentifiedModel) -> None:
-    """Write the model as JSON atomically."""
+    """Write the model as JSON atomically.  A model :func:`load_model` would refuse (e.g. a fit that
+    gave a rod a negative mass) is not written: ModelFileError naming the path and the field."""
+    try:
+        validate_fields(model)
+    except ModelFileError as exc:
+        raise ModelFileError(f"'{os.fspath(path)}' not written: the model is not valid: {exc}") from None
     text = json.dumps(json_safe(model.to_json()), indent=2, allow_nan=False)
     atomic_write(path, lambda fh: fh.write(text + "\n"))
 

@@ -389,6 +389,20 @@ def test_fuzz_corrupted_dataset(files, work, key, kind, value, index, command):
         assert finite(m.stiffness) and finite(m.mass) and finite(m.inertia)
 
 
+def test_a_fit_that_is_not_physical_writes_nothing(files, work):
+    """Found by the fuzz test above: a dataset whose declared gravity is -1 instead of -9.81 makes
+    the fit give a rod a non-positive mass or inertia; the fit used to write that model, which
+    ``load_model`` then refused.  Now: one line, exit 2, no file."""
+    d = fresh(work)
+    corrupt_dataset(Path(files["data"]), d / "d.npz", "gravity", "value", -1.0, 24386)
+    os.chdir(d)
+    before = digest(d)
+    rc, out, err = run_cli(["fit", "d.npz", "--model", files["ico"], "--out", "f.json", "--quiet"])
+    assert check_outcome(rc, out, err, before, d) == []
+    assert rc == 2 and "f.json' not written" in one_error(err) and "positive" in one_error(err)
+    assert not (d / "f.json").exists()
+
+
 @FUZZ
 @given(kind=st.sampled_from(FILE_KINDS), index=st.integers(0, 10**6),
        command=st.sampled_from(["summary", "fit", "predict-model", "predict-data"]))

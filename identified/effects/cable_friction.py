@@ -226,6 +226,12 @@ class CableFriction(Effect):
         """Whether the last classification saw no cable stick (nothing for more passes to settle)."""
         return bool(np.all(getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))))
 
+    def partly_unseen(self) -> bool:
+        """Whether the last classification saw some cables stick and others not (too few rows to
+        tell their stick law): the data the classification was made on are too few for it."""
+        never = getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))
+        return bool(np.any(never) and not np.all(never))
+
     def unseen(self) -> dict[str, list[int]]:
         """Cables the data never showed sticking or slipping (for the fit's report)."""
         none = np.zeros(self.n_springs, dtype=bool)

@@ -241,6 +241,24 @@ def refresh_physics(model) -> list[str]:
     return model.metrics["warnings"]
 
 
+#: a joint fit's equation residual below this, relative to its typical force
+#: (:func:`relative_residual`), is rounding: the model's equations hold exactly on the data
+ROUNDING = 1e-6
+
+
+def relative_residual(model) -> float | None:
+    """The joint fit's equation residual relative to the typical force (rounding level on exact data):
+    the larger of the translation and rotation RMS over ``max(0.1 max|K|, max M)``."""
+    if model is None:
+        return None
+    rms = model.metrics.get("equation_residual_rms", {})
+    cond = [v for v in (rms.get("translation"), rms.get("rotation")) if v is not None]
+    if not cond:
+        return None
+    scale = max(float(np.max(np.abs(model.stiffness))) * 0.1, float(np.max(model.mass)) * 1.0, 1e-300)
+    return float(max(cond)) / scale
+
+
 def json_safe_nan(tree):
     """``tree`` (nested dicts/lists of numbers) with every number replaced by NaN (not estimable)."""
     if isinstance(tree, dict):

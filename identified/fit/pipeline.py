@@ -9,9 +9,11 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    episode's recorded states (:func:`identified.predict.rollout_errors`);
 3. refit with each remaining candidate of the library added, one at a time, and screen each by
    its held-out error over short windows (a tenth of the horizon, from many recorded states: one
-   cheap batched rollout); the best is added if it lowers the full held-out free-run error by at
-   least the factor ``min_gain`` (default 2: the effect must halve the error; a candidate whose
-   parameters the data cannot identify is skipped).  Failing that, the candidate with the lowest
+   cheap batched rollout); the screen ranks candidates apart by more than ``min_gain``, and those
+   within it of the best screen are ranked by their full held-out free-run error (:func:`_judge`).
+   The best is added if it lowers the full held-out free-run error by at least the factor
+   ``min_gain`` (default 2: the effect must halve the error; a candidate whose parameters the data
+   cannot identify is skipped).  Failing that, the candidate with the lowest
    held-out one-step error (:func:`one_step_errors`: the residual wrench relative to the recorded
    one, on the rods no candidate's residual-stage effect touches) is added if it cuts that error
    by ``min_gain`` from above ``ONE_STEP_FLOOR`` without making the free run worse.  The second
@@ -47,6 +49,7 @@ import numpy as np
 
 from identified.dataset import Dataset, DatasetError
 from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
+from identified.fit.checks import ROUNDING, relative_residual
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
 from identified.fit.workers import TaskPool, resolve_jobs
@@ -197,7 +200,7 @@ class _Search:
 def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bool]
               ) -> tuple[IdentifiedModel | None, float, float, float]:
     """One fit of the search: ``(names, fixed, base)`` -> the model (``None``: the data cannot
-    identify it), its screen error (a candidate's) or its full free-run error (the base model's),
+    identify it), its screen error, its full free-run error (the base model's only, else NaN),
     and the seconds it took."""
     t0 = time.perf_counter()
     names, fixed, base = task
@@ -205,9 +208,8 @@ def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bo
         m = identify(ctx.train, ctx.topo, effects=_build(names, ctx.topo, ctx.mjcf, fixed), **ctx.fit_kwargs)
     except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
         return None, float("inf"), float("inf"), time.perf_counter() - t0
-    if not base:
-        return m, window_error(m, ctx.held, max(1, ctx.horizon // 10)), float("nan"), time.perf_counter() - t0
-    return m, float("nan"), _free_run(m, ctx), time.perf_counter() - t0
+    screen = window_error(m, ctx.held, max(1, ctx.horizon // 10))
+    return m, screen, _free_run(m, ctx) if base else float("nan"), time.perf_counter() - t0
 
 
 def _free_run(m: IdentifiedModel | None, ctx: _Search) -> float:
@@ -270,7 +272,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
     cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
     chosen: list[str] = []
     base_model: IdentifiedModel | None = None
-    base_err = first_err = float("nan")
+    base_err = first_err = base_screen = float("nan")
     loop: list[dict[str, Any]] = []
     bar = None
     if progress:
@@ -290,7 +292,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             tasks.append((list(chosen), dict(fixed), True))
         results = pool.map(tasks, on_done=None if bar is None else (lambda: bar.update(1)))
         if base_model is None:
-            base_model, _, base_err, _ = results.pop()
+            base_model, base_screen, base_err, _ = results.pop()
             first_err = base_err
         if not names:
             break
@@ -299,8 +301,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         cost.update({n: r[3] for n, r in zip(names, results)})
         one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
-        best = min(screens, key=screens.get)
-        err = _free_run(fits[best], ctx)
+        best, err = _judge(screens, base_screen, fits, ctx, min_gain)
         evidence = "free run" if np.isfinite(err) and base_err >= min_gain * err else None
         if evidence is None and one_base > ONE_STEP_FLOOR:
             # what the free run cannot show: an effect exact where it acts, beside another effect's
@@ -318,7 +319,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
                      "screen": f"held-out error over {max(1, ctx.horizon // 10)}-step windows (m)",
                      "one_step": {k: _json_float(v) for k, v in ones.items()}})
         chosen.append(best)
-        base_err, base_model = err, fits[best]
+        base_err, base_model, base_screen = err, fits[best], screens[best]
         for e in base_model.effects:
             label = next(c for c in chosen if c.split(":")[0] == e["name"])
             if e["name"] == "ground_contact" and e["parameters"].get("epsilon") is not None:
@@ -336,10 +337,25 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             bar.total += len(candidates) - len(chosen)
     if bar is not None:
         bar.close()
-    rel = _relative_residual(base_model)
-    explained = bool((rel is not None and rel < 1e-6) or (first_err > 0 and base_err <= first_err / 5)
+    rel = relative_residual(base_model)
+    explained = bool((rel is not None and rel < ROUNDING) or (first_err > 0 and base_err <= first_err / 5)
                      or (first_err == 0))
     return chosen, loop, explained, fixed
+
+
+def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,
+           min_gain: float) -> tuple[str, float]:
+    """The round's best candidate and its full held-out free-run error: of the candidates whose
+    screen error is within ``min_gain`` of the best screen's and 1 % below the model's without them
+    (``base_screen``), the one with the lowest free run -- the short windows cannot rank those: on
+    the robot hiding cable friction, a constant force screened 0.023 m and ground contact 0.024 m,
+    and their free runs were 0.60 and 0.36 m.  With none such, the best screen's."""
+    top = min(screens.values())
+    close = [n for n, v in screens.items() if np.isfinite(v) and v <= min_gain * top and v < 0.99 * base_screen]
+    close = close or [min(screens, key=screens.get)]
+    runs = {n: _free_run(fits[n], ctx) for n in close}
+    best = min(close, key=lambda n: (runs[n], screens[n]))
+    return best, runs[best]
 
 
 def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps: int = 20_000) -> list[float]:
@@ -416,18 +432,6 @@ def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int 
     with np.errstate(over="ignore", invalid="ignore"):  # a diverged run is inf, not a warning
         err = np.linalg.norm(out.pos.numpy() - take(data.pos, steps + 1), axis=-1).mean()
     return float(err) if np.isfinite(err) else float("inf")
-
-
-def _relative_residual(model: IdentifiedModel | None) -> float | None:
-    """The joint fit's equation residual relative to the typical force (rounding level on exact data)."""
-    if model is None:
-        return None
-    rms = model.metrics.get("equation_residual_rms", {})
-    cond = [v for v in (rms.get("translation"), rms.get("rotation")) if v is not None]
-    if not cond:
-        return None
-    scale = max(float(np.max(np.abs(model.stiffness))) * 0.1, float(np.max(model.mass)) * 1.0, 1e-300)
-    return float(max(cond)) / scale
 
 
 def _json_float(x: float) -> float | None:

@@ -381,6 +381,19 @@ def test_candidates_the_screen_cannot_tell_apart_are_ranked_by_their_free_run(mo
     assert P._judge(same, 0.0014, fits, None, 2.0)[0] in free and len(asked) == 1
 
 
+def test_the_free_run_evidence_needs_a_gain_from_above_rounding():
+    """An exact model's held-out free run is rounding (3e-16 to 1e-15 m); among the candidates
+    judged by their free run one halved it by chance (cable_slack's exact model got quadratic_drag
+    on the paper plant, seed 16).  Below the floor no ratio is evidence."""
+    from identified.fit.pipeline import FREE_RUN_FLOOR, halves
+
+    assert halves(0.0297, 1.05e-15) and halves(1.97, 0.357) and halves(0.357, 0.13)
+    assert not halves(1.05e-15, 4.0e-16)  # rounding halved by chance
+    assert not halves(0.0401, 0.0401) and not halves(1.97, float("inf")) and not halves(float("inf"), float("inf"))
+    assert halves(float("inf"), 0.5)  # a base model that diverged, a candidate that does not
+    assert not halves(FREE_RUN_FLOOR / 2, 0.0)
+
+
 def test_the_classification_search_grows_its_part_of_the_data():
     from identified.fit.identify import SEARCH_STEPS, _search_parts
 

@@ -13,7 +13,7 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    within it of the best screen are ranked by their full held-out free-run error (:func:`_judge`).
    The best is added if it lowers the full held-out free-run error by at least the factor
    ``min_gain`` (default 2: the effect must halve the error; a candidate whose parameters the data
-   cannot identify is skipped).  Failing that, the candidate with the lowest
+   cannot identify is skipped), from above ``FREE_RUN_FLOOR`` (rounding).  Failing that, the candidate with the lowest
    held-out one-step error (:func:`one_step_errors`: the residual wrench relative to the recorded
    one, on the rods no candidate's residual-stage effect touches) is added if it cuts that error
    by ``min_gain`` from above ``ONE_STEP_FLOOR`` without making the free run worse.  The second
@@ -64,6 +64,11 @@ CANDIDATES = ("ground_contact", "linear_drag", "linear_drag:implicit", "quadrati
 #: a held-out one-step error (relative) below this is rounding or noise-free exactness: no effect
 #: is added on the evidence of the one-step error alone (the free run must then show it)
 ONE_STEP_FLOOR = 1e-6
+#: a held-out free-run error (m) below this is rounding (float64 states of rods a metre across,
+#: run for a second): no effect is added on the evidence of a free run this good, whatever the
+#: ratio (measured: exact models leave 3e-16 to 1e-15 m, and among several candidates judged by
+#: their free run one could halve it by chance: cable_slack's exact model got quadratic_drag)
+FREE_RUN_FLOOR = 1e-10
 #: variants a name may carry after a colon: options of the effect
 VARIANTS = {"linear_drag:implicit": {"implicit": True}}
 
@@ -302,7 +307,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
         best, err = _judge(screens, base_screen, fits, ctx, min_gain)
-        evidence = "free run" if np.isfinite(err) and base_err >= min_gain * err else None
+        evidence = "free run" if halves(base_err, err, min_gain) else None
         if evidence is None and one_base > ONE_STEP_FLOOR:
             # what the free run cannot show: an effect exact where it acts, beside another effect's
             # inexact law whose error dominates the free run (drag on a robot rolling on its ground)
@@ -341,6 +346,12 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
     explained = bool((rel is not None and rel < ROUNDING) or (first_err > 0 and base_err <= first_err / 5)
                      or (first_err == 0))
     return chosen, loop, explained, fixed
+
+
+def halves(before: float, after: float, min_gain: float = 2.0) -> bool:
+    """The free-run evidence for an effect: the held-out free-run error falls from ``before`` to
+    ``after`` by at least ``min_gain``, from above :data:`FREE_RUN_FLOOR` (rounding)."""
+    return bool(np.isfinite(after) and before >= max(min_gain * after, FREE_RUN_FLOOR))
 
 
 def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,

@@ -341,8 +341,8 @@ def test_cable_friction_on_the_robot_is_found_beside_its_ground_contact(tmp_path
 
 
 def test_the_classification_search_grows_its_part_only_while_it_is_too_small():
-    """A larger part when the starts disagree (the classification matters), the best one is not
-    settled (residual above rounding) and it sees some cables stick and others not."""
+    """A larger part when the starts disagree (the classification matters) or there is one, the
+    best one is not settled (residual above rounding) and it sees some cables stick and others not."""
     from identified.fit import identify as I
 
     class Seen:  # an iterative effect whose classification sees some cables or all or none
@@ -359,7 +359,7 @@ def test_the_classification_search_grows_its_part_only_while_it_is_too_small():
     assert I._part_too_small([Seen(True)], v, None, None, [0.19, 0.19, 1.7, 1.7], 1e-3)
     assert not I._part_too_small([Seen(False)], v, None, None, [0.19, 0.19, 1.7, 1.7], 1e-3)  # all seen
     assert not I._part_too_small([Seen(True)], v, None, None, [3.64, 3.63, 3.64], 1e-3)  # starts agree
-    assert not I._part_too_small([Seen(True)], v, None, None, [0.19], 1e-3)  # one start: no signature
+    assert I._part_too_small([Seen(True)], v, None, None, [0.19], 1e-3)  # one start (no sharp signature)
     assert not I._part_too_small([Seen(True)], v, None, None, [1e-9, 1.7], 1e-9)  # settled
 
 

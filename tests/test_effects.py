@@ -375,7 +375,8 @@ def test_candidates_the_screen_cannot_tell_apart_are_ranked_by_their_free_run(mo
     monkeypatch.setattr(P, "_free_run", lambda m, ctx: asked.append(m) or free[m])
     fits = {n: n for n in free}
     screens = {"constant_force": 0.0226, "ground_contact": 0.0242, "linear_drag": 0.0453, "cable_slack": 0.054}
-    assert P._judge(screens, 0.054, fits, None, 2.0) == ("ground_contact", 0.36)
+    assert P._judge(screens, 0.054, fits, None, 2.0) == ("ground_contact",
+                                                         {"constant_force": 0.60, "ground_contact": 0.36})
     assert sorted(asked) == ["constant_force", "ground_contact"]
     asked.clear()
     same = {n: 0.0014 for n in free}  # clean data after contact: nothing moves the screen

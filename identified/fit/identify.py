@@ -279,17 +279,16 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         except IdentifiabilityError:
             return None
 
-    settled = [np.inf]  # the relative equation residual of the last passes' best fit
-
-    def passes_from_here(data: Dataset, most: int) -> tuple[int, float]:
-        """Passes until the values settle: how many, and the equation residual.  The passes are a
-        fixed-point iteration that need not contract (little sticking: a cable that drops below
+    def passes_from_here(data: Dataset, most: int) -> tuple[int, float, float]:
+        """Passes until the values settle: how many, the equation residual, and the smallest
+        relative residual of a pass (:func:`relative_residual`: whether the law settled).  The
+        passes are a fixed-point iteration that need not contract (little sticking: a cable that drops below
         the stick rows it needs loses its stick law, and the next classification is worse); if
         they end above the best pass's residual, the values that classified the best pass are
         restored."""
         res = np.inf
         best: tuple[float, list | None] = (np.inf, None)
-        settled[0] = np.inf
+        settled = np.inf
         for n in range(1, most + 1):
             previous = [None if e.values is None else e.values.copy() for e in iterative]
             try:
@@ -297,10 +296,10 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
             except ValueError:
                 fit = None
             if fit is None:
-                return n, np.inf
+                return n, np.inf, np.inf
             rms = fit.metrics["equation_residual_rms"]
             res = (rms["translation"] or 0.0) + (rms["rotation"] or 0.0)
-            settled[0] = min(settled[0], relative_residual(fit) or np.inf)
+            settled = min(settled, relative_residual(fit) or np.inf)
             if all(p is not None for p in previous) and res < best[0]:
                 best = (res, previous)  # the values whose classification gave this pass's fit
             if not any(e.reclassify(p) for e, p in zip(iterative, previous)):
@@ -309,7 +308,7 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
             for e, v in zip(iterative, best[1]):
                 e.values = v
             res = best[0]
-        return n, res
+        return n, res, settled
 
     warm = [None if e.values is None else e.values.copy() for e in iterative]
     searched = any(v is None for v in warm) or any(e.search_too for e in iterative)
@@ -328,11 +327,11 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
                         e.options.update(start[k])
                     e.values = None if start is not None else warm[k].copy()
                     e.release()
-                _, res = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
+                _, res, settled = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
                 if start is not None:  # the effect's own starts (a given classification may be wrong)
                     spread.append(res)
                 if res < best[0]:
-                    best, rel = (res, [e.values.copy() for e in iterative]), settled[0]
+                    best, rel = (res, [e.values.copy() for e in iterative]), settled
             if best[1] is None:
                 continue  # no start could be fitted on this part: a larger one
             kept = best[1]
@@ -347,7 +346,7 @@ def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Seq
         inert = all(e.inert() for e in iterative)
     passes = 0
     if not inert:
-        passes, _ = passes_from_here(dataset, MAX_FULL_PASSES)
+        passes, _, _ = passes_from_here(dataset, MAX_FULL_PASSES)
     model = fit_holding(dataset, residual_stage=True, bar=progress)
     if model is None:  # let the regression say what it cannot identify
         model = fit_once(dataset, True, progress)

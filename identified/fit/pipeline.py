@@ -308,13 +308,14 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         cost.update({n: r[3] for n, r in zip(names, results)})
         one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
-        best, err = _judge(screens, base_screen, fits, ctx, min_gain)
+        best, runs = _judge(screens, base_screen, fits, ctx, min_gain)
+        err = runs[best]
         evidence = "free run" if halves(base_err, err, min_gain) else None
         if evidence is None and one_base > ONE_STEP_FLOOR:
             # what the free run cannot show: an effect exact where it acts, beside another effect's
             # inexact law whose error dominates the free run (drag on a robot rolling on its ground)
             alt = min(ones, key=ones.get)
-            alt_err = err if alt == best else _free_run(fits[alt], ctx)
+            alt_err = runs[alt] if alt in runs else _free_run(fits[alt], ctx)
             if one_base >= min_gain * ones[alt] and np.isfinite(alt_err) and alt_err <= min_gain * base_err:
                 best, err, evidence = alt, alt_err, "one step"
         if evidence is None:
@@ -357,10 +358,10 @@ def halves(before: float, after: float, min_gain: float = 2.0) -> bool:
 
 
 def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,
-           min_gain: float) -> tuple[str, float]:
-    """The round's best candidate and its full held-out free-run error: of the candidates whose
-    screen error is within ``min_gain`` of the best screen's and 1 % below the model's without them
-    (``base_screen``), the one with the lowest free run -- the short windows cannot rank those: on
+           min_gain: float) -> tuple[str, dict[str, float]]:
+    """The round's best candidate and the full held-out free-run errors it was chosen on: of the
+    candidates whose screen error is within ``min_gain`` of the best screen's and 1 % below the
+    model's without them (``base_screen``), the one with the lowest free run -- the short windows cannot rank those: on
     the robot hiding cable friction, a constant force screened 0.023 m and ground contact 0.024 m,
     and their free runs were 0.60 and 0.36 m.  With none such, the best screen's."""
     top = min(screens.values())
@@ -368,7 +369,7 @@ def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, Identi
     close = close or [min(screens, key=screens.get)]
     runs = {n: _free_run(fits[n], ctx) for n in close}
     best = min(close, key=lambda n: (runs[n], screens[n]))
-    return best, runs[best]
+    return best, runs
 
 
 def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps: int = 20_000) -> list[float]:

@@ -12,7 +12,7 @@ episodes.  ``error_after`` is the model as it is, ``error_before`` the same mode
 effects removed (``model.effects = []``).  ``None``: the free run diverged.
 
 **One-step residual** (the acceleration residual, as a wrench): at every recorded instant, the
-recorded acceleration (:func:`identified.fit.derivatives.iter_chunks`: the forward difference of
+recorded acceleration (:func:`identified.samples.iter_chunks`: the forward difference of
 the velocities, or the central one for an RK4 model) minus the model's, times the model's mass
 (inertia), ``M (a - a_model)`` in newtons and ``I (α_b - α_b,model)`` in N m, i.e. the wrench the
 model misses.  For the Euler integrator this is exactly ``M (a - g) - F`` and
@@ -60,17 +60,17 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError, atomic_write
-from identified.effects import EFFECTS, GeometryError, effects_from_model, make_effect, read_contact_geometry
-from identified.engine import SpringRodEngine
+from identified.effects import EFFECTS, GeometryError, make_effect, read_contact_geometry
 from identified.engine.accelerations import inertial_wrench
 from identified.engine.integration import RodState
-from identified.fit.derivatives import iter_chunks
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.jsonsafe import json_safe
 from identified.model import IdentifiedModel
 from identified.predict import quat_distance, rollout
 from identified.rotation import matrix_apply
+from identified.samples import iter_chunks
+from identified.twin import effects_from_model, engine_from_model
 
 __all__ = ["DOFS", "K_STEPS", "diagnose", "ljung_box", "write_report"]
 
@@ -360,7 +360,7 @@ def _free_run(model: IdentifiedModel, data: Dataset, H: int) -> dict[str, Any]:
 
 def _k_step(model: IdentifiedModel, data: Dataset) -> dict[str, Any]:
     """Position and quaternion error after k free steps from recorded states, for k in K_STEPS."""
-    eng = SpringRodEngine.from_model(model)
+    eng = engine_from_model(model)
     E, T = data.n_episodes, data.n_steps
     out: dict[str, Any] = {}
     for k in K_STEPS:
@@ -475,7 +475,7 @@ def _one_step(model: IdentifiedModel, data: Dataset, candidates: list, geometry:
     R, S = topo.n_rods, topo.n_springs
     scheme = model.metrics.get("scheme") or ("central" if model.integrator == "rk4" else "forward")
     first = 1 if scheme == "central" else 0
-    eng = SpringRodEngine.from_model(model)
+    eng = engine_from_model(model)
     p = eng.params
     half = torch.as_tensor(_half_lengths(model), dtype=torch.float64)
     E, T = data.n_episodes, data.n_steps

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from identified.dataset import Dataset, atomic_write
-from identified.engine import SpringRodEngine
 from identified.engine.integration import RodState
 from identified.model import IdentifiedModel
+from identified.twin import engine_from_model
 
 __all__ = ["attach_metrics", "one_step_errors", "quat_distance", "rollout", "rollout_errors", "write_error_plot"]
 
@@ -36,7 +36,7 @@ def rollout(model: IdentifiedModel, data: Dataset, horizon: int | None = None,
         raise ValueError(f"horizon must be >= 1 step, got {horizon}")
     if data.rod_names != model.topology.rod_names or data.tendon_names != model.topology.spring_names:
         raise ValueError("the dataset's rods/tendons do not match the identified model's")
-    eng = SpringRodEngine.from_model(model, effects=effects)
+    eng = engine_from_model(model, effects=effects)
     ep = episodes
     s0 = eng.state(data.pos[ep, 0], data.quat[ep, 0], data.vel[ep, 0], data.angvel[ep, 0])
     with torch.no_grad():
@@ -66,7 +66,7 @@ def rollout_errors(model: IdentifiedModel, data: Dataset, horizon: int | None = 
 
 def one_step_errors(model: IdentifiedModel, data: Dataset, max_steps: int = 20000, effects=()) -> dict[str, float]:
     """RMS error of one engine step from every recorded state (up to ``max_steps`` steps)."""
-    eng = SpringRodEngine.from_model(model, effects=effects)
+    eng = engine_from_model(model, effects=effects)
     T = min(data.n_steps, max(1, max_steps // max(data.n_episodes, 1)))
     sl = (slice(None), slice(0, T))
     flat = lambda a: a[sl].reshape(-1, *a.shape[2:])

@@ -28,7 +28,7 @@ from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["CollectConfig", "axis_angle_quat", "collect", "perturb_states", "quat_multiply"]
+__all__ = ["CollectConfig", "collect", "perturb_states"]
 
 
 @dataclass(frozen=True)
@@ -66,11 +66,6 @@ class CollectConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name.replace('_', '-')} must be a finite number >= 0, got {v}")
-
-
-#: Former names, kept for existing callers: :func:`identified.rotation.quat_multiply` and
-#: :func:`identified.rotation.quat_exp` (the quaternion of a rotation vector), numpy path.
-axis_angle_quat = quat_exp
 
 
 def perturb_states(s: RodState, rng: np.random.Generator, pos_std: float, rot_std: float,

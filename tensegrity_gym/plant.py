@@ -39,10 +39,10 @@ import numpy as np
 
 from identified.rotation import quat_to_matrix
 from identified.state import RodState
-from tensegrity_gym.backends.base import check_push, check_rest_lengths, check_targets
 from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
+from tensegrity_gym.checks import check_push, check_rest_lengths, check_targets
 
-__all__ = ["MujocoPlant", "RodState", "RodStates", "quat_to_mat"]
+__all__ = ["MujocoPlant", "RodState"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -50,16 +50,6 @@ _INTEGRATORS = {
     "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
     "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
 }
-
-
-#: Former name of :class:`identified.state.RodState` (the same class), kept for existing callers.
-RodStates = RodState
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices (body -> world) of (..., 4) quaternions w-x-y-z
-    (:func:`identified.rotation.quat_to_matrix`, numpy path; kept under its former name)."""
-    return quat_to_matrix(np.asarray(q, dtype=float))
 
 
 def _load(model: str | os.PathLike | mujoco.MjModel) -> mujoco.MjModel:

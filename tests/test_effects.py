@@ -85,7 +85,7 @@ def test_free_joint_damping_is_an_implicit_linear_drag(ico, tmp_path):
 
 
 def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_path):
-    plant, data = _hidden(ico, tmp_path, 'gravity="0.4 0 -9.81"', 4)
+    _plant, data = _hidden(ico, tmp_path, 'gravity="0.4 0 -9.81"', 4)
     data = dataclasses.replace(data, gravity=np.array([0.0, 0.0, -9.81]))  # it declares the nominal one
     model = fit_model(data, ico, effects="auto")
     assert [e["name"] for e in model.effects] == ["constant_force"]
@@ -147,7 +147,7 @@ def test_engine_wrench_is_the_fit_features_contracted(ico):
         eng = SpringRodEngine(topo, {"stiffness": 100.0, "damping": 1.0, "mass": 10.0, "inertia": [1.0, 1.0, 0.1]},
                               data.dt, effects=[eff])
         ctx = eng.dynamics(s, data.rest_length[0, :10]).ctx
-        f, t = eff.wrench(s, ctx)
+        f, _t = eff.wrench(s, ctx)
         if eff.kind == "spring":
             from identified.engine.accelerations import rod_wrench
 
@@ -165,8 +165,8 @@ def test_twin_cable_friction_is_the_fit_law_at_the_accelerations_it_makes(ico):
     """The twin solves the box problem; the fit's columns are the law at recorded accelerations.
     One formula: the twin's force equals the fit's columns contracted, at the twin's own
     accelerations, and every force is within its bound (sticking) or at it (slipping)."""
-    from identified.fit.features import step_context
     from identified.engine.forces import endpoint_kinematics, spring_geometry
+    from identified.fit.features import step_context
 
     topo = Topology.from_mjcf(ico)
     data = collect(ico, CollectConfig(episodes=1, steps=50, seed=1, push_every=10))

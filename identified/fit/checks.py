@@ -21,9 +21,21 @@ import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
 
-__all__ = ["ADAM_TOLERANCE", "InsufficientDataError", "adam_convergence", "MIN_DOF_PER_PARAMETER", "check_enough_data", "constrain_inertias",
-           "apply_checks", "overlap_factor", "physical_warnings", "refresh_physics",
-           "residual_dof", "widen_for_overlap", "INERTIA_FLOOR"]
+__all__ = [
+    "ADAM_TOLERANCE",
+    "INERTIA_FLOOR",
+    "MIN_DOF_PER_PARAMETER",
+    "InsufficientDataError",
+    "adam_convergence",
+    "apply_checks",
+    "check_enough_data",
+    "constrain_inertias",
+    "overlap_factor",
+    "physical_warnings",
+    "refresh_physics",
+    "residual_dof",
+    "widen_for_overlap",
+]
 
 #: residual degrees of freedom per free parameter below which standard errors are not estimable
 MIN_DOF_PER_PARAMETER = 1.0
@@ -218,15 +230,14 @@ def adam_convergence(sol: Solution, reference: Solution) -> list[str]:
     rel = np.abs(th - ref) / scale
     worst = float(np.max(rel)) if rel.size else 0.0
     if not np.isfinite(worst) or worst > ADAM_TOLERANCE:
-        return [f"Adam did not converge: its parameters differ from the closed-form least squares of the "
-                f"same equations by up to {100 * worst:.3g} % (use --solver lstsq, or more data per epoch)"]
+        return [(f"Adam did not converge: its parameters differ from the closed-form least squares of the "
+                 f"same equations by up to {100 * worst:.3g} % (use --solver lstsq, or more data per epoch)")]
     return []
 
 
 def _is_physical(warning: str) -> bool:
     """Whether a warning line is one of :func:`physical_warnings`' (not a fit note)."""
-    return (warning.endswith(" is not positive") or warning.endswith(" is negative")
-            or warning.endswith("no rigid body has these moments"))
+    return warning.endswith((" is not positive", " is negative", "no rigid body has these moments"))
 
 
 def refresh_physics(model) -> list[str]:

@@ -21,7 +21,7 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    1933 -> 2000 N/m, made the contact law's free run 0.0185 -> 0.026 m: the law's own error).  The second
    test finds an effect exact where it acts whose gain the free run hides under another effect's
    inexact law (air drag on the robot: its ground contact law leaves ~3 cm over 1 s);
-4. repeat until no candidate passes; an iterative candidate (the cable friction's stick / slip
+4. repeat until no candidate passes; a classification candidate (the cable friction's stick / slip
    classification) left out has the classification it settled this round as one more start of
    its next round's search (a settled classification alone is not enough: the effect just added
    can change it -- on the robot, ground contact takes the rods on the ground out of the joint
@@ -50,19 +50,25 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import Dataset, DatasetError
-from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
+from identified.effects import (
+    EFFECTS,
+    Effect,
+    GeometryError,
+    effect_from_json,
+    make_effect,
+    search_labels,
+    split_label,
+)
 from identified.fit.checks import ROUNDING, relative_residual
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
 from identified.fit.workers import TaskPool, resolve_jobs
 from identified.model import IdentifiedModel
+from identified.samples import iter_chunks
 from identified.topology import Topology
+from identified.twin import effects_from_model, engine_from_model
 
-__all__ = ["CANDIDATES", "fit_model", "one_step_errors", "parse_effects", "select_effects", "window_error"]
-
-#: the library's effects the search tries, in this order
-CANDIDATES = ("ground_contact", "linear_drag", "linear_drag:implicit", "quadratic_drag", "cable_friction",
-              "cable_slack", "constant_force")
+__all__ = ["fit_model", "one_step_errors", "parse_effects", "select_effects", "window_error"]
 #: a held-out one-step error (relative) below this is rounding or noise-free exactness: no effect
 #: is added on the evidence of the one-step error alone (the free run must then show it)
 ONE_STEP_FLOOR = 1e-6
@@ -71,8 +77,6 @@ ONE_STEP_FLOOR = 1e-6
 #: ratio (measured: exact models leave 3e-16 to 1e-15 m, and among several candidates judged by
 #: their free run one could halve it by chance: cable_slack's exact model got quadratic_drag)
 FREE_RUN_FLOOR = 1e-10
-#: variants a name may carry after a colon: options of the effect
-VARIANTS = {"linear_drag:implicit": {"implicit": True}}
 
 
 def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
@@ -87,13 +91,10 @@ def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
     if not names:
         raise ValueError("--effects: give none, auto or effect names separated by commas")
     for n in names:
-        if n in VARIANTS:
-            continue
-        if n == "actuator_lag":
-            raise ValueError("--effects actuator_lag: not available (the dataset records the cables' actual rest "
-                             "lengths, so a motor lag is already in the data)")
-        if n not in EFFECTS:
-            raise ValueError(f"--effects: unknown effect '{n}' (known: {', '.join(EFFECTS)})")
+        try:
+            split_label(n)
+        except ValueError as err:
+            raise ValueError(f"--effects: {err}") from None
     if len(set(names)) != len(names):
         raise ValueError("--effects names an effect twice")
     return names
@@ -139,8 +140,8 @@ def fit_model(
         integ, selection = select_integrator(data, topo, regressors, scale, weak_window)
     else:
         selection = None
-    kw = dict(regressors=regressors, scale=scale, solver=solver, weak_window=weak_window, integrator=integ,
-              scheme=scheme)
+    kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
+          "integrator": integ, "scheme": scheme}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}
@@ -156,7 +157,7 @@ def fit_model(
     model.source_model = os.path.abspath(mjcf)
     model.loop = loop
     if spec == "auto":
-        model.metrics["effect_search"] = {"explained": explained, "candidates": list(CANDIDATES),
+        model.metrics["effect_search"] = {"explained": explained, "candidates": list(search_labels()),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
     if refine:
         from identified.fit.refine import refine as refine_model
@@ -180,13 +181,12 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
     """Unfitted effects by label (``name`` or ``name:variant``), with options ``fixed`` per label."""
     out = []
     for label in names:
-        eff = make_effect(label.split(":")[0], topo, mjcf)
-        eff.options.update(VARIANTS.get(label, {}))
+        eff = make_effect(label, topo, mjcf)
         opts = dict((fixed or {}).get(label, {}))
         start = opts.pop("start_values", None)
         eff.search_too = bool(opts.pop("search_too", False))
         eff.options.update(opts)
-        if start is not None:  # an iterative effect: start from a settled classification
+        if start is not None:  # a classification effect: start from a settled classification
             eff.values = np.asarray(start, dtype=float)
         out.append(eff)
     return out
@@ -256,7 +256,7 @@ def select_effects(
     held = data.select(episodes=slice(E - n_hold, E))
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
     candidates = []
-    for name in CANDIDATES:
+    for name in search_labels():
         try:
             make_effect(name.split(":")[0], topo, mjcf)
         except GeometryError:
@@ -330,15 +330,19 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         base_err, base_model, base_screen = err, fits[best], screens[best]
         for e in base_model.effects:
             label = next(c for c in chosen if c.split(":")[0] == e["name"])
-            if e["name"] == "ground_contact" and e["parameters"].get("epsilon") is not None:
-                fixed[label] = {"epsilon": e["parameters"]["epsilon"]}
-            if EFFECTS[e["name"]].iterative:  # later refits start from its classification
+            cls = EFFECTS[e["name"]]
+            settled = {k: e["parameters"][k] for k in cls.profiled if e["parameters"].get(k) is not None}
+            if settled:  # what its own profile scan settled (the contact regulariser), kept
+                fixed[label] = settled
+            if cls.fit_strategy == "classification":  # later refits start from its classification
                 fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
-        for name, m in fits.items():  # an iterative candidate left out has this round's classification
-            if name != best and m is not None and EFFECTS[name.split(":")[0]].iterative:  # as one more
-                e = next(e for e in m.effects if e["name"] == name.split(":")[0])  # start of its search:
-                # the effect just added changes which rows the fit uses (ground contact: the rods on
-                # the ground leave the joint fit), and a classification settled without it can be wrong
+        for name, m in fits.items():
+            if name != best and m is not None and EFFECTS[name.split(":")[0]].fit_strategy == "classification":
+                # a classification candidate left out has this round's classification as one more start
+                # of its next search: the effect just added changes which rows the fit uses (ground
+                # contact: the rods on the ground leave the joint fit), and a classification settled
+                # without it can be wrong
+                e = next(e for e in m.effects if e["name"] == name.split(":")[0])
                 fixed[name] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist(),
                                "search_too": True}
         if bar is not None:
@@ -381,11 +385,8 @@ def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps:
     ``inf`` for a model missing or whose residual is not finite; at most ``max_steps`` instants."""
     import torch
 
-    from identified.effects import effects_from_model
-    from identified.engine import SpringRodEngine
     from identified.engine.accelerations import inertial_wrench
     from identified.engine.integration import RodState
-    from identified.fit.derivatives import iter_chunks
 
     per = max(1, min(data.n_episodes, max_steps // max(data.n_steps, 1)))
     data = data.select(episodes=slice(0, per))
@@ -404,7 +405,7 @@ def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps:
             if m is None:
                 out.append(None)
                 continue
-            eng = SpringRodEngine.from_model(m, dtype=torch.float64)
+            eng = engine_from_model(m, dtype=torch.float64)
             p = eng.params
             terms = eng.dynamics(state, ch.rest, ch.push_force, point)
             res = torch.cat((p.mass[:, None] * (ch.acc - terms.lin_acc),
@@ -431,7 +432,6 @@ def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int 
     steps of every episode (one batched rollout): a cheap, short-horizon held-out error."""
     import torch
 
-    from identified.engine import SpringRodEngine
 
     stride = stride or max(steps, data.n_steps // 20)
     starts = np.arange(0, data.n_steps - steps + 1, stride)
@@ -439,7 +439,7 @@ def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int 
         return float("inf")
     idx = starts[:, None] + np.arange(steps + 1)[None, :]
     take = lambda a, n: a[:, idx[:, :n]].reshape((-1, n) + a.shape[2:])
-    eng = SpringRodEngine.from_model(model)
+    eng = engine_from_model(model)
     s0 = eng.state(*(take(getattr(data, k), 1)[:, 0] for k in ("pos", "quat", "vel", "angvel")))
     with torch.no_grad():
         out = eng.rollout(s0, take(data.rest_length, steps), take(data.push_force, steps), take(data.push_point, steps))

@@ -42,27 +42,22 @@ from importlib import resources
 import numpy as np
 import torch
 
-from identified.engine import Effect, SpringRodEngine
+from identified.engine import Effect
 from identified.mjcf import nominal_pose, parse_mjcf, read_mjcf_text, spring_lengths
 from identified.model import IdentifiedModel, check_effect_objects, load_model, validate_fields
 from identified.state import RodState
 from identified.topology import Topology
-from tensegrity_gym.backends.base import (
-    Backend,
-    check_push,
-    check_rest_lengths,
-    check_substeps,
-    check_targets,
-)
+from identified.twin import engine_from_model
+from tensegrity_gym.backends.base import Backend
 from tensegrity_gym.backends.twin_physics import TwinPhysics
 from tensegrity_gym.cables import read_motor_spec
+from tensegrity_gym.checks import check_push, check_rest_lengths, check_substeps, check_targets
 
 __all__ = [
     "PRESET_PREFIX",
     "IdentifiedBackend",
     "TwinPhysics",
     "default_model_path",
-    "nominal_pose_from_mjcf",
     "read_source_mjcf",
     "resolve_source_mjcf",
 ]
@@ -72,8 +67,6 @@ __all__ = [
 #: it resolves on a fresh clone).
 PRESET_PREFIX = "preset:"
 _FALLBACK = ("ico", "robot")
-#: Former names, kept for existing callers: the MJCF readers now live in :mod:`identified.mjcf`.
-nominal_pose_from_mjcf = nominal_pose
 _DTYPES = {"float64": torch.float64, "double": torch.float64,
            "float32": torch.float32, "float": torch.float32}
 
@@ -161,7 +154,7 @@ class IdentifiedBackend(Backend):
             and ``TENSEGRITY_TWIN_COMPILE`` is not ``0``), ``True`` or ``False``.
         effects: engine :class:`~identified.engine.Effect` plug-ins (forces the spring-rod model
             lacks) added after the effects the model lists in ``model.effects``, which the engine
-            builds from the model file (:func:`identified.effects.effects_from_model`).
+            builds from the model file (:func:`identified.twin.effects_from_model`).
         mjcf: the MJCF (path or text) to take motors, keyframe and drawing from, instead of
             ``model.source_model`` (see :func:`resolve_source_mjcf`).
 
@@ -208,7 +201,7 @@ class IdentifiedBackend(Backend):
         unknown = [n for n in self.actuated_names if n not in self.tendon_names]
         if unknown:
             raise ValueError(f"actuated cables {unknown} of the MJCF are not springs of the identified model")
-        self.engine = SpringRodEngine.from_model(m, effects=effects, dtype=dtype, device=device)
+        self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
         self._nominal = nominal_pose(self.mjcf, self.rod_names)
         rest = np.array(m.rest_length, dtype=float)
         written = spring_lengths(self.mjcf)

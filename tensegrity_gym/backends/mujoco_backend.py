@@ -13,7 +13,8 @@ import os
 import mujoco
 import numpy as np
 
-from tensegrity_gym.backends.base import Backend, RodState, _sync_viewer, check_substeps
+from tensegrity_gym.backends.base import Backend, RodState, _sync_viewer
+from tensegrity_gym.checks import check_substeps
 from tensegrity_gym.plant import MujocoPlant
 
 __all__ = ["MujocoBackend", "default_robot_xml"]

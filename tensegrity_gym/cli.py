@@ -271,6 +271,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from identified.effects import search_labels
+
     p = _Parser(
         prog="tensegrity",
         description="Identify a spring-rod (tensegrity) robot from rollouts and train on its twin.",
@@ -342,8 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "--integrator is given)")
     f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
                    help="none: the spring-rod model alone (default); auto: search the effect library for what "
-                   "the data show (held-out free-run error, see the README); or effect names: ground_contact, "
-                   "linear_drag, quadratic_drag, cable_friction, cable_slack, constant_force")
+                   "the data show (held-out free-run error, see the README); or effect names: "
+                   + ", ".join(search_labels()))
     f.add_argument("--jobs", type=jobs, default="auto", metavar="N|auto",
                    help="processes the effect search fits its candidates in (default auto: one per core "
                    "this process may use; the model is the same with any N)")

@@ -103,7 +103,7 @@ def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequ
     """Fit with effects whose columns depend on a classification made from their own values (the
     cable friction's stick / slip): fit, reclassify with the new values, until they stop moving.
 
-    The first classification is searched on a part of the data (each effect's :meth:`starts`;
+    The first classification is searched on a part of the data (:func:`starts` of each effect;
     the one whose passes leave the smallest equation residual is kept); what a pass finds
     unidentifiable of such an effect is held at the effect's pinned values and the pass redone.
     """
@@ -152,13 +152,13 @@ def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequ
     inert = False
     if searched:  # search the initial classification (given values, if any, are one more start)
         best: tuple[float, list | None] = (np.inf, None)
-        starts: list[Any] = list(itertools.product(*[starts(e, dataset, topology) for e in iterative]))
+        tried: list[Any] = list(itertools.product(*[starts(e, dataset, topology) for e in iterative]))
         if all(v is not None for v in warm):
-            starts.append(None)
+            tried.append(None)
         kept: list | None = None  # a smaller part's best, for a larger part none of whose starts fits
         for part in _search_parts(dataset):
             best, spread, rel = (np.inf, None), [], np.inf
-            for start in starts:
+            for start in tried:
                 for k, e in enumerate(iterative):
                     if start is not None:
                         e.options.update(start[k])

@@ -1,4 +1,4 @@
-"""Counts over several hundred bad inputs (issue 12): tracebacks, damaged files, silent NaNs,
+"""Counts over several hundred bad inputs: tracebacks, damaged files, silent NaNs,
 unclear errors, and error bars that miss the truth.  All of them should be zero.
 
     .venv/bin/python benchmarks/fuzz_bad_input.py [--quick]

@@ -13,7 +13,7 @@ every env, so twin and plant start from the same perturbed pose):
 
 Each of the first three has ``return`` (mean undiscounted episode return) and ``progress_m`` (mean
 forward distance of the centre of mass per episode, m), plus the per-episode values and lengths.
-``transfer`` has the ratios the issue's targets are stated in: plant progress over twin progress
+``transfer`` has the ratios a transfer is judged by: plant progress over twin progress
 and over the random policy's.
 """
 

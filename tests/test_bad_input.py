@@ -1,4 +1,4 @@
-"""Bad input never produces silent nonsense, a destroyed file or a dishonest error bar (issue 12).
+"""Bad input never produces silent nonsense, a destroyed file or a dishonest error bar.
 
 Targeted tests of each guard (residual degrees of freedom, physical constraints, the model
 loader, outputs that are inputs, limits checked before work, one clear line), the tests that kill
@@ -88,7 +88,7 @@ def one_error(err: str) -> str:
 
 # ---------------------------------------------------------------------- 1. honest estimates
 def test_no_residual_dof_is_refused_with_how_much_more_data(files, work):
-    """The issue's case: 1 x 400 noisy steps, weak form: 72 equations for 72 parameters."""
+    """1 x 400 noisy steps, weak form: 72 equations for 72 parameters."""
     noisy = collect(files["ico"], CollectConfig(episodes=1, steps=400, seed=1, push_every=50, noise_pos=1e-3,
                                                 noise_vel=1e-2, noise_quat=1e-3, noise_angvel=1e-2))
     save_dataset("noisy.npz", noisy)

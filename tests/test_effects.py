@@ -441,17 +441,16 @@ def test_cable_friction_on_the_robot_is_found_beside_its_ground_contact(tmp_path
     np.testing.assert_allclose(model.mass, 3.5, rtol=1e-6)
 
 
-def test_the_classification_search_grows_its_part_only_while_it_is_too_small():
+def test_the_classification_search_grows_its_part_only_while_it_is_too_small(monkeypatch):
     """A larger part when the starts disagree (the classification matters) or there is one, the
     best one is not settled (residual above rounding) and it sees some cables stick and others not."""
-    from identified.fit import identify as I
+    from identified.fit import classification as I
 
-    class Seen:  # an iterative effect whose classification sees some cables or all or none
+    monkeypatch.setattr(I, "prepare", lambda effect, data, topology: None)
+
+    class Seen:  # a classification effect whose classification sees some cables or all or none
         def __init__(self, partly: bool) -> None:
             self.partly, self.values = partly, None
-
-        def prepare(self, data, topology) -> None:
-            pass
 
         def partly_unseen(self) -> bool:
             return self.partly
@@ -497,7 +496,7 @@ def test_the_free_run_evidence_needs_a_gain_from_above_rounding():
 
 
 def test_the_classification_search_grows_its_part_of_the_data():
-    from identified.fit.identify import SEARCH_STEPS, _search_parts
+    from identified.fit.classification import SEARCH_STEPS, _search_parts
 
     def shape(T: int, E: int) -> list[tuple[int, int]]:
         d = Dataset(0.01, np.zeros(3), ("r",), ("s",), ("s",), *(np.zeros((E, T + 1, 1, k)) for k in (3, 4, 3, 3)),

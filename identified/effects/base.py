@@ -29,8 +29,9 @@ How the fit identifies an effect is declared on its class, ``fit_strategy`` (a s
   produces, not the columns at recorded ones;
 * ``"residual"``: the law needs the accelerations under every other force (ground contact), so it
   is fitted on the residual wrench of the jointly fitted model, on the rods it touches
-  (:meth:`Effect.rows_affected`), which the joint fit leaves out (:mod:`identified.fit.residual`;
-  the effect's own least squares, :meth:`Effect.fit_residual`).
+  (:meth:`Effect.rows_affected`), which the joint fit leaves out
+  (:func:`identified.fit.identify.fit_residual_effects`; the effect's own least squares,
+  :meth:`Effect.fit_residual`).
 
 The engine's fused step (the twin's compiled substep) needs an effect's law in component form:
 ``component_form = True`` declares :meth:`Effect.wrench_components`; an engine holding an effect
@@ -246,7 +247,8 @@ class Effect(ABC):
     def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
                      groups: np.ndarray, rows: torch.Tensor) -> dict[str, Any]:
         """A residual-strategy effect's own least squares on the residual wrench ``force``/``torque``
-        (N, R, 3) world of the rows ``rows`` (N, R) (:mod:`identified.fit.residual`): sets ``values``
+        (N, R, 3) world of the rows ``rows`` (N, R) (:func:`identified.fit.identify.fit_residual_effects`):
+        sets ``values``
         and ``stderr``, returns fit statistics."""
         raise NotImplementedError(f"effect '{self.name}' is not fitted on a residual (fit_strategy = "
                                   f"{self.fit_strategy!r})")

@@ -68,6 +68,15 @@ class CableFriction(Effect):
     fit_strategy = "classification"  # its columns depend on a classification made from its own values
     fit_cost = 15.0  # several passes of the fit (measured ~15x a drag fit on the robot)
 
+    def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,
+                 options: dict[str, Any] | None = None) -> None:
+        super().__init__(n_rods, n_springs, values, stderr, options)
+        # what the data showed under the last classification (:meth:`observe`): nothing yet
+        self._never_stuck = np.zeros(self.n_springs, dtype=bool)
+        self._never_slipped = np.zeros(self.n_springs, dtype=bool)
+        self._qmax = np.zeros(self.n_springs)
+        self._held = np.zeros(self.n_params, dtype=bool)
+
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> CableFriction:
         return cls(topology.n_rods, topology.n_springs)
@@ -161,7 +170,7 @@ class CableFriction(Effect):
         idx = [mine.index(n) for n in names if n in mine]
         if not idx:
             return False
-        self._held = getattr(self, "_held", np.zeros(self.n_params, dtype=bool)).copy()
+        self._held = self._held.copy()
         self._held[idx] = True
         return True
 
@@ -172,31 +181,28 @@ class CableFriction(Effect):
         slipping: its slip force (held at the largest stick force seen, a lower bound) and its
         stick damping ``d`` (held at 0: while it sticks, ``d`` and the spring's own damping ``c``
         act alike, and ``c`` takes both)."""
-        none = np.zeros(self.n_springs, dtype=bool)
-        stick, slip = getattr(self, "_never_stuck", none), getattr(self, "_never_slipped", none)
-        held = getattr(self, "_held", np.zeros(self.n_params, dtype=bool))
-        return np.stack([slip, stick, stick | slip], 1).reshape(-1) | held
+        stick, slip = self._never_stuck, self._never_slipped
+        return np.stack([slip, stick, stick | slip], 1).reshape(-1) | self._held
 
     def pinned_values(self) -> np.ndarray:
         """(P,) the values of the held parameters (:meth:`pinned`)."""
-        F = getattr(self, "_qmax", np.zeros(self.n_springs))
+        F = self._qmax
         return np.stack([F, np.zeros_like(F), np.zeros_like(F)], 1).reshape(-1)
 
     def inert(self) -> bool:
         """Whether the last classification saw no cable stick (nothing for more passes to settle)."""
-        return bool(np.all(getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))))
+        return bool(np.all(self._never_stuck))
 
     def partly_unseen(self) -> bool:
         """Whether the last classification saw some cables stick and others not (too few rows to
         tell their stick law): the data the classification was made on are too few for it."""
-        never = getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))
+        never = self._never_stuck
         return bool(np.any(never) and not np.all(never))
 
     def unseen(self) -> dict[str, list[int]]:
         """Cables the data never showed sticking or slipping (for the fit's report)."""
-        none = np.zeros(self.n_springs, dtype=bool)
-        return {"never_stuck": np.flatnonzero(getattr(self, "_never_stuck", none)).tolist(),
-                "never_slipped": np.flatnonzero(getattr(self, "_never_slipped", none)).tolist()}
+        return {"never_stuck": np.flatnonzero(self._never_stuck).tolist(),
+                "never_slipped": np.flatnonzero(self._never_slipped).tolist()}
 
     def reclassify(self, previous: np.ndarray | None) -> bool:
         """Whether another pass of the fit is needed: the parameters moved since ``previous`` by

@@ -30,13 +30,16 @@ def test_the_architecture_document_is_printed_from_the_contracts_and_the_registr
 
 
 def test_the_readme_lists_the_effects_the_registry_holds():
-    """The README's list of the names a model file may hold is the registry's."""
+    """The README's effect table and its list of the names a model file may hold are the registry's."""
     import re
     from pathlib import Path
 
-    from identified.effects import known_names
+    from identified.effects import EFFECTS, known_names
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     m = re.search(r"lists an effect other than ((?:`\w+`,?\s*)+)", readme)
     assert m, "the README's sentence on the effects a model file may list is gone"
     assert tuple(re.findall(r"`(\w+)`", m.group(1))) == known_names()
+    table = readme[readme.index("| effect | law | parameters |"):]
+    table = table[: table.index("\n\n")]
+    assert tuple(re.findall(r"^\| `(\w+)` \|", table, re.MULTILINE)) == tuple(EFFECTS)

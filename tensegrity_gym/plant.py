@@ -42,7 +42,7 @@ from identified.state import RodState
 from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
 from tensegrity_gym.checks import check_push, check_rest_lengths, check_targets
 
-__all__ = ["MujocoPlant", "RodState"]
+__all__ = ["MujocoPlant", "RodState", "standing_pose"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -129,7 +129,8 @@ class MujocoPlant:
         self._act_idx = np.array([tid[n] for n in self.motor.names], dtype=int)
         self._pull_only = self.model.tendon_lengthspring[:, 0] < self.model.tendon_lengthspring[:, 1]
         self._spring0 = self.model.tendon_lengthspring.copy()  # the MJCF values
-        self._key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "nominal")
+        key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "nominal")
+        self._key = key if key >= 0 else (0 if m.nkey else -1)  # "nominal", else the first keyframe
         self._act_both = np.flatnonzero(~self._pull_only[self._act_idx])  # actuated push-pull springs
         self._dt = float(m.opt.timestep)
         self._target = np.zeros(len(self.actuated_names))
@@ -195,8 +196,8 @@ class MujocoPlant:
         """Put the plant at a state with zero time.
 
         Args:
-            states: rod states; ``None`` takes the keyframe ``"nominal"`` when the model has one,
-                else the model's ``qpos0``, with zero velocities.
+            states: rod states; ``None`` takes the keyframe ``"nominal"`` (else the model's first
+                keyframe, else its ``qpos0``) with zero velocities.
             rest_lengths: (S,) rest length of every tendon (the upper bound for pull-only cables);
                 ``None`` restores the MJCF values. Motor targets are set to the actuated rest
                 lengths, so the motors hold still until :meth:`set_targets`.
@@ -207,6 +208,7 @@ class MujocoPlant:
         else:
             mujoco.mj_resetData(m, d)
         d.qvel[:] = 0.0
+        d.ctrl[:] = 0.0 if self._key < 0 else m.key_ctrl[self._key]
         m.tendon_lengthspring[:] = self._spring0
         if rest_lengths is not None:
             self._write_rest(check_rest_lengths(rest_lengths, m.ntendon, self._act_idx, self.motor))
@@ -393,6 +395,28 @@ class MujocoPlant:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def standing_pose(plant: MujocoPlant, settle_time: float = 5.0) -> tuple[RodState, str]:
+    """The pose a model stands in, with zero velocities, and where it came from.
+
+    Its keyframe ``"nominal"``, else its first keyframe; a model without a keyframe is released
+    from ``qpos0`` (motors and actuators at rest) and simulated for ``settle_time`` seconds, and
+    the pose it has then is its standing pose (what a lab does with a robot put on the floor).
+    The plant is left reset.
+    """
+    plant.reset()
+    if plant._key >= 0:
+        name = mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_KEY, plant._key) or str(plant._key)
+        how = f"keyframe '{name}'"
+    else:
+        for _ in range(max(1, round(settle_time / plant.dt))):
+            plant.step()
+        how = f"settled for {settle_time:g} s from qpos0"
+    s = plant.states()
+    plant.reset()
+    zero = np.zeros_like(s.pos)
+    return RodState(s.pos, s.quat, zero, zero.copy()), how
 
 
 def _farthest_pair(p: np.ndarray) -> np.ndarray:

@@ -291,6 +291,8 @@ def read_system(source: str | os.PathLike | Any, error: type[Exception] = MjcfEr
     # rods: free bodies (children of the world), with every body welded to them
     rods_b = [b for b in range(1, m.nbody) if m.body_jntnum[b] == 1
               and m.jnt_type[m.body_jntadr[b]] == mujoco.mjtJoint.mjJNT_FREE]
+    if not rods_b:
+        raise error("the model has no rods: no body with a free joint")
     rod_of_body = np.full(m.nbody, -2)  # -2: moves but is no rod, -1: fixed to the world
     for b in range(m.nbody):
         w = m.body_weldid[b]
@@ -404,10 +406,15 @@ def _check_connected(rods: list[RodInfo], tendons: list[TendonInfo], site_rod: d
         anchored |= n in nodes
         for a in nodes[1:]:
             parent[find(a)] = find(nodes[0])
-    root = find(n) if anchored else find(0)
+    if anchored:
+        root = find(n)
+    else:  # the largest piece (the first rod's on a tie) is the structure, the others came apart
+        sizes = [sum(find(j) == find(i) for j in range(n)) for i in range(n)]
+        root = find(int(np.argmax(sizes)))
     apart = [r.name for i, r in enumerate(rods) if find(i) != root]
     if apart:
-        to = "the world" if anchored else f"rod '{rods[0].name}'"
+        first = next(r.name for i, r in enumerate(rods) if find(i) == root)
+        to = "the world" if anchored else f"rod '{first}'"
         raise error(f"rods {apart} are not connected to {to} by any chain of cables: the model falls apart")
 
 

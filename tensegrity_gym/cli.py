@@ -114,6 +114,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
           f"integrator {model.integrator}, effects: {added})")
+    res = model.metrics.get("residual") or {}
+    if args.strict and res.get("large"):
+        raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
+                           f"unexplained on its own data (above {res['threshold']:g}); '{args.out}' is written "
+                           "for inspection")
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -354,6 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--jobs", type=jobs, default="auto", metavar="N|auto",
                    help="processes the effect search fits its candidates in (default auto: one per core "
                    "this process may use; the model is the same with any N)")
+    f.add_argument("--strict", action="store_true",
+                   help="exit with an error when the fitted equations leave a large residual on their own "
+                   "(clean) data: the model cannot describe the plant")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 

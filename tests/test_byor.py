@@ -235,3 +235,31 @@ def test_env_without_controls_says_so() -> None:
         gym.make("Tensegrity-v0")
     with pytest.raises(ValueError, match="actuator 'motor1' has no ctrlrange"):
         gym.make("Tensegrity-v0", xml_file=PRISM.replace('gear="-6" ctrlrange="0 1"/>', 'gear="-6"/>', 1))
+
+
+# ---------------------------------------------------------------------- a fit that does not describe its data says so
+def test_fit_strict_flags_a_model_that_cannot_describe_its_data(tmp_path) -> None:
+    """The same plant twice: rods with their centre of mass at the frame origin are fitted to rounding
+    (residual ~1e-13, passes --strict); with every centre of mass 5 cm off the origin (geometry the
+    spring-rod equations do not hold) the fit says so in metrics, summary and warnings, and
+    ``--strict`` exits with status 2."""
+    from identified.model import load_model
+    from tensegrity_gym.cli import main
+
+    good = build_model("ico", "paper-uniform")
+    bad = good.replace('<inertial pos="0 0 0"', '<inertial pos="0.05 0 0"')
+    results = {}
+    for name, xml in (("good", good), ("bad", bad)):
+        path = tmp_path / f"{name}.xml"
+        path.write_text(xml)
+        data, out = tmp_path / f"{name}.npz", tmp_path / f"{name}.json"
+        assert main(["collect", "--model", str(path), "--episodes", "2", "--steps", "300", "--seed", "1",
+                     "--push-every", "50", "--out", str(data)]) == 0
+        results[name] = main(["fit", str(data), "--model", str(path), "--out", str(out), "--strict", "--quiet"])
+        model = load_model(out)
+        results[name + "_res"] = model.metrics["residual"]
+        results[name + "_summary"] = model.summary()
+    assert results["good"] == 0 and results["good_res"]["relative_one_step"] < 1e-10
+    assert not results["good_res"]["large"] and "NOT A DESCRIPTION" not in results["good_summary"]
+    assert results["bad"] == 2 and results["bad_res"]["large"] and results["bad_res"]["relative_one_step"] > 1e-2
+    assert "NOT A DESCRIPTION OF ITS DATA" in results["bad_summary"]

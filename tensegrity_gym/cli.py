@@ -216,10 +216,11 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise CommandError("--identified F.json is needed to train on the twin (or train on the plant with --plant)")
     if args.identified is not None:
         _check_readable(args.identified)
+    own = _xml_file_kwargs(args)
     _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
                       plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
-                      threads=args.threads, tensorboard=args.tensorboard)
+                      threads=args.threads, tensorboard=args.tensorboard, **own)
     r = train(cfg, args.out, progress=not args.quiet)
     last = ("" if r.mean_return is None else
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
@@ -240,9 +241,10 @@ def cmd_gap(args: argparse.Namespace) -> None:
         if os.path.exists(args.video) and not os.path.isdir(args.video):
             raise CommandError(f"--video {args.video}: not a folder")
         _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
+    own = _xml_file_kwargs(args)
     r = measure_gap(args.policy, args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
-                    threads=args.threads)
+                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"))
     if args.json:
         print(json.dumps(r, indent=2))
         return
@@ -427,6 +429,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
+    t.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
 
@@ -447,12 +453,29 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--video", default=None, metavar="DIR",
                    help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here")
     g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
+    g.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=cmd_gap)
     return p
 
 
 # ---------------------------------------------------------------------- helpers
+def _xml_file_kwargs(args: argparse.Namespace) -> dict:
+    """``--xml-file PATH``: the MJCF of the plant and of the twin's source (``backend_kwargs['mjcf']``),
+    with the env's health derived from it; ``{}`` without the option."""
+    if args.xml_file is None:
+        return {}
+    _check_readable(args.xml_file)
+    from identified.mjcf import read_system
+
+    read_system(args.xml_file)  # a model that is no tensegrity fails here, in one line
+    return {"backend_kwargs": {"mjcf": os.path.abspath(args.xml_file)},
+            "env_kwargs": {"healthy_z_range": "auto"}}
+
+
 def _parse_mass(text: str) -> tuple[str, float]:
     name, sep, kg = text.partition("=")
     if not sep:

@@ -264,7 +264,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         bar = tqdm(total=4 * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
-            mjcf = plant_mjcf(identified)
+            mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:

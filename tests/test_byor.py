@@ -263,3 +263,34 @@ def test_fit_strict_flags_a_model_that_cannot_describe_its_data(tmp_path) -> Non
     assert not results["good_res"]["large"] and "NOT A DESCRIPTION" not in results["good_summary"]
     assert results["bad"] == 2 and results["bad_res"]["large"] and results["bad_res"]["relative_one_step"] > 1e-2
     assert "NOT A DESCRIPTION OF ITS DATA" in results["bad_summary"]
+
+
+def test_tensegrity_v0_on_the_twin(tmp_path) -> None:
+    """Tensegrity-v0 with backend="identified": the shipped robot model on its MJCF passes the
+    checkers, starts from the plant's reset state for the same seed, and derives its health range
+    from the MJCF; an MJCF whose MuJoCo actuators the model lacks is refused in one line."""
+    from gymnasium.utils.env_checker import check_env
+
+    from tensegrity_gym.backends.identified_backend import default_model_path
+
+    xml = tmp_path / "robot.xml"
+    xml.write_text(build_model("ico", "robot"))
+    twin = gym.make("Tensegrity-v0", xml_file=str(xml), backend="identified", model=default_model_path(),
+                    backend_kwargs={"dtype": "float64", "compile": False})
+    plant = gym.make("Tensegrity-v0", xml_file=str(xml))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        check_env(twin.unwrapped, skip_render_check=True)
+    o_twin, _ = twin.reset(seed=3)
+    o_plant, _ = plant.reset(seed=3)
+    np.testing.assert_allclose(o_twin, o_plant, rtol=0, atol=1e-6)
+    assert twin.unwrapped.healthy_z_range == pytest.approx(plant.unwrapped.healthy_z_range)
+    from identified.fit.pipeline import fit_model
+    from identified.model import save_model
+    from tensegrity_gym.collect import CollectConfig, collect
+
+    data = collect(LAB["prism3"], CollectConfig(episodes=1, steps=300, seed=0, push_every=20, push_magnitude=3.0))
+    prism = tmp_path / "prism.json"
+    save_model(prism, fit_model(data, LAB["prism3"]))
+    with pytest.raises(ValueError, match=r"has MuJoCo actuators \['motor1', 'motor2', 'motor3'\]"):
+        gym.make("Tensegrity-v0", xml_file=LAB["prism3"], backend="identified", model=str(prism))

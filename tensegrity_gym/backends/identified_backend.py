@@ -206,6 +206,10 @@ class IdentifiedBackend(Backend):
         self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
         topo_mjcf = Topology.from_mjcf(self.mjcf)
         self.ground = topo_mjcf.ground
+        forces = [a.name for a in topo_mjcf.actuators if a.kind != "rest_length"]
+        if forces:
+            raise ValueError(f"the MJCF '{self.mjcf_source}' has MuJoCo actuators {forces}, which the identified "
+                             "model does not hold: the twin cannot step them")
         if parse_mjcf(self.mjcf).find("keyframe/key[@name='nominal']") is not None:
             self._nominal = nominal_pose(self.mjcf, self.rod_names)
         else:  # a lab's model: the pose the plant stands in (a keyframe, or settled from qpos0)

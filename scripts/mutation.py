@@ -33,6 +33,7 @@ TESTS = {
     "twin": ["tests/test_twin_actuation.py", "tests/test_twin.py", "-k",
              "actuat or batched_pure or chunked or vector_env_matches or clipped"],
     "vector": ["tests/test_twin.py", "-k", "vector or batched_pure"],
+    "env-args": ["tests/test_bad_input.py", "-k", "fuzz_env or env_refuses"],
     "training": ["tests/test_train_metrics.py"],
     "gap": ["tests/test_gap_metrics.py"],
 }
@@ -221,6 +222,16 @@ MUTANTS = [
      "centre of mass never updated"),
     ("vector", "tensegrity_gym/envs/vector.py", "        quat = quat / np.sqrt(np.einsum(\"nri,nri->nr\", quat, quat))[..., None]",
      "        quat = quat", "quaternions not normalised"),
+    # ------------------------------------------------------------------ the env's arguments
+    ("env-args", "tensegrity_gym/envs/tensegrity_ico_v0.py",
+     "        if not (np.isfinite(reset_noise_scale) and 0 <= reset_noise_scale <= 1):",
+     "        if True:", "every input refused"),
+    ("env-args", "tensegrity_gym/envs/tensegrity_ico_v0.py",
+     "        if not (np.isfinite(reset_noise_scale) and 0 <= reset_noise_scale <= 1):",
+     "        if not (np.isfinite(reset_noise_scale) and 0 <= reset_noise_scale):", "reset noise above 1 accepted"),
+    ("env-args", "tensegrity_gym/envs/tensegrity_ico_v0.py",
+     "        if not (np.isfinite(lo_z) and np.isfinite(hi_z) and lo_z < hi_z):",
+     "        if not (np.isfinite(lo_z) and np.isfinite(hi_z)):", "an empty healthy range accepted"),
     # ------------------------------------------------------------------ training
     ("training", "tensegrity_gym/training.py", 'self._dist[i] += float(info.get("x_velocity", 0.0)) * dt',
      'self._dist[i] += float(info.get("y_velocity", 0.0)) * dt', "progress along the wrong coordinate"),

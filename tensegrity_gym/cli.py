@@ -196,7 +196,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from tensegrity_gym.training import TrainConfig, train
+    from tensegrity_gym.training import TrainConfig, resolve_randomize, train
 
     if args.timesteps < 1:
         raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
@@ -209,7 +209,12 @@ def cmd_train(args: argparse.Namespace) -> None:
     _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
                       plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
-                      threads=args.threads, tensorboard=args.tensorboard)
+                      threads=args.threads, tensorboard=args.tensorboard, randomize=args.randomize)
+    if not args.plant:
+        try:
+            resolve_randomize(cfg)
+        except ValueError as exc:
+            raise CommandError(f"--randomize {args.randomize}: {exc}") from None
     r = train(cfg, args.out, progress=not args.quiet)
     last = ("" if r.mean_return is None else
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
@@ -388,6 +393,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
     rp.set_defaults(func=cmd_reproduce)
 
+    from tensegrity_gym.training import DEFAULT_RANDOMIZE, DEFAULT_TIMESTEPS
+
     t = sub.add_parser("train", help="train an SB3 policy on the identified twin (or on the plant)",
                        description="Train a Stable-Baselines3 policy to roll the robot forward on the identified "
                        "twin, stepped natively batched (one engine call for all envs; MuJoCo is never stepped), "
@@ -399,7 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="identified model of the twin; with --plant it names the plant (the MJCF it was fitted "
                    "against; default with --plant: the robot preset)")
     t.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="algorithm (default ppo)")
-    t.add_argument("--timesteps", type=int, required=True, metavar="N", help="environment steps to train for")
+    t.add_argument("--timesteps", type=int, default=DEFAULT_TIMESTEPS, metavar="N",
+                   help=f"environment steps to train for (default {DEFAULT_TIMESTEPS:,}: the budget at which "
+                   "policies trained on the twin transfer, README 'Training on the twin')")
     t.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives the same policy (default 0)")
     t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
@@ -412,6 +421,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
+    t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                   help="domain randomization of the twin, drawn per env at every reset: 'auto' (default: "
+                   "widths from the fit's standard errors, its contact law's unexplained variance and its "
+                   "one-step error; never from the plant's MJCF), 'none', or a JSON/YAML FILE of widths "
+                   "(tensegrity_gym/randomize.py documents the keys); recorded in the policy file")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
 

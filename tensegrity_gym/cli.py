@@ -222,6 +222,27 @@ def cmd_train(args: argparse.Namespace) -> None:
           f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
 
 
+def cmd_improve(args: argparse.Namespace) -> None:
+    from tensegrity_gym.improve import ImproveConfig, improve
+
+    for name in ("rounds", "episodes", "timesteps"):
+        if getattr(args, name) < 1:
+            raise CommandError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    for p in (args.identified, args.data, args.policy):
+        _check_readable(p)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise CommandError(f"--out '{args.out}' exists and is not a folder")
+    cfg = ImproveConfig(rounds=args.rounds, episodes=args.episodes, timesteps=args.timesteps,
+                        randomize=args.randomize, effects=args.effects, seed=args.seed)
+    rows = improve(args.identified, args.data, args.policy, args.out, cfg, mjcf=args.model, progress=not args.quiet)
+    for r in rows:
+        e = r["twin_error_on_policy_states"]
+        print(f"round {r['round']}: plant {r['plant_progress_m']:.3f} m, twin {r['twin_progress_m']:.3f} m, twin on "
+              f"the policy's states: one-step {e['one_step_vel_m_s']:.3g} m/s, free run {e['free_run_m']:.3g} m; "
+              f"plant data {r['plant_data_s']:.0f} s")
+    print(f"wrote {os.path.join(args.out, 'improve.json')}")
+
+
 def cmd_gap(args: argparse.Namespace) -> None:
     from tensegrity_gym.gap import measure_gap
 
@@ -428,6 +449,31 @@ def build_parser() -> argparse.ArgumentParser:
                    "(tensegrity_gym/randomize.py documents the keys); recorded in the policy file")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
+
+    im = sub.add_parser("improve", help="rounds of: policy on the plant -> refit with its data -> train on",
+                        description="Close the loop through the policy: each round rolls the current policy on the "
+                        "plant (recorded in the collect format), measures the twin's error on those states, refits "
+                        "the model with them added to the fit's data, and continues training the policy on the new "
+                        "twin. Writes OUT/round<k>/ (plant.npz, model.json, policy.zip) and OUT/improve.json "
+                        "(per round: plant and twin progress, the twin's one-step and free-run error on the "
+                        "policy's states, plant data used so far).")
+    im.add_argument("--identified", required=True, metavar="F.json", help="the model the policy was trained on")
+    im.add_argument("--data", required=True, metavar="D.npz", help="the dataset the model was fitted on")
+    im.add_argument("--policy", required=True, metavar="P.zip", help="the policy to improve")
+    im.add_argument("--model", default=None, metavar="M.xml",
+                    help="the plant's MJCF (default: the one the model was fitted against)")
+    im.add_argument("--rounds", type=int, default=2, help="rounds (default 2)")
+    im.add_argument("--episodes", type=int, default=2, help="plant episodes recorded per round (default 2)")
+    im.add_argument("--timesteps", type=int, default=100_000, metavar="N",
+                    help="training steps on each new twin (default 100,000)")
+    im.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                    help="randomization while training on (default auto, as 'train')")
+    im.add_argument("--effects", default="same", help="effects of the refit: 'same' (the model's, default) or as "
+                    "'fit --effects'")
+    im.add_argument("--seed", type=int, default=0, help="seed of the plant episodes and the training (default 0)")
+    im.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    im.add_argument("--quiet", action="store_true", help="no progress lines")
+    im.set_defaults(func=cmd_improve)
 
     g = sub.add_parser("gap", help="the sim-to-sim gap of a policy: twin, plant, random, open loop",
                        description="Run the policy on the twin and on the plant from the same reset seeds, a random "

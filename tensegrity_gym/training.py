@@ -132,6 +132,9 @@ class TrainConfig:
             (from the identified model's uncertainty and unexplained residual), ``"none"``/``None``,
             a FILE path, a mapping or a :class:`~tensegrity_gym.randomize.Randomization`; recorded
             in the policy's metadata. Ignored with ``plant=True``.
+        init_policy: a policy file of :func:`train` to continue from (its network weights and its
+            observation normalisation; the algorithm's other settings are this config's), e.g. on
+            a refitted twin (:mod:`tensegrity_gym.improve`).
         snapshots: also keep the policy after every update as :func:`snapshot_path` ``(out, N)``
             (``P.step<N>.zip``, N the steps trained so far): learning curves, e.g. the plant steps
             direct training needs to reach a given progress (benchmarks/bench_train.py).
@@ -152,6 +155,7 @@ class TrainConfig:
     backend_kwargs: dict[str, Any] = field(default_factory=dict)
     snapshots: bool = False
     randomize: Any = "none"
+    init_policy: str | None = None
 
     def validate(self) -> None:
         """ValueError with one line for every setting out of range."""
@@ -165,6 +169,8 @@ class TrainConfig:
             raise ValueError(f"envs must be an integer >= 1, got {self.envs}")
         if self.identified is not None and not os.path.isfile(self.identified):
             raise ValueError(f"'{self.identified}' does not exist or is not a file")
+        if self.init_policy is not None and not os.path.isfile(self.init_policy):
+            raise ValueError(f"'{self.init_policy}' does not exist or is not a file")
 
     @property
     def n_envs(self) -> int:
@@ -466,6 +472,8 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                                 **NORMALIZE)
             model = _algo_class(cfg.algo)("MlpPolicy", venv, seed=cfg.seed, device="cpu", verbose=0,
                                           tensorboard_log=cfg.tensorboard, **hp)
+            if cfg.init_policy is not None:
+                _continue_from(model, venv, cfg.init_policy, spaces)
             t0 = time.perf_counter()
             started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
@@ -484,6 +492,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                     "timesteps": int(model.num_timesteps),
                     "seed": int(cfg.seed),
                     "randomization": None if randomization is None else randomization.to_json(),
+                    "continued_from": None if cfg.init_policy is None else os.path.abspath(cfg.init_policy),
                     "envs": cfg.n_envs,
                     "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str))},
                     "started": started,
@@ -522,6 +531,18 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
         model=model, vecnormalize=venv,
     )
+
+
+def _continue_from(model: Any, venv: Any, path: str, spaces: tuple) -> None:
+    """Start ``model`` from the policy file ``path``: its weights and its normalisation statistics."""
+    pol = load_policy(path)
+    pol.check_env(*spaces)
+    if pol.meta["algo"] != ("sac" if "SAC" in type(model).__name__ else "ppo"):
+        raise PolicyFileError(f"'{path}' holds a {pol.meta['algo']} policy; continue it with --algo {pol.meta['algo']}")
+    model.policy.load_state_dict(pol.model.policy.state_dict())
+    rms = venv.obs_rms
+    rms.mean, rms.var = pol.obs_mean.copy(), pol.obs_var.copy()
+    rms.count = float(pol.meta["normalize"]["count"])
 
 
 def _close(venv: Any, base: Any) -> None:

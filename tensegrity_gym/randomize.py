@@ -33,17 +33,22 @@ from the plant's MJCF:
 * the contact law: what its fit leaves unexplained. The law is fitted on the residual wrench of
   the rods in contact and explains a fraction ``EV`` of its variance (``metrics.residual_stage.
   ground_contact.explained_variance``, measured on the fit's own data); the unexplained
-  relative amplitude ``sqrt(1 - EV)`` is the relative width of each contact parameter, times
-  :data:`CONTACT_FACTOR` (2: the contact's remaining error sits where the policy's search goes,
-  rolling over an edge, not spread evenly over the fit's data), at least :data:`CONTACT_FLOOR`;
-  the friction coefficient ``mu`` and regulariser ``epsilon``, scanned without a standard error,
-  get the same width;
-* observation noise: the twin's one-step error (``metrics.one_step_rms``: position, velocity,
-  angular velocity after one physics step, on the fit's data) grown as a random walk over one
-  control period (``sqrt(frame_skip)``);
-* springs and rods: the larger of 3 standard errors and :data:`PRIOR_WIDTH` (a prior: no fit of a
-  lab's robot knows its parameters to better than a few percent, although a noise-free fit on a
-  simulated plant reports errors at machine precision);
+  relative amplitude ``sqrt(1 - EV)`` times :data:`CONTACT_FACTOR` (4: the contact's remaining
+  error sits where the policy's search goes, rolling over an edge, not spread evenly over the
+  fit's data; measured, a factor 2 left the policies relying on the twin's contact) is the
+  relative width of each contact parameter, between :data:`CONTACT_FLOOR` and 0.5; the
+  dimensionless gains ``gamma_*`` (near 1: the contact cancels what pushes the rod into the
+  ground) at most :data:`GAMMA_MAX`. The friction coefficient ``mu`` and the regulariser
+  ``epsilon``, scanned without a standard error, get the same width;
+* observation noise: what the twin gets wrong over one control period. Velocities: its one-step
+  error (``metrics.one_step_rms``, one physics step, on the fit's data) grown as a random walk
+  over the control period (``sqrt(frame_skip)``); positions and orientations, whose one-step
+  error is nil by construction: its free-run error (``metrics.free_run``, mean over its horizon)
+  scaled the same way to one control period (``sqrt(control period / horizon)``);
+* springs and rods: the larger of 3 standard errors and :data:`PRIOR_WIDTH`, and cable rest
+  offsets of :data:`PRIOR_REST_OFFSET` (priors: no fit of a lab's robot knows its parameters to
+  better than a few percent or its spools to better than millimetres, although a noise-free fit on
+  a simulated plant reports errors at machine precision);
 * motors and latency (not identified): :data:`PRIOR_MOTOR_SPEED` and one control step of latency;
   no pushes (the reward is forward progress, a push is not in the plant's task).
 
@@ -70,8 +75,10 @@ __all__ = [
     "CONTACT_FACTOR",
     "CONTACT_FLOOR",
     "CONTACT_PARAMETERS",
+    "GAMMA_MAX",
     "OBS_GROUPS",
     "PRIOR_MOTOR_SPEED",
+    "PRIOR_REST_OFFSET",
     "PRIOR_WIDTH",
     "Draw",
     "Randomization",
@@ -83,11 +90,15 @@ __all__ = [
 CONTACT_PARAMETERS = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p", "mu", "epsilon")
 OBS_GROUPS = ("pos", "rot", "vel", "angvel", "rest")
 #: the contact's unexplained relative amplitude is multiplied by this to give a parameter's width
-CONTACT_FACTOR = 2.0
+CONTACT_FACTOR = 4.0
+#: the largest relative width of the contact's dimensionless gains (gamma_n, gamma_a, gamma_p)
+GAMMA_MAX = 0.3
 #: the least relative width of a contact parameter under ``auto``
 CONTACT_FLOOR = 0.1
 #: the least relative width of a spring or rod parameter under ``auto`` (a prior, see the module)
-PRIOR_WIDTH = 0.02
+PRIOR_WIDTH = 0.05
+#: the cables' rest-length offsets under ``auto``, m (a prior, see the module)
+PRIOR_REST_OFFSET = 0.002
 #: the relative width of the motors' speed under ``auto`` (a prior: it is not identified)
 PRIOR_MOTOR_SPEED = 0.1
 _SCALARS = ("stiffness", "damping", "mass", "inertia", "rest_offset", "motor_speed", "push_force",
@@ -233,7 +244,7 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
 
     r = Randomization(stiffness=width("stiffness", model.stiffness), damping=width("damping", model.damping),
                       mass=width("mass", model.mass), inertia=width("inertia", model.inertia),
-                      motor_speed=PRIOR_MOTOR_SPEED, latency=1, source="auto")
+                      rest_offset=PRIOR_REST_OFFSET, motor_speed=PRIOR_MOTOR_SPEED, latency=1, source="auto")
     metrics = getattr(model, "metrics", None) or {}
     contact = next((e for e in getattr(model, "effects", []) if e.get("name") == "ground_contact"), None)
     if contact is not None and contact.get("parameters"):
@@ -246,17 +257,24 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
         for name in CONTACT_PARAMETERS:
             v, s = vals.get(name), ses.get(name)
             rel = 3.0 * abs(float(s) / float(v)) if s is not None and v not in (None, 0) else 0.0
-            widths[name] = float(min(max(base, rel), 0.5))
+            cap = GAMMA_MAX if name.startswith("gamma") else 0.5
+            widths[name] = float(min(max(base, rel), cap))
         r.contact = widths
     step = metrics.get("one_step_rms") or {}
+    free = metrics.get("free_run") or {}
     walk = math.sqrt(max(int(frame_skip), 1))
     noise = {}
-    for key, group in (("pos", "pos"), ("vel", "vel"), ("angvel", "angvel")):
+    for key in ("vel", "angvel"):
         if step.get(key) is not None and math.isfinite(float(step[key])):
-            noise[group] = float(step[key]) * walk
-    if step.get("quat") is not None:
-        noise["rot"] = 2.0 * float(step["quat"]) * walk  # a rotation-matrix entry moves ~2x a quaternion's
+            noise[key] = float(step[key]) * walk
+    horizon = free.get("horizon")
+    if horizon:
+        per_control = math.sqrt(max(int(frame_skip), 1) / float(horizon))
+        for key, group in (("pos_mean", "pos"), ("quat_mean", "rot")):
+            if free.get(key) is not None and math.isfinite(float(free[key])):
+                noise[group] = float(free[key]) * per_control
     r.obs_noise = noise
+    notes["free_run"] = {k: free.get(k) for k in ("horizon", "pos_mean", "quat_mean")}
     notes["one_step_rms"] = {k: step.get(k) for k in ("pos", "vel", "angvel", "quat")}
     notes["frame_skip"] = int(frame_skip)
     r.notes = notes

@@ -154,7 +154,7 @@ class TrainConfig:
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     backend_kwargs: dict[str, Any] = field(default_factory=dict)
     snapshots: bool = False
-    randomize: Any = "none"
+    randomize: Any = DEFAULT_RANDOMIZE
     init_policy: str | None = None
 
     def validate(self) -> None:

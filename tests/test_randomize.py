@@ -26,6 +26,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import action_to_rest, perturb_start
 from tensegrity_gym.randomize import (
     CONTACT_FACTOR,
     CONTACT_PARAMETERS,
+    GAMMA_MAX,
     PRIOR_WIDTH,
     Randomization,
     auto_randomization,
@@ -185,17 +186,22 @@ def test_auto_comes_from_the_fit_numbers_not_the_mjcf():
     for name in CONTACT_PARAMETERS:
         se = gc["stderr"][name]
         want = max(base, 0 if se is None else 3 * abs(se / gc["parameters"][name]))
-        assert r.contact[name] == pytest.approx(min(want, 0.5), rel=1e-12)
-    assert r.contact["beta_a"] > r.contact["kappa"]  # its standard error is the larger
+        cap = GAMMA_MAX if name.startswith("gamma") else 0.5
+        assert r.contact[name] == pytest.approx(min(want, cap), rel=1e-12)
     assert r.stiffness == PRIOR_WIDTH  # a noise-free fit: 3 se of 1e-14 is below the prior
     assert r.obs_noise["vel"] == pytest.approx(model.metrics["one_step_rms"]["vel"] * np.sqrt(20), rel=1e-12)
-    # a worse contact fit and larger standard errors widen the ranges
-    worse = copy.deepcopy(model)
-    worse.metrics["residual_stage"]["ground_contact"]["explained_variance"] = 0.96
-    worse.stderr["stiffness"] = 0.02 * np.asarray(worse.stiffness)
-    w = auto_randomization(worse)
-    assert w.contact["kappa"] == pytest.approx(CONTACT_FACTOR * 0.2, rel=1e-12)
-    assert w.stiffness == pytest.approx(0.06, rel=1e-12)
+    free = model.metrics["free_run"]
+    assert r.obs_noise["pos"] == pytest.approx(free["pos_mean"] * np.sqrt(20 / free["horizon"]), rel=1e-12)
+    # a better contact fit narrows the ranges, larger standard errors widen them
+    other = copy.deepcopy(model)
+    other.metrics["residual_stage"]["ground_contact"]["explained_variance"] = 0.99
+    other.stderr["stiffness"] = 0.04 * np.asarray(other.stiffness)
+    gc_other = next(e for e in other.effects if e["name"] == "ground_contact")
+    gc_other["stderr"]["beta_a"] = 0.2 * gc_other["parameters"]["beta_a"]
+    w = auto_randomization(other)
+    assert w.contact["kappa"] == pytest.approx(CONTACT_FACTOR * 0.1, rel=1e-12)
+    assert w.contact["beta_a"] == 0.5  # 3 standard errors (0.6), capped
+    assert w.stiffness == pytest.approx(0.12, rel=1e-12)
     # the MJCF is not read: another source model gives the same widths
     other = copy.deepcopy(model)
     other.source_model = "/nonexistent/robot.xml"

@@ -206,7 +206,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from tensegrity_gym.training import TrainConfig, train
+    from tensegrity_gym.training import TrainConfig, resolve_randomize, train
 
     if args.timesteps < 1:
         raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
@@ -220,12 +220,38 @@ def cmd_train(args: argparse.Namespace) -> None:
     _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
                       plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
-                      threads=args.threads, tensorboard=args.tensorboard, **own)
+                      threads=args.threads, tensorboard=args.tensorboard, randomize=args.randomize, **own)
+    if not args.plant:
+        try:
+            resolve_randomize(cfg)
+        except ValueError as exc:
+            raise CommandError(f"--randomize {args.randomize}: {exc}") from None
     r = train(cfg, args.out, progress=not args.quiet)
     last = ("" if r.mean_return is None else
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
     print(f"wrote {args.algo} policy to {args.out} ({r.timesteps} steps on the {'plant' if args.plant else 'twin'} "
           f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
+
+
+def cmd_improve(args: argparse.Namespace) -> None:
+    from tensegrity_gym.improve import ImproveConfig, improve
+
+    for name in ("rounds", "episodes", "timesteps"):
+        if getattr(args, name) < 1:
+            raise CommandError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    for p in (args.identified, args.data, args.policy):
+        _check_readable(p)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise CommandError(f"--out '{args.out}' exists and is not a folder")
+    cfg = ImproveConfig(rounds=args.rounds, episodes=args.episodes, timesteps=args.timesteps,
+                        randomize=args.randomize, effects=args.effects, seed=args.seed)
+    rows = improve(args.identified, args.data, args.policy, args.out, cfg, mjcf=args.model, progress=not args.quiet)
+    for r in rows:
+        e = r["twin_error_on_policy_states"]
+        print(f"round {r['round']}: plant {r['plant_progress_m']:.3f} m, twin {r['twin_progress_m']:.3f} m, twin on "
+              f"the policy's states: one-step {e['one_step_vel_m_s']:.3g} m/s, free run {e['free_run_m']:.3g} m; "
+              f"plant data {r['plant_data_s']:.0f} s")
+    print(f"wrote {os.path.join(args.out, 'improve.json')}")
 
 
 def cmd_gap(args: argparse.Namespace) -> None:
@@ -405,6 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
     rp.set_defaults(func=cmd_reproduce)
 
+    from tensegrity_gym.training import DEFAULT_RANDOMIZE, DEFAULT_TIMESTEPS
+
     t = sub.add_parser("train", help="train an SB3 policy on the identified twin (or on the plant)",
                        description="Train a Stable-Baselines3 policy to roll the robot forward on the identified "
                        "twin, stepped natively batched (one engine call for all envs; MuJoCo is never stepped), "
@@ -416,7 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="identified model of the twin; with --plant it names the plant (the MJCF it was fitted "
                    "against; default with --plant: the robot preset)")
     t.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="algorithm (default ppo)")
-    t.add_argument("--timesteps", type=int, required=True, metavar="N", help="environment steps to train for")
+    t.add_argument("--timesteps", type=int, default=DEFAULT_TIMESTEPS, metavar="N",
+                   help=f"environment steps to train for (default {DEFAULT_TIMESTEPS:,}: the budget at which "
+                   "policies trained on the twin transfer, README 'Training on the twin')")
     t.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives the same policy (default 0)")
     t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
@@ -433,8 +463,38 @@ def build_parser() -> argparse.ArgumentParser:
                    help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
                    "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
                    "drawing; health derives from it (healthy_z_range='auto')")
+    t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                   help="domain randomization of the twin, drawn per env at every reset: 'auto' (default: "
+                   "widths from the fit's standard errors, its contact law's unexplained variance and its "
+                   "one-step error; never from the plant's MJCF), 'none', or a JSON/YAML FILE of widths "
+                   "(tensegrity_gym/randomize.py documents the keys); recorded in the policy file")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
+
+    im = sub.add_parser("improve", help="rounds of: policy on the plant -> refit with its data -> train on",
+                        description="Close the loop through the policy: each round rolls the current policy on the "
+                        "plant (recorded in the collect format), measures the twin's error on those states, refits "
+                        "the model with them added to the fit's data, and continues training the policy on the new "
+                        "twin. Writes OUT/round<k>/ (plant.npz, model.json, policy.zip) and OUT/improve.json "
+                        "(per round: plant and twin progress, the twin's one-step and free-run error on the "
+                        "policy's states, plant data used so far).")
+    im.add_argument("--identified", required=True, metavar="F.json", help="the model the policy was trained on")
+    im.add_argument("--data", required=True, metavar="D.npz", help="the dataset the model was fitted on")
+    im.add_argument("--policy", required=True, metavar="P.zip", help="the policy to improve")
+    im.add_argument("--model", default=None, metavar="M.xml",
+                    help="the plant's MJCF (default: the one the model was fitted against)")
+    im.add_argument("--rounds", type=int, default=2, help="rounds (default 2)")
+    im.add_argument("--episodes", type=int, default=2, help="plant episodes recorded per round (default 2)")
+    im.add_argument("--timesteps", type=int, default=100_000, metavar="N",
+                    help="training steps on each new twin (default 100,000)")
+    im.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                    help="randomization while training on (default auto, as 'train')")
+    im.add_argument("--effects", default="same", help="effects of the refit: 'same' (the model's, default) or as "
+                    "'fit --effects'")
+    im.add_argument("--seed", type=int, default=0, help="seed of the plant episodes and the training (default 0)")
+    im.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    im.add_argument("--quiet", action="store_true", help="no progress lines")
+    im.set_defaults(func=cmd_improve)
 
     g = sub.add_parser("gap", help="the sim-to-sim gap of a policy: twin, plant, random, open loop",
                        description="Run the policy on the twin and on the plant from the same reset seeds, a random "

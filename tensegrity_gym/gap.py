@@ -31,7 +31,7 @@ import numpy as np
 
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["EpisodeSet", "measure_gap", "run_episodes", "write_mp4"]
+__all__ = ["EpisodeSet", "measure_gap", "open_loop_divergence", "run_episodes", "transfer_ratios", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
 #: Videos: frame size (pixels) and one frame every this many control steps (25 fps at 50 Hz):
@@ -182,6 +182,15 @@ def open_loop_divergence(plant: EpisodeSet, twin: EpisodeSet, dt: float) -> dict
     }
 
 
+def transfer_ratios(twin: dict[str, Any], plant: dict[str, Any], random_plant: dict[str, Any]
+                    ) -> dict[str, float | None]:
+    """The ratios a transfer is judged by, from :meth:`EpisodeSet.summary` blocks: the policy's
+    mean progress on the plant over its progress on the twin, and over a random policy's on the
+    plant (``None`` where the denominator is not positive)."""
+    return {"plant_over_twin": _ratio(plant["progress_m"], twin["progress_m"]),
+            "plant_over_random": _ratio(plant["progress_m"], random_plant["progress_m"])}
+
+
 def _ratio(a: float, b: float) -> float | None:
     return float(a / b) if b > 0 and np.isfinite(a / b) else None
 
@@ -305,10 +314,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         "plant": p,
         "random_plant": r,
         "open_loop": open_loop,
-        "transfer": {
-            "plant_over_twin": _ratio(p["progress_m"], t["progress_m"]),
-            "plant_over_random": _ratio(p["progress_m"], r["progress_m"]),
-        },
+        "transfer": transfer_ratios(t, p, r),
         "twin_diverged_episodes": int(on_twin.diverged.sum()),
         "policy": {k: pol.meta.get(k) for k in ("algo", "trained_on", "identified", "timesteps", "seed")},
         "identified": None if identified is None else os.path.abspath(identified),

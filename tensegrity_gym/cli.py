@@ -12,6 +12,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -211,15 +212,23 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise CommandError("--identified F.json is needed to train on the twin (or train on the plant with --plant)")
     if args.identified is not None:
         _check_readable(args.identified)
-    _check_writable(args.out)
-    cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
-                      plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
-                      threads=args.threads, tensorboard=args.tensorboard, randomize=args.randomize)
+    if args.seeds is None and (args.ray is not None or args.jobs is not None):
+        raise CommandError(f"{'--ray' if args.ray is not None else '--jobs'} runs several seeds: give them with "
+                           "--seeds (e.g. --seeds 0-4)")
+    if args.seeds is None:
+        _check_writable(args.out)
+    cfg = TrainConfig(timesteps=args.timesteps, seed=0 if args.seed is None else args.seed, algo=args.algo,
+                      identified=args.identified, plant=args.plant, envs=args.envs, rollout=args.rollout,
+                      episode_steps=args.episode_steps, threads=args.threads, tensorboard=args.tensorboard,
+                      randomize=args.randomize)
     if not args.plant:
         try:
             resolve_randomize(cfg)
         except ValueError as exc:
             raise CommandError(f"--randomize {args.randomize}: {exc}") from None
+    if args.seeds is not None:
+        _train_seeds(args, cfg)
+        return
     r = train(cfg, args.out, progress=not args.quiet)
     last = ("" if r.mean_return is None else
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
@@ -248,20 +257,53 @@ def cmd_improve(args: argparse.Namespace) -> None:
     print(f"wrote {os.path.join(args.out, 'improve.json')}")
 
 
+def _train_seeds(args: argparse.Namespace, cfg: Any) -> None:
+    """``train --seeds``: ``cfg`` once per seed into the folder ``--out`` (tensegrity_gym/sweep.py)."""
+    import dataclasses
+
+    from tensegrity_gym.sweep import parse_seeds, run_sweep
+
+    if args.seed is not None:
+        raise CommandError("give either --seed or --seeds, not both")
+    seeds = parse_seeds(args.seeds)
+    if args.out.endswith(".zip"):
+        raise CommandError(f"--out {args.out}: with --seeds, --out is a folder (one sub-folder per seed)")
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise CommandError(f"--out {args.out}: exists and is not a folder (with --seeds, --out is a folder)")
+    parent = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+        raise CommandError(f"--out {args.out}: cannot write there (folder '{parent}' missing or not writable)")
+    if args.tensorboard is not None:
+        raise CommandError("--tensorboard takes one run: train one --seed at a time for TensorBoard logs")
+    cfg = dataclasses.replace(cfg, seed=seeds[0])
+    s = run_sweep(cfg, seeds, args.out, jobs=args.jobs, ray_address=args.ray, progress=not args.quiet,
+                  log=print)
+    sp = s["over_seeds"]["last_progress_m"]
+    where = f"Ray ({args.ray})" if args.ray is not None else f"{s['jobs']} local process(es)"
+    last = "" if sp["mean"] is None else (f"; last training episodes' progress {sp['mean']:.3f} m "
+                                          f"(std {sp['std']:.3f}, {sp['min']:.3f} to {sp['max']:.3f})")
+    print(f"wrote {len(seeds)} {args.algo} policies to {args.out}/seed_*/ ({where}, {s['wall_s']:.1f} s{last}); "
+          f"summary: {os.path.join(args.out, 'summary.json')}")
+
+
 def cmd_gap(args: argparse.Namespace) -> None:
     from tensegrity_gym.gap import measure_gap
+    from tensegrity_gym.sweep import policies_in
 
     if args.episodes < 1:
         raise CommandError(f"--episodes must be at least 1, got {args.episodes}")
     if args.episode_steps is not None and args.episode_steps < 1:
         raise CommandError(f"--episode-steps must be at least 1, got {args.episode_steps}")
     _check_readable(args.identified)
-    _check_readable(args.policy)
+    policies = policies_in(args.policy)
     if args.video is not None:
         if os.path.exists(args.video) and not os.path.isdir(args.video):
             raise CommandError(f"--video {args.video}: not a folder")
         _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
-    r = measure_gap(args.policy, args.identified, args.episodes, seed=args.seed,
+    if len(policies) > 1:
+        _gap_over_policies(args, policies)
+        return
+    r = measure_gap(policies[0], args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
                     threads=args.threads)
     if args.json:
@@ -289,6 +331,38 @@ def cmd_gap(args: argparse.Namespace) -> None:
           f"at 1 s {metres(ol['at']['1s'])}, final {metres(ol['final_m'])}")
     for name, path in r.get("videos", {}).items():
         print(f"  video {name}: {path}")
+
+
+def _gap_over_policies(args: argparse.Namespace, policies: list[str]) -> None:
+    """``gap`` of several policies: one line each, then mean and spread over them."""
+    from tensegrity_gym.gap import measure_gaps
+
+    r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
+                     video_dir=args.video, progress=not args.quiet, threads=args.threads)
+    if args.json:
+        print(json.dumps(json_safe(r), indent=2))
+        return
+    print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}; "
+          "forward progress per episode (m), mean over the episodes")
+    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin':>12s}")
+    for path, rep in zip(policies, r["reports"], strict=True):
+        ratio = rep["transfer"]["plant_over_twin"]
+        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}"
+              f"{'n/a' if ratio is None else format(ratio, '.2f'):>12s}")
+    o = r["over_policies"]
+
+    def line(label: str, sp: dict) -> str:
+        if sp["mean"] is None:
+            return f"  {label}: n/a"
+        return (f"  {label}: mean {sp['mean']:.3f}, std {sp['std']:.3f}, min {sp['min']:.3f}, max {sp['max']:.3f} "
+                f"(over {sp['n']})")
+
+    print("over the policies:")
+    print(line("twin progress (m)", o["twin"]["progress_m"]))
+    print(line("plant progress (m)", o["plant"]["progress_m"]))
+    print(line("plant / twin", o["plant_over_twin"]))
+    print(f"  random policy on the plant: {o['random_plant']['progress_m']:.3f} m; "
+          f"{o['plant_progress_at_least_0.5m']} of {len(policies)} policies roll >= 0.5 m on the plant")
 
 
 # ---------------------------------------------------------------------- parser
@@ -437,8 +511,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--timesteps", type=int, default=DEFAULT_TIMESTEPS, metavar="N",
                    help=f"environment steps to train for (default {DEFAULT_TIMESTEPS:,}: the budget at which "
                    "policies trained on the twin transfer, README 'Training on the twin')")
-    t.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives the same policy (default 0)")
-    t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
+    t.add_argument("--seed", type=int, default=None,
+                   help="random seed: the same seed gives the same policy (default 0)")
+    t.add_argument("--seeds", default=None, metavar="A-B",
+                   help="train several seeds (e.g. 0-4 or 0,3,7) in parallel into the folder --out: one "
+                   "sub-folder per seed (policy.zip, vecnormalize.pkl, config.json, progress.csv, "
+                   "learning_curve.png) and summary.json")
+    t.add_argument("--jobs", type=int, default=None, metavar="J",
+                   help="with --seeds: local processes at a time (default: one per seed, at most one per core)")
+    t.add_argument("--ray", default=None, metavar="ADDRESS",
+                   help="with --seeds: run the seeds as Ray tasks on the cluster at ADDRESS (HOST:PORT, 'auto', "
+                   "or 'local' for a Ray instance on this machine; pip install 'tensegrity-gym[ray]')")
+    t.add_argument("--out", required=True, metavar="P.zip",
+                   help="output policy file (with --seeds: output folder)")
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
     t.add_argument("--envs", type=int, default=None, metavar="K",
                    help="envs stepped in parallel (default: ppo 64 on the twin, 8 on the plant; sac 8 / 4)")
@@ -490,7 +575,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "mass per episode) and open_loop.")
     g.add_argument("--identified", required=True, metavar="F.json",
                    help="identified model of the twin (the plant is the MJCF it was fitted against)")
-    g.add_argument("--policy", required=True, metavar="P.zip", help="policy written by 'tensegrity train'")
+    g.add_argument("--policy", required=True, nargs="+", metavar="P.zip",
+                   help="policy written by 'tensegrity train', several, or a folder of seeds written by "
+                   "'tensegrity train --seeds' (then: each policy's gap, and mean and spread over them)")
     g.add_argument("--episodes", type=int, default=10, metavar="K", help="episodes on each (default 10)")
     g.add_argument("--seed", type=int, default=0, help="episode k resets with seed + k on every env (default 0)")
     g.add_argument("--episode-steps", type=int, default=None, metavar="T",

@@ -115,6 +115,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
           f"integrator {model.integrator}, effects: {added})")
+    res = model.metrics.get("residual") or {}
+    if args.strict and res.get("large"):
+        raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
+                           f"unexplained on its own data (above {res['threshold']:g}); '{args.out}' is written "
+                           "for inspection")
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -215,12 +220,13 @@ def cmd_train(args: argparse.Namespace) -> None:
     if args.seeds is None and (args.ray is not None or args.jobs is not None):
         raise CommandError(f"{'--ray' if args.ray is not None else '--jobs'} runs several seeds: give them with "
                            "--seeds (e.g. --seeds 0-4)")
+    own = _xml_file_kwargs(args)
     if args.seeds is None:
         _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=0 if args.seed is None else args.seed, algo=args.algo,
                       identified=args.identified, plant=args.plant, envs=args.envs, rollout=args.rollout,
                       episode_steps=args.episode_steps, threads=args.threads, tensorboard=args.tensorboard,
-                      randomize=args.randomize)
+                      randomize=args.randomize, **own)
     if not args.plant:
         try:
             resolve_randomize(cfg)
@@ -300,12 +306,13 @@ def cmd_gap(args: argparse.Namespace) -> None:
         if os.path.exists(args.video) and not os.path.isdir(args.video):
             raise CommandError(f"--video {args.video}: not a folder")
         _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
+    own = _xml_file_kwargs(args)
     if len(policies) > 1:
-        _gap_over_policies(args, policies)
+        _gap_over_policies(args, policies, own.get("backend_kwargs"))
         return
     r = measure_gap(policies[0], args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
-                    threads=args.threads)
+                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"))
     if args.json:
         print(json.dumps(r, indent=2))
         return
@@ -333,12 +340,14 @@ def cmd_gap(args: argparse.Namespace) -> None:
         print(f"  video {name}: {path}")
 
 
-def _gap_over_policies(args: argparse.Namespace, policies: list[str]) -> None:
+def _gap_over_policies(args: argparse.Namespace, policies: list[str],
+                       backend_kwargs: dict[str, Any] | None = None) -> None:
     """``gap`` of several policies: one line each, then mean and spread over them."""
     from tensegrity_gym.gap import measure_gaps
 
     r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
-                     video_dir=args.video, progress=not args.quiet, threads=args.threads)
+                     video_dir=args.video, progress=not args.quiet, threads=args.threads,
+                     backend_kwargs=backend_kwargs)
     if args.json:
         print(json.dumps(json_safe(r), indent=2))
         return
@@ -454,6 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--jobs", type=jobs, default="auto", metavar="N|auto",
                    help="processes the effect search fits its candidates in (default auto: one per core "
                    "this process may use; the model is the same with any N)")
+    f.add_argument("--strict", action="store_true",
+                   help="exit with an error when the fitted equations leave a large residual on their own "
+                   "(clean) data: the model cannot describe the plant")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 
@@ -539,6 +551,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "widths from the fit's standard errors, its contact law's unexplained variance and its "
                    "one-step error; never from the plant's MJCF), 'none', or a JSON/YAML FILE of widths "
                    "(tensegrity_gym/randomize.py documents the keys); recorded in the policy file")
+    t.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
 
@@ -586,12 +602,29 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--video", default=None, metavar="DIR",
                    help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here")
     g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
+    g.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=cmd_gap)
     return p
 
 
 # ---------------------------------------------------------------------- helpers
+def _xml_file_kwargs(args: argparse.Namespace) -> dict:
+    """``--xml-file PATH``: the MJCF of the plant and of the twin's source (``backend_kwargs['mjcf']``),
+    with the env's health derived from it; ``{}`` without the option."""
+    if args.xml_file is None:
+        return {}
+    _check_readable(args.xml_file)
+    from identified.mjcf import read_system
+
+    read_system(args.xml_file)  # a model that is no tensegrity fails here, in one line
+    return {"backend_kwargs": {"mjcf": os.path.abspath(args.xml_file)},
+            "env_kwargs": {"healthy_z_range": "auto"}}
+
+
 def _parse_mass(text: str) -> tuple[str, float]:
     name, sep, kg = text.partition("=")
     if not sep:

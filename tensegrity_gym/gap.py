@@ -277,7 +277,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         bar = tqdm(total=(4 if random_plant is None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
-            mjcf = plant_mjcf(identified)
+            mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:
@@ -360,7 +360,8 @@ def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: 
 
 def measure_gaps(policies: list[str], identified: str | None, episodes: int, seed: int = 0,
                  episode_steps: int | None = None, video_dir: str | None = None, progress: bool = True,
-                 threads: int = 1, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+                 threads: int = 1, log: Callable[[str], None] | None = None,
+                 backend_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """:func:`measure_gap` of several policies (e.g. the seeds of ``tensegrity train --seeds``) from
     the same reset seeds, and their mean and spread over policies.
 
@@ -382,7 +383,8 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
         key = f"{int(episode_steps or pol.episode_steps)} {sorted(pol.env_kwargs.items())!r}"
         vd = None if video_dir is None else (video_dir if len(policies) == 1 else os.path.join(video_dir, str(i)))
         rep = measure_gap(pol, identified, episodes, seed=seed, episode_steps=episode_steps, video_dir=vd,
-                          progress=progress, threads=threads, random_plant=randoms.get(key))
+                          progress=progress, threads=threads, random_plant=randoms.get(key),
+                          backend_kwargs=backend_kwargs)
         randoms[key] = rep["random_plant"]
         reports.append(rep)
         if log is not None:

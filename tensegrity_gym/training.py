@@ -214,12 +214,20 @@ class TrainResult:
 
 
 # ---------------------------------------------------------------------- helpers
-def plant_mjcf(identified: str | None) -> str:
+def plant_mjcf(identified: str | None, mjcf: str | None = None) -> str:
     """MJCF text of the plant an identified model belongs to (its source MJCF, as the twin resolves
-    it; ``None``: the robot preset)."""
+    it; ``None``: the robot preset); ``mjcf`` (a path): that MJCF, a lab's own robot."""
     from tensegrity_gym.backends.identified_backend import resolve_source_mjcf
     from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 
+    if mjcf is not None:
+        from identified.mjcf import read_mjcf_text
+
+        if identified is not None:
+            from identified.model import load_model
+
+            resolve_source_mjcf(load_model(identified), mjcf)  # the twin's topology must be the MJCF's
+        return read_mjcf_text(mjcf)
     if identified is None:
         return default_robot_xml()
     from identified.model import load_model
@@ -467,7 +475,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
     with torch_threads(cfg.threads):
         mjcf = None
         if cfg.plant:
-            mjcf = plant_mjcf(cfg.identified)
+            mjcf = plant_mjcf(cfg.identified, (cfg.backend_kwargs or {}).get("mjcf"))
             probe = gym.make(ENV_ID, model=mjcf, **cfg.env_kwargs)  # spaces and control period, here
             dt = float(probe.unwrapped.dt)  # type: ignore[attr-defined]
             spaces = (probe.observation_space, probe.action_space)

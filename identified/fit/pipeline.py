@@ -163,11 +163,12 @@ def fit_model(
         from identified.fit.refine import refine as refine_model
 
         model = refine_model(model, data, progress=progress)
-    from identified.fit.checks import refresh_physics
+    from identified.fit.checks import refresh_physics, residual_check
     from identified.predict import attach_metrics
 
     refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     attach_metrics(model, data)
+    residual_check(model, data)  # a fit that does not describe its own data says so
     return model
 
 

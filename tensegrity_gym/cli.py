@@ -46,10 +46,39 @@ def cmd_collect(args: argparse.Namespace) -> None:
         noise_pos=args.noise_pos, noise_vel=args.noise_vel, noise_quat=args.noise_quat,
         noise_angvel=args.noise_angvel, integrator=args.integrator,
     )
+    if args.record is not None:
+        _collect_recording(args, cfg)
+        return
     data = collect(args.model, cfg, progress=not args.quiet)
     save_dataset(args.out, data)
     print(f"wrote {data.n_episodes} episodes x {data.n_steps} steps ({data.n_rods} rods, "
           f"{data.n_tendons} tendons) to {args.out}")
+
+
+def _collect_recording(args: argparse.Namespace, cfg) -> None:
+    """``collect --record markers``: what a lab's sensors would see, written as a recording CSV."""
+    from identified.recording import save_recording
+    from tensegrity_gym.collect import RecordConfig, collect, record_markers
+
+    if args.record != "markers":
+        raise CommandError(f"--record {args.record}: the one kind of recording is 'markers'")
+    if not args.out.lower().endswith(".csv"):
+        raise CommandError(f"--out '{args.out}': a recording is written as .csv")
+    if args.push_every is not None:
+        raise CommandError("--push-every: a recording has no column for pushes (a lab does not measure them); "
+                           "leave pushes out when recording")
+    if any((args.noise_vel, args.noise_quat, args.noise_angvel)):
+        raise CommandError("--noise-vel/--noise-quat/--noise-angvel: a recording holds markers only; give "
+                           "--noise-pos")
+    rec = RecordConfig(rate=args.rate, noise_pos=args.noise_pos, dropout=args.dropout,
+                       unlabelled=args.unlabelled, ghosts=args.ghosts)
+    rec.validate(1e-12)  # option values before the plant runs (the rate against dt after)
+    clean = collect(args.model, cfg.__class__(**{**cfg.__dict__, "noise_pos": 0.0}), progress=not args.quiet)
+    r = record_markers(clean, args.model, rec, seed=args.seed)
+    save_recording(args.out, r)
+    print(f"wrote {r.n_episodes} takes x {r.n_frames // max(r.n_episodes, 1)} frames at {args.rate:g} Hz "
+          f"({len(r.marker_names)} markers, {100 * r.missing_fraction():.1f} % missing, "
+          f"{len(r.rest_names)} encoder rest lengths) to {args.out}")
 
 
 def cmd_summary(args: argparse.Namespace) -> None:
@@ -305,7 +334,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--noise-angvel", type=noise(1000.0, "rad/s"), default=0.0, metavar="SIGMA",
                    help="angular velocity noise std, rad/s")
     c.add_argument("--integrator", default=None, help="override the model's MuJoCo integrator")
-    c.add_argument("--out", required=True, help="output .npz path")
+    c.add_argument("--out", required=True, help="output .npz path (a .csv recording with --record)")
+    c.add_argument("--record", default=None, metavar="markers",
+                   help="write a recording (CSV of end-cap markers and encoder rest lengths) instead of a dataset: "
+                   "what a lab measures, to rehearse the lab pipeline")
+    c.add_argument("--rate", type=finite_float(0.0, 1e6, "Hz", True), default=100.0, metavar="HZ",
+                   help="with --record: marker sampling rate (default 100 Hz)")
+    c.add_argument("--dropout", type=finite_float(0.0, 0.99, "", False), default=0.0, metavar="P",
+                   help="with --record: share of marker samples missing, in runs of ~5 frames (default 0)")
+    c.add_argument("--unlabelled", action="store_true",
+                   help="with --record: anonymous marker columns (marker<N>) whose identities swap every 0.5 s")
+    c.add_argument("--ghosts", type=count(0), default=0, metavar="N",
+                   help="with --record --unlabelled: spurious markers per frame (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_collect)
 

@@ -178,6 +178,11 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
           f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
     print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
+    for e in result["one_step"].get("effect_rows") or []:
+        pct = lambda v: "n/a" if v is None else f"{v:.1%}"
+        print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "
+              f"{pct(e['inside']['force'])}, torque {pct(e['inside']['torque'])} of the recorded; other rods "
+              f"{pct(e['outside']['force'])}, {pct(e['outside']['torque'])}")
     for c in result["candidates"][:6]:
         score = "n/a" if c["score"] is None else f"{c['score']:.3f}"
         print(f"  candidate {c['name']:<16} score {score}  {c.get('note') or ''}".rstrip())

@@ -234,6 +234,11 @@ class Effect(ABC):
     def __call__(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
         return self.wrench(state, ctx)
 
+    def implicit_damping(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(b_lin (R,), b_rot (R,))`` when the integrator takes this effect implicitly as a damping
+        (the engine scales the accelerations by ``M / (M + dt b)``), else None (explicit: default)."""
+        return None
+
     def rows_affected(self, state: Any, ctx: Any) -> torch.Tensor | None:
         """(..., R) bool: rods whose equations this effect touches (residual-stage effects); None: all."""
         return None

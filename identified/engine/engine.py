@@ -338,8 +338,7 @@ class SpringRodEngine:
         ``(M + dt b) a = F - b v`` and ``(I + dt b_rot) α_b = ...``, i.e. the explicit accelerations
         scaled by ``M / (M + dt b)`` and ``I / (I + dt b_rot)`` (each effect's velocity derivative)."""
         for effect in self.effects:
-            damping = getattr(effect, "implicit_damping", None)
-            d = damping(lin_acc) if damping is not None else None
+            d = self._damping_of(effect, lin_acc)
             if d is None:
                 continue
             b_lin, b_rot = d
@@ -347,6 +346,13 @@ class SpringRodEngine:
             lin_acc = lin_acc * (m / (m + self.dt * b_lin)).unsqueeze(-1)
             ang_acc_b = ang_acc_b * inertia / (inertia + self.dt * b_rot.unsqueeze(-1))
         return lin_acc, ang_acc_b
+
+    def _damping_of(self, effect: Effect, like: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """An effect's implicit damping ``(b_lin, b_rot)`` (its optional ``implicit_damping``), or
+        None: explicit."""
+        damping = getattr(effect, "implicit_damping", None)
+        return None if damping is None else damping(self.params.mass if like is None else like)
 
     def step(
         self,
@@ -387,7 +393,7 @@ class SpringRodEngine:
         ground contact) and no implicit damping. Otherwise the twin steps through :meth:`step`."""
         return self.integrator == "euler" and all(
             _declares(e, "needs_base_acceleration") and _declares(e, "component_form")
-            and getattr(e, "implicit_damping", None) is None for e in self.effects)
+            and self._damping_of(e) is None for e in self.effects)
 
     def step_components(self, pos: Vec, quat: tuple, vel: Vec, angvel: Vec, rest_length: torch.Tensor,
                         push_force: torch.Tensor | None = None, push_point: torch.Tensor | None = None

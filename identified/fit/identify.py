@@ -21,6 +21,7 @@ from threadpoolctl import threadpool_limits
 from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
 from identified.engine.integration import INTEGRATORS, RodState
+from identified.evaluate import recorded_samples, residual_wrench
 from identified.fit.checks import (
     adam_convergence,
     apply_checks,
@@ -34,6 +35,7 @@ from identified.fit.features import RodColumns, chunk_context, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.noise import with_noise_replicates
 from identified.fit.regression import Anchor, IdentifiabilityError, Solution, accumulate, solve
+from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
 from identified.samples import iter_chunks
 from identified.topology import Topology
@@ -310,28 +312,21 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     effect's law is fitted to (on the rods it touches).  Appends each fitted effect to
     ``model.effects`` and returns per-effect fit statistics.
     """
-    from identified.engine.accelerations import inertial_wrench
-    from identified.rotation import matrix_apply
-
     E = dataset.n_episodes
     per = max(1, min(E, max_steps // max(dataset.n_steps, 1)))
     data = dataset.select(episodes=slice(0, per)) if per < E else dataset
-    ch, n_ep = next(iter_chunks(data, data.n_episodes * data.n_steps + 1, scheme, device=device))
+    ch, n_ep, push_point = recorded_samples(data, scheme, device=device)
     groups = np.repeat(np.arange(n_ep), ch.pos.shape[0] // n_ep)
-    eng = engine_from_model(model, dtype=torch.float64, device=device)
     state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
-    push_point = torch.as_tensor(data.push_point[:, : ch.pos.shape[0] // n_ep].reshape(-1, data.n_rods, 3),
-                                 dtype=ch.pos.dtype) if scheme == "forward" else None
     with torch.no_grad():
-        terms = eng.dynamics(state, ch.rest, ch.push_force, push_point)
-        p = eng.params
-        need_f, need_tb = inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body)
-        need_t = matrix_apply(terms.ctx.rot, need_tb)
+        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point)
+        force, torque = rw.missing_world()
+        terms = rw.terms
         ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
         stats = {}
         for e in late:
             rows = e.rows_affected(state, ctx)
-            stats[e.name] = e.fit_residual(state, ctx, need_f - terms.force, need_t - terms.torque, groups, rows)
+            stats[e.name] = e.fit_residual(state, ctx, force, torque, groups, rows)
             model.effects.append(e.to_json())
     return stats
 
@@ -401,9 +396,9 @@ def _to_model(
             "free_parameters": sol.free,
             "noise": dataset.noise.tolist(),
         },
-        "equation_residual_rms": {"translation": _finite(np.mean(sol.residual_rms[0::2])),
-                                  "rotation": _finite(np.mean(sol.residual_rms[1::2]))},
-        "condition_number": _finite(sol.condition),
+        "equation_residual_rms": {"translation": finite_or_none(np.mean(sol.residual_rms[0::2])),
+                                  "rotation": finite_or_none(np.mean(sol.residual_rms[1::2]))},
+        "condition_number": finite_or_none(sol.condition),
     }
     if not has_pushes:
         scale_desc = dict(scale_desc, control_scale="not identified: no pushes in the data (kept at 1)")
@@ -428,10 +423,6 @@ def _to_model(
         scale=scale_desc,
         metrics=metrics,
     )
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
 
 
 def _progress(enabled: bool, total: int, desc: str):

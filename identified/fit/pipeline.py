@@ -6,7 +6,7 @@ Effect search (``effects="auto"``), forward selection on held-out data:
 1. split the episodes: the last quarter (at least one) is *held out*, never fitted;
 2. fit the model with the effects chosen so far on the rest; its held-out error is the free-run
    position error (m, mean over rods and steps) over ``horizon_s`` seconds from every held-out
-   episode's recorded states (:func:`identified.predict.rollout_errors`);
+   episode's recorded states (:func:`identified.evaluate.rollout_errors`);
 3. refit with each remaining candidate of the library added, one at a time, and screen each by
    its held-out error over short windows (a tenth of the horizon, from many recorded states: one
    cheap batched rollout); the screen ranks candidates apart by more than ``min_gain``, and those
@@ -14,7 +14,7 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    The best is added if it lowers the full held-out free-run error by at least the factor
    ``min_gain`` (default 2: the effect must halve the error; a candidate whose parameters the data
    cannot identify is skipped), from above ``FREE_RUN_FLOOR`` (rounding).  Failing that, the candidate with the lowest
-   held-out one-step error (:func:`one_step_errors`: the residual wrench relative to the recorded
+   held-out one-step error (:func:`identified.evaluate.relative_one_step_errors`: the residual wrench relative to the recorded
    one, on the rods no candidate's residual-stage effect touches) is added if it cuts that error
    by ``min_gain`` from above ``ONE_STEP_FLOOR`` without making the free run worse by ``min_gain``
    or more (on the robot with free-joint damping the exact drag, one-step error 0.022 -> 6e-14, K
@@ -59,16 +59,16 @@ from identified.effects import (
     search_labels,
     split_label,
 )
+from identified.evaluate import relative_one_step_errors, rollout_errors, window_error
 from identified.fit.checks import ROUNDING, relative_residual
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
 from identified.fit.workers import TaskPool, resolve_jobs
+from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
-from identified.samples import iter_chunks
 from identified.topology import Topology
-from identified.twin import effects_from_model, engine_from_model
 
-__all__ = ["fit_model", "one_step_errors", "parse_effects", "select_effects", "window_error"]
+__all__ = ["fit_model", "parse_effects", "select_effects"]
 #: a held-out one-step error (relative) below this is rounding or noise-free exactness: no effect
 #: is added on the evidence of the one-step error alone (the free run must then show it)
 ONE_STEP_FLOOR = 1e-6
@@ -222,8 +222,6 @@ def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bo
 
 def _free_run(m: IdentifiedModel | None, ctx: _Search) -> float:
     """The held-out free-run error (the search's metric); ``inf`` for no model or a diverged run."""
-    from identified.predict import rollout_errors
-
     if m is None:
         return float("inf")
     with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
@@ -307,7 +305,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         fits = {n: r[0] for n, r in zip(names, results)}
         screens = {n: r[1] for n, r in zip(names, results)}
         cost.update({n: r[3] for n, r in zip(names, results)})
-        one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
+        one_base, *one = relative_one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
         best, runs = _judge(screens, base_screen, fits, ctx, min_gain)
         err = runs[best]
@@ -322,11 +320,11 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         if evidence is None:
             break
         loop.append({"added": best, "evidence": evidence,
-                     "error_before": _json_float(base_err), "error_after": _json_float(err),
-                     "one_step_before": _json_float(one_base), "one_step_after": _json_float(ones[best]),
-                     "candidates": {k: _json_float(v) for k, v in screens.items()},
+                     "error_before": finite_or_none(base_err), "error_after": finite_or_none(err),
+                     "one_step_before": finite_or_none(one_base), "one_step_after": finite_or_none(ones[best]),
+                     "candidates": {k: finite_or_none(v) for k, v in screens.items()},
                      "screen": f"held-out error over {max(1, ctx.horizon // 10)}-step windows (m)",
-                     "one_step": {k: _json_float(v) for k, v in ones.items()}})
+                     "one_step": {k: finite_or_none(v) for k, v in ones.items()}})
         chosen.append(best)
         base_err, base_model, base_screen = err, fits[best], screens[best]
         for e in base_model.effects:
@@ -375,79 +373,3 @@ def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, Identi
     runs = {n: _free_run(fits[n], ctx) for n in close}
     best = min(close, key=lambda n: (runs[n], screens[n]))
     return best, runs
-
-
-def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps: int = 20_000) -> list[float]:
-    """Each model's held-out one-step error on ``data``: the RMS of its residual wrench (recorded
-    ``M (a - g)``, ``I α + ω × I ω`` less the model's) relative to the RMS of the recorded wrench,
-    on the same rows for every model -- the rods no model's residual-stage effect touches (ground
-    contact's rows are left out: its law, not exact, would mask what another effect explains).
-
-    ``inf`` for a model missing or whose residual is not finite; at most ``max_steps`` instants."""
-    import torch
-
-    from identified.engine.accelerations import inertial_wrench
-    from identified.engine.integration import RodState
-
-    per = max(1, min(data.n_episodes, max_steps // max(data.n_steps, 1)))
-    data = data.select(episodes=slice(0, per))
-    fitted = [m for m in models if m is not None]
-    if not fitted:
-        return [float("inf")] * len(models)
-    scheme = fitted[0].metrics.get("scheme") or "forward"
-    ch, n_ep = next(iter_chunks(data, data.n_episodes * data.n_steps + 1, scheme))
-    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
-    point = (torch.as_tensor(data.push_point[:, : ch.pos.shape[0] // n_ep].reshape(-1, data.n_rods, 3),
-                             dtype=ch.pos.dtype) if scheme == "forward" else None)
-    out: list[tuple[torch.Tensor, torch.Tensor] | None] = []
-    keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool)
-    with torch.no_grad():
-        for m in models:
-            if m is None:
-                out.append(None)
-                continue
-            eng = engine_from_model(m, dtype=torch.float64)
-            p = eng.params
-            terms = eng.dynamics(state, ch.rest, ch.push_force, point)
-            res = torch.cat((p.mass[:, None] * (ch.acc - terms.lin_acc),
-                             p.inertia * (ch.alpha_body - terms.ang_acc_body)), -1)
-            ref = torch.cat(inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body), -1)
-            for e in effects_from_model(m):
-                rows = e.rows_affected(state, terms.ctx) if e.stage != "joint" else None
-                if rows is not None:
-                    keep &= ~rows
-            out.append((res, ref))
-    errs = []
-    for r in out:
-        if r is None or not bool(keep.any()):
-            errs.append(float("inf"))
-            continue
-        res, ref = r[0][keep], r[1][keep]
-        e = float(res.square().mean().sqrt() / ref.square().mean().sqrt().clamp_min(1e-300))
-        errs.append(e if np.isfinite(e) else float("inf"))
-    return errs
-
-
-def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int | None = None) -> float:
-    """Mean position error (m) of free runs of ``steps`` steps from recorded states every ``stride``
-    steps of every episode (one batched rollout): a cheap, short-horizon held-out error."""
-    import torch
-
-
-    stride = stride or max(steps, data.n_steps // 20)
-    starts = np.arange(0, data.n_steps - steps + 1, stride)
-    if starts.size == 0:
-        return float("inf")
-    idx = starts[:, None] + np.arange(steps + 1)[None, :]
-    take = lambda a, n: a[:, idx[:, :n]].reshape((-1, n) + a.shape[2:])
-    eng = engine_from_model(model)
-    s0 = eng.state(*(take(getattr(data, k), 1)[:, 0] for k in ("pos", "quat", "vel", "angvel")))
-    with torch.no_grad():
-        out = eng.rollout(s0, take(data.rest_length, steps), take(data.push_force, steps), take(data.push_point, steps))
-    with np.errstate(over="ignore", invalid="ignore"):  # a diverged run is inf, not a warning
-        err = np.linalg.norm(out.pos.numpy() - take(data.pos, steps + 1), axis=-1).mean()
-    return float(err) if np.isfinite(err) else float("inf")
-
-
-def _json_float(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None

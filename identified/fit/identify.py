@@ -257,6 +257,8 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.integrator = integrator
+    if hold_inertia:  # before the residual stage: its engine divides by every moment
+        _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     apply_checks(model, sol, not_estimable, held, notes, weak)
@@ -265,8 +267,6 @@ def identify(
     model.metrics["integrator"] = integrator
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
-    if hold_inertia:
-        _mark_unobservable(model, hold_inertia)
     return model
 
 

@@ -243,3 +243,16 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes}
     return model
+
+
+def recording_dataset(path: str, model) -> Dataset:
+    """The rod states of the recording at ``path`` at the step of an identified ``model`` (whose
+    topology names the sites), for prediction and diagnosis on a recording."""
+    from identified.recording import load_recording
+
+    rec = load_recording(path)
+    if rec.unlabelled:
+        if not model.source_model:
+            raise RecordingError(f"'{path}': unlabelled markers need the model's MJCF to be labelled")
+        rec = labelled(rec, model.topology, model.source_model)
+    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity)).data

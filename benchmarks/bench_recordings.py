@@ -25,19 +25,20 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from identified.fit.identify import ScaleSpec  # noqa: E402
-from identified.fit.markers import fit_recording  # noqa: E402
-from identified.fit.pipeline import fit_model  # noqa: E402
-from identified.predict import rollout_errors  # noqa: E402
-from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers  # noqa: E402
-from tensegrity_gym.models import write_model  # noqa: E402
+from identified.fit.identify import ScaleSpec
+from identified.fit.markers import fit_recording
+from identified.fit.pipeline import fit_model
+from identified.predict import rollout_errors
+from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
+from tensegrity_gym.models import write_model
 
 
 def varied_robot(path: str, seed: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Write the robot preset (``seed`` None) or the robot with every cable's K and c and every rod's
     M drawn as value * (1 + 0.15 N(0, 1)) (inertia scaled with the mass); returns the truth."""
     write_model(path, "ico", preset="robot")
-    text = open(path).read()
+    with open(path) as fh:
+        text = fh.read()
     rng = np.random.default_rng(seed)
     draw = (lambda v: v) if seed is None else (lambda v: v * (1 + 0.15 * rng.normal()))
     K, c, M = [], [], []

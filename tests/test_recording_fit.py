@@ -58,12 +58,12 @@ def test_missing_encoder_is_refused(robot):
 
 def test_axial_inertia_is_not_identifiable(robot):
     """A fit from end-cap markers holds every axial moment: null error bar, named in the metrics."""
-    from identified.fit.identify import ScaleSpec, identify
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.markers import fit_recording
 
     path, topo, data = robot
     rec = record_markers(data, path, RecordConfig(rate=100), seed=2)
-    ms = states_from_recording(rec, topo, dt=data.dt)
-    m = identify(ms.data, topo, scale=ScaleSpec(total_mass=21.0), weak_window=301, hold_inertia=ms.unobservable)
+    m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
     assert len(m.metrics["not_identifiable"]) == 6
     assert np.isnan(m.stderr["inertia"][:, 2]).all() and np.isfinite(m.stderr["inertia"][:, :2]).all()
 

@@ -47,15 +47,71 @@ def cmd_collect(args: argparse.Namespace) -> None:
         noise_pos=args.noise_pos, noise_vel=args.noise_vel, noise_quat=args.noise_quat,
         noise_angvel=args.noise_angvel, integrator=args.integrator,
     )
+    if args.record is not None:
+        _collect_recording(args, cfg)
+        return
     data = collect(args.model, cfg, progress=not args.quiet)
     save_dataset(args.out, data)
     print(f"wrote {data.n_episodes} episodes x {data.n_steps} steps ({data.n_rods} rods, "
           f"{data.n_tendons} tendons) to {args.out}")
 
 
+def _collect_recording(args: argparse.Namespace, cfg) -> None:
+    """``collect --record markers``: what a lab's sensors would see, written as a recording CSV."""
+    from identified.recording import save_recording
+    from tensegrity_gym.collect import RecordConfig, collect, record_markers
+
+    if args.record != "markers":
+        raise CommandError(f"--record {args.record}: the one kind of recording is 'markers'")
+    if not args.out.lower().endswith(".csv"):
+        raise CommandError(f"--out '{args.out}': a recording is written as .csv")
+    if args.push_every is not None:
+        raise CommandError("--push-every: a recording has no column for pushes (a lab does not measure them); "
+                           "leave pushes out when recording")
+    if any((args.noise_vel, args.noise_quat, args.noise_angvel)):
+        raise CommandError("--noise-vel/--noise-quat/--noise-angvel: a recording holds markers only; give "
+                           "--noise-pos")
+    rec = RecordConfig(rate=args.rate, noise_pos=args.noise_pos, dropout=args.dropout,
+                       unlabelled=args.unlabelled, ghosts=args.ghosts)
+    rec.validate(1e-12)  # option values before the plant runs (the rate against dt after)
+    clean = collect(args.model, cfg.__class__(**{**cfg.__dict__, "noise_pos": 0.0}), progress=not args.quiet)
+    r = record_markers(clean, args.model, rec, seed=args.seed)
+    save_recording(args.out, r)
+    print(f"wrote {r.n_episodes} takes x {r.n_frames // max(r.n_episodes, 1)} frames at {args.rate:g} Hz "
+          f"({len(r.marker_names)} markers, {100 * r.missing_fraction():.1f} % missing, "
+          f"{len(r.rest_names)} encoder rest lengths) to {args.out}")
+
+
+def _summary_recording(args: argparse.Namespace) -> None:
+    from identified.recording import check_recording, load_recording
+    from identified.topology import Topology
+
+    r = load_recording(args.data)
+    if args.model is not None:
+        _check_readable(args.model)
+        check_recording(r, Topology.from_mjcf(args.model))
+    span = [float(r.time[i[-1]] - r.time[i[0]]) for i in r.episodes()]
+    info = {"takes": r.n_episodes, "frames": r.n_frames, "rate_hz": r.rate_hz(), "duration_s": span,
+            "markers": list(r.marker_names), "unlabelled": r.unlabelled, "missing": r.missing_fraction(),
+            "rest": list(r.rest_names), "ctrl": list(r.ctrl_names), "length": list(r.length_names),
+            "noise_pos": r.noise_pos, "checked_against": args.model}
+    if args.json:
+        print(json.dumps(json_safe(info), indent=2, allow_nan=False))
+        return
+    print(f"{args.data}: {r.n_episodes} takes, {r.n_frames} frames at {info['rate_hz']:.4g} Hz "
+          f"({sum(span):.3g} s), {len(r.marker_names)} {'unlabelled ' if r.unlabelled else ''}markers, "
+          f"{100 * info['missing']:.2f} % of samples missing")
+    print(f"  {len(r.rest_names)} encoder rest lengths, {len(r.ctrl_names)} commands, {len(r.length_names)} "
+          f"cable lengths; marker noise {'not stated' if r.noise_pos is None else f'{r.noise_pos:g} m'}"
+          + (f"; matches {args.model}" if args.model else ""))
+
+
 def cmd_summary(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
 
+    if _is_recording(args.data):
+        _summary_recording(args)
+        return
     d = load_dataset(args.data)
     speed = np.linalg.norm(d.vel, axis=-1)
     spin = np.linalg.norm(d.angvel, axis=-1)
@@ -96,9 +152,12 @@ def cmd_fit(args: argparse.Namespace) -> None:
     parse_effects(args.effects)  # a bad name fails before anything is read
     _check_readable(args.model)
     _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
-    data = load_dataset(args.data)
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
+    if _is_recording(args.data):
+        _fit_recording(args, scale)
+        return
+    data = load_dataset(args.data)
     weak = "auto" if args.weak_window is None else args.weak_window
     # --refine is for plants whose integrator may differ from the engine's: without an explicit
     # --integrator it first picks the one whose equations fit the data (fit_model)
@@ -120,6 +179,36 @@ def cmd_fit(args: argparse.Namespace) -> None:
         raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
                            f"unexplained on its own data (above {res['threshold']:g}); '{args.out}' is written "
                            "for inspection")
+
+
+def _is_recording(path: str) -> bool:
+    """A recording (what a lab measures) rather than a dataset: ``.csv`` or ``.c3d``."""
+    return os.path.splitext(path)[1].lower() in (".csv", ".c3d")
+
+
+def _fit_recording(args: argparse.Namespace, scale) -> None:
+    """``tensegrity fit R.csv``: rod states reconstructed from the markers, then the fit."""
+    from identified.fit.markers import fit_recording
+    from identified.model import save_model
+    from identified.recording import load_recording
+
+    if args.solver != "lstsq" or args.refine or args.integrator not in (None, "euler") or args.scheme:
+        raise CommandError("--solver, --refine, --integrator and --scheme are for datasets; a recording is fitted "
+                           "by least squares on the engine's Euler step")
+    rec = load_recording(args.data)
+    model = fit_recording(rec, args.model, dt=args.dt, weak_window=args.weak_window or None, effects=args.effects,
+                          regressors=args.regressors, scale=scale, progress=not args.quiet, jobs=args.jobs)
+    save_model(args.out, model)
+    if not args.quiet:
+        print(model.summary())
+        for line in model.metrics.get("not_identifiable", []):
+            print(f"not identifiable: {line}")
+    for w in model.metrics.get("warnings", []):
+        print(f"tensegrity: warning: {w}", file=sys.stderr)
+    r = model.metrics["recording"]
+    added = ", ".join(e["name"] for e in model.effects) or "none"
+    print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
+          f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -175,7 +264,12 @@ def cmd_predict(args: argparse.Namespace) -> None:
     if args.plot:
         _check_writable(args.plot, "--plot", {"the dataset": args.data, "--identified": args.identified})
     model = load_model(args.identified)
-    data = load_dataset(args.data)
+    if _is_recording(args.data):
+        from identified.fit.markers import recording_dataset
+
+        data = recording_dataset(args.data, model)
+    else:
+        data = load_dataset(args.data)
     errs = rollout_errors(model, data, horizon=args.horizon)
     if args.plot:
         write_error_plot(args.plot, errs)
@@ -419,19 +513,31 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--noise-angvel", type=noise(1000.0, "rad/s"), default=0.0, metavar="SIGMA",
                    help="angular velocity noise std, rad/s")
     c.add_argument("--integrator", default=None, help="override the model's MuJoCo integrator")
-    c.add_argument("--out", required=True, help="output .npz path")
+    c.add_argument("--out", required=True, help="output .npz path (a .csv recording with --record)")
+    c.add_argument("--record", default=None, metavar="markers",
+                   help="write a recording (CSV of end-cap markers and encoder rest lengths) instead of a dataset: "
+                   "what a lab measures, to rehearse the lab pipeline")
+    c.add_argument("--rate", type=finite_float(0.0, 1e6, "Hz", True), default=100.0, metavar="HZ",
+                   help="with --record: marker sampling rate (default 100 Hz)")
+    c.add_argument("--dropout", type=finite_float(0.0, 0.99, "", False), default=0.0, metavar="P",
+                   help="with --record: share of marker samples missing, in runs of ~5 frames (default 0)")
+    c.add_argument("--unlabelled", action="store_true",
+                   help="with --record: anonymous marker columns (marker<N>) whose identities swap every 0.5 s")
+    c.add_argument("--ghosts", type=count(0), default=0, metavar="N",
+                   help="with --record --unlabelled: spurious markers per frame (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_collect)
 
     s = sub.add_parser("summary", help="summarise a dataset", description="Validate a dataset and summarise it.")
-    s.add_argument("data", help="dataset .npz")
+    s.add_argument("data", help="dataset .npz, or a recording .csv/.c3d")
+    s.add_argument("--model", default=None, help="for a recording: check it against this MJCF (names, units)")
     s.add_argument("--json", action="store_true", help="machine-readable output")
     s.set_defaults(func=cmd_summary)
 
     f = sub.add_parser("fit", help="identify K, c, M, I (and h) from a dataset",
                        description="Identify spring stiffness and damping, rod mass and inertia and the "
                        "control-force scale from rod states alone, by linear least squares on 1D-reduced features.")
-    f.add_argument("data", help="dataset .npz")
+    f.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (markers, encoder rest lengths)")
     f.add_argument("--model", required=True, help="MJCF file: only topology and geometry are read")
     f.add_argument("--out", required=True, help="output identified-model .json")
     f.add_argument("--regressors", choices=("single", "multiple"), default="multiple",
@@ -466,6 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--strict", action="store_true",
                    help="exit with an error when the fitted equations leave a large residual on their own "
                    "(clean) data: the model cannot describe the plant")
+    f.add_argument("--dt", type=finite_float(0.0, 1.0, "s", True), default=0.001, metavar="SECONDS",
+                   help="for a recording: the step of the identified engine (default 0.001 s)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 
@@ -485,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
                         description="Roll the identified model from each recorded initial state with the "
                         "recorded rest lengths and pushes; report position and quaternion error per step.")
-    pr.add_argument("data", help="dataset .npz")
+    pr.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its markers)")
     pr.add_argument("--identified", required=True, help="identified-model .json")
     pr.add_argument("--horizon", type=count(1), default=None, help="steps to roll (default: the whole episode)")
     pr.add_argument("--plot", default=None, help="write an error-vs-step PNG here")

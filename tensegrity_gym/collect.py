@@ -29,7 +29,7 @@ from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["CollectConfig", "collect", "perturb_states"]
+__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers"]
 
 
 @dataclass(frozen=True)
@@ -232,3 +232,95 @@ def _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, p
             raise RuntimeError(f"the plant diverged in episode {e}; lower the excitation or the time step")
         if bar is not None:
             bar.update(T)
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """What a lab's sensors would see of a collection: end-cap markers at ``rate`` Hz with
+    Gaussian noise ``noise_pos`` (m) per coordinate, a share ``dropout`` of samples missing in runs
+    of ``dropout_run`` frames on average, and the actuated cables' rest lengths (spool encoders).
+    ``unlabelled``: anonymous marker columns whose identities are shuffled every ``swap_every``
+    seconds, plus ``ghosts`` spurious markers per frame."""
+
+    rate: float = 100.0
+    noise_pos: float = 0.0
+    dropout: float = 0.0
+    dropout_run: float = 5.0
+    unlabelled: bool = False
+    swap_every: float = 0.5
+    ghosts: int = 0
+
+    def validate(self, dt: float) -> None:
+        if not (np.isfinite(self.rate) and 0 < self.rate <= 1.0 / dt):
+            raise ValueError(f"--rate must be in (0, {1.0 / dt:g}] Hz (the plant steps every {dt:g} s), got {self.rate}")
+        if not (np.isfinite(self.noise_pos) and self.noise_pos >= 0):
+            raise ValueError(f"--noise-pos must be a finite number >= 0, got {self.noise_pos}")
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"--dropout must be in [0, 1), got {self.dropout}")
+        if self.ghosts < 0:
+            raise ValueError(f"--ghosts must be >= 0, got {self.ghosts}")
+
+
+def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, seed: int = 0):
+    """The recording a lab would make of ``data`` (clean states of the plant): markers at every rod
+    site sampled at ``rec.rate``, noisy, with gaps in runs; the encoders' rest lengths of the
+    actuated cables.  Returns an :class:`identified.recording.Recording`."""
+    from identified.recording import Recording, site_world_positions
+    from identified.topology import Topology
+
+    rec.validate(data.dt)
+    topo = Topology.from_mjcf(model)
+    rng = np.random.default_rng([seed, 7])
+    sites = tuple(s for r in topo.rods for s in r.sites)
+    T = data.n_steps
+    idx = np.unique(np.round(np.arange(0, T * data.dt + 1e-12, 1.0 / rec.rate) / data.dt).astype(int))
+    idx = idx[idx < T]  # the rest length of step t is that read at instant t
+    times, episodes, marks, rests = [], [], [], []
+    act = [data.tendon_names.index(a) for a in data.actuated_names]
+    for e in range(data.n_episodes):
+        m = site_world_positions(topo, data.pos[e, idx], data.quat[e, idx], sites)
+        m = m + rng.normal(0.0, rec.noise_pos, m.shape) if rec.noise_pos else m
+        m[_dropout_mask(rng, idx.size, len(sites), rec.dropout, rec.dropout_run)] = np.nan
+        times.append(idx * data.dt)
+        episodes.append(np.full(idx.size, e))
+        marks.append(m)
+        rests.append(data.rest_length[e][idx][:, act])
+    markers = np.concatenate(marks)
+    names = sites
+    if rec.unlabelled:
+        names, markers = _anonymise(rng, np.concatenate(times), np.concatenate(episodes), markers, rec)
+    return Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
+                     markers=markers, rest_names=tuple(data.actuated_names), rest=np.concatenate(rests),
+                     noise_pos=rec.noise_pos)
+
+
+def _dropout_mask(rng: np.random.Generator, F: int, n: int, p: float, run: float) -> np.ndarray:
+    """(F, n) bool: missing samples, a two-state Markov chain per marker with stationary share ``p``
+    and mean run length ``run`` frames."""
+    if p <= 0:
+        return np.zeros((F, n), dtype=bool)
+    leave = 1.0 / max(run, 1.0)
+    enter = leave * p / (1.0 - p)
+    out = np.zeros((F, n), dtype=bool)
+    state = rng.uniform(size=n) < p
+    u = rng.uniform(size=(F, n))
+    for f in range(F):
+        state = np.where(state, u[f] >= leave, u[f] < enter)
+        out[f] = state
+    return out
+
+
+def _anonymise(rng: np.random.Generator, time: np.ndarray, episode: np.ndarray, markers: np.ndarray,
+               rec: RecordConfig) -> tuple[tuple[str, ...], np.ndarray]:
+    """Anonymous columns: identities shuffled every ``swap_every`` s, ghosts added near the robot."""
+    F, n, _ = markers.shape
+    out = np.full((F, n + rec.ghosts, 3), np.nan)
+    perm, last = rng.permutation(n), -np.inf
+    for f in range(F):
+        if f == 0 or episode[f] != episode[f - 1] or time[f] - last >= rec.swap_every:
+            perm, last = rng.permutation(n), time[f]
+        out[f, perm] = markers[f]
+        if rec.ghosts:
+            centre = np.nanmean(markers[f], axis=0)
+            out[f, n:] = centre + rng.uniform(-1.0, 1.0, (rec.ghosts, 3))
+    return tuple(f"marker{k + 1}" for k in range(n + rec.ghosts)), out

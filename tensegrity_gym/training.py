@@ -207,6 +207,10 @@ class TrainResult:
     config: dict[str, Any]
     model: Any = field(default=None, repr=False)
     vecnormalize: Any = field(default=None, repr=False)
+    #: the learning curve: one row per finished episode, in the order they ended, with
+    #: ``timesteps`` (steps trained when it ended), ``wall_s`` (since training started),
+    #: ``return``, ``progress_m`` (forward distance of the centre of mass) and ``length`` (steps)
+    episode_log: list[dict[str, float]] = field(default_factory=list, repr=False)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -389,11 +393,14 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             self.returns: deque[float] = deque(maxlen=20)
             self.progress: deque[float] = deque(maxlen=20)
             self.episodes = 0
+            self.log: list[dict[str, float]] = []
+            self._t0 = time.perf_counter()
             self.last_checkpoint: int | None = None
             self._dist = np.zeros(cfg.n_envs)
             self._bar: Any = None
 
         def _on_training_start(self) -> None:
+            self._t0 = time.perf_counter()
             if progress:
                 from tqdm.auto import tqdm
 
@@ -411,6 +418,11 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
                     if ep is not None:
                         self.returns.append(float(ep["r"]))
                     self.progress.append(float(self._dist[i]))
+                    self.log.append({"timesteps": int(self.num_timesteps),
+                                     "wall_s": time.perf_counter() - self._t0,
+                                     "return": float(ep["r"]) if ep is not None else float("nan"),
+                                     "progress_m": float(self._dist[i]),
+                                     "length": int(ep["l"]) if ep is not None else -1})
                     self._dist[i] = 0.0
                     self.episodes += 1
             if self._bar is not None:
@@ -537,7 +549,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         mean_progress_m=float(np.mean(prog)) if prog else None,
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
-        model=model, vecnormalize=venv,
+        model=model, vecnormalize=venv, episode_log=list(callback.log),
     )
 
 

@@ -115,6 +115,7 @@ def fit_model(
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
     jobs: int | str | None = "auto",
+    hold_inertia: Sequence[tuple[int, int]] = (),
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -141,7 +142,7 @@ def fit_model(
     else:
         selection = None
     kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
-          "integrator": integ, "scheme": scheme}
+          "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia)}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}

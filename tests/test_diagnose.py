@@ -17,7 +17,7 @@ import pytest
 from identified import Topology
 from identified.dataset import DatasetError
 from identified.diagnose import DOFS, diagnose, ljung_box, verdict, write_report
-from identified.diagnose.stats import corr_matrix, input_correlation
+from identified.diagnose.stats import ALPHA, corr_matrix, input_correlation, whiteness
 from identified.effects import EFFECTS, make_effect
 from identified.fit.identify import identify
 from tensegrity_gym.collect import CollectConfig, collect
@@ -246,12 +246,12 @@ def test_input_correlation_finds_the_push_a_residual_follows(plants):
     _, data, _, _ = plants["viscous"]
     E, T, R = data.n_episodes, data.n_steps, data.n_rods
     res = np.random.default_rng(0).standard_normal((E, T, R, 6)) * 1e-3
-    res[:, :, 4, 1] += 0.5 * data.push_force[:, :T, 4, 2]  # rod 4's fy follows its push's z
+    res[:, :, 4, 1] -= 0.5 * data.push_force[:, :T, 4, 2]  # rod 4's fy against its push's z
     out = input_correlation(res, np.arange(T), data)
     pf = out["push_force"]
     assert (pf["rod"], pf["dof"], pf["input"]) == (data.rod_names[4], "fy", "push_force.z")
     want = np.corrcoef(res[:, :, 4, 1].reshape(-1), data.push_force[:, :T, 4, 2].reshape(-1))[0, 1]
-    assert pf["corr"] == pytest.approx(want, rel=1e-12) and pf["corr"] > 0.99
+    assert pf["corr"] == pytest.approx(want, rel=1e-12) and pf["corr"] < -0.99
     assert out["rest_length"]["corr"] is None  # the preset's rest lengths never change
 
 
@@ -317,3 +317,22 @@ def test_contact_rods_reported_apart_and_explained_partial(robot):
     near = (depth > -0.01).any(-1)
     assert r["regions"]["near_ground"]["fraction"] == pytest.approx(near.mean(), abs=1e-12)
     assert e["fraction"] == pytest.approx(near.mean(), abs=1e-12)
+
+
+def test_whiteness_corrects_for_the_number_of_series():
+    """36 white series (6 rods x 6 dofs): the smallest p-value of this draw is 0.0073, below 1 % but
+    above 1 % / 36, so the Bonferroni-corrected test calls the residual white; an AR(1) series among
+    them makes it not white."""
+    from scipy.stats import chi2
+
+    res = np.random.default_rng(0).standard_normal((2, 400, 6, 6))
+    rods = tuple(f"rod{i}" for i in range(6))
+    w = whiteness(res, rods)
+    assert ALPHA / 36 < w["min_p"] < ALPHA and w["white"] is True
+    assert w["fraction_rejected"] == pytest.approx(1 / 36)
+    cell = w["per_rod"][2]["series"][4]
+    q, dof = ljung_box(res[:, :, 2, 4], w["lags"])
+    assert (cell["Q"], cell["df"]) == (pytest.approx(q, rel=1e-12), dof) and cell["p"] == pytest.approx(chi2.sf(q, dof))
+    for t in range(1, 400):
+        res[:, t, 3, 0] = 0.5 * res[:, t - 1, 3, 0] + res[:, t, 3, 0]
+    assert whiteness(res, rods)["white"] is False

@@ -16,7 +16,7 @@ import pytest
 
 from identified import Topology
 from identified.dataset import DatasetError
-from identified.diagnose import DOFS, diagnose, ljung_box, verdict, write_report
+from identified.diagnose import DOFS, at_rounding_level, diagnose, improved, ljung_box, verdict, write_report
 from identified.diagnose.stats import ALPHA, corr_matrix, input_correlation, whiteness
 from identified.effects import EFFECTS, make_effect
 from identified.fit.identify import identify
@@ -272,6 +272,8 @@ def test_verdict_true_partial_false():
     assert verdict(True, False, False, _rows(0.01, 0.001))[0] == "partial"
     assert verdict(True, False, False, _rows(0.0099, 1e-9))[0] is True
     assert verdict(True, False, False, _rows(0.05, 0.0051))[0] is True
+    # every episode past 10x but not the whole: not clear
+    assert verdict(True, False, False, _rows(0.2, 0.05, [0.2, 0.2], [0.001, 0.001]))[0] is True
     # one episode without the signature: not clear
     assert verdict(True, False, False, _rows(0.2, 1e-6, [0.3, 0.1], [1e-6, 0.02]))[0] is True
     # no rule explains it: false whatever the rows say; no effect with a region: true
@@ -336,3 +338,13 @@ def test_whiteness_corrects_for_the_number_of_series():
     for t in range(1, 400):
         res[:, t, 3, 0] = 0.5 * res[:, t - 1, 3, 0] + res[:, t, 3, 0]
     assert whiteness(res, rods)["white"] is False
+
+
+def test_the_rules_behind_the_verdict():
+    assert at_rounding_level({"force": 9.9e-7, "torque": 1e-12})
+    assert not at_rounding_level({"force": 1e-12, "torque": 1e-6})  # both must be
+    assert not at_rounding_level({"force": 1e-12, "torque": None})
+    assert improved(["linear_drag"], 1.0, 0.2) and not improved(["linear_drag"], 1.0, 0.21)  # 5x
+    assert not improved([], 1.0, 0.0)  # nothing added: nothing improved
+    assert improved(["ground_contact"], None, 3.0) and not improved(["ground_contact"], 1.0, None)
+    assert not improved(["linear_drag"], 0.0, 0.0)

@@ -348,3 +348,32 @@ def test_the_rules_behind_the_verdict():
     assert not improved([], 1.0, 0.0)  # nothing added: nothing improved
     assert improved(["ground_contact"], None, 3.0) and not improved(["ground_contact"], 1.0, None)
     assert not improved(["linear_drag"], 0.0, 0.0)
+
+
+def test_one_step_summary_by_hand(viscous_result, plants):
+    """The one-step RMS per axis, per rod and relative to the recorded wrench, from the residual
+    wrench recomputed here; the fast region is the top 10 % of rod speeds."""
+    import torch
+
+    from identified.evaluate import recorded_samples, residual_wrench
+    from identified.twin import engine_from_model
+
+    _, data, _, model = plants["viscous"]
+    ch, _, point = recorded_samples(data, "forward")
+    rw = residual_wrench(engine_from_model(model), ch, point)
+    f, t = rw.force.numpy(), rw.torque_body.numpy()  # (N, R, 3)
+    rf, rt = rw.inertial_force.numpy(), rw.inertial_torque_body.numpy()
+    os_ = viscous_result["one_step"]
+    assert os_["force_rms"] == pytest.approx(np.sqrt((f ** 2).mean((0, 1))), rel=1e-9)
+    assert os_["torque_rms"] == pytest.approx(np.sqrt((t ** 2).mean((0, 1))), rel=1e-9)
+    assert os_["relative"]["force"] == pytest.approx(np.sqrt((f ** 2).mean() / (rf ** 2).mean()), rel=1e-9)
+    assert os_["relative"]["torque"] == pytest.approx(np.sqrt((t ** 2).mean() / (rt ** 2).mean()), rel=1e-9)
+    per = os_["per_rod"][3]
+    assert per["force_rms"] == pytest.approx(np.sqrt((f[:, 3] ** 2).mean(0)), rel=1e-9)
+    speed = torch.as_tensor(data.vel[:, :-1]).norm(dim=-1).numpy()
+    fast = speed >= np.quantile(speed, 0.9)
+    fn = np.linalg.norm(f, axis=-1).reshape(fast.shape)
+    reg = viscous_result["regions"]["fast"]
+    assert reg["fraction"] == pytest.approx(fast.mean(), abs=1e-12)
+    assert reg["force_rms_in"] == pytest.approx(np.sqrt((fn[fast] ** 2).mean()), rel=1e-9)
+    assert reg["force_rms_out"] == pytest.approx(np.sqrt((fn[~fast] ** 2).mean()), rel=1e-9)

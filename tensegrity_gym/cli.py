@@ -245,7 +245,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
           f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
     print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
     for e in result["one_step"].get("effect_rows") or []:
-        pct = lambda v: "n/a" if v is None else f"{v:.1%}"
+        pct = lambda v: "n/a" if v is None else (f"{v:.1%}" if v >= 1e-3 else f"{v:.2g}")
         print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "
               f"{pct(e['inside']['force'])}, torque {pct(e['inside']['torque'])} of the recorded; other rods "
               f"{pct(e['outside']['force'])}, {pct(e['outside']['torque'])}")

@@ -3,13 +3,13 @@
     python benchmarks/bench_axial_bound.py [--axis-pushes] [--episodes 4] [--of 20]
                                            [--model-seed 17] [--seed 1]
 
-How precisely can *any* unbiased estimator recover the parameters from a dataset?  The dataset of
-the issue (``paper-nonuniform`` icosahedron, 50 N pushes every 100 steps, 2000-step episodes) is
+How precisely can *any* unbiased estimator recover the parameters from a dataset?  The reference
+dataset (``paper-nonuniform`` icosahedron, 50 N pushes every 100 steps, 2000-step episodes) is
 simulated without noise; every recorded output (position, orientation as a rotation vector,
 velocity, angular velocity of every rod at every instant) is differentiated by central finite
 differences of whole MuJoCo episodes with respect to the 72 parameters (K, c per spring, M and
 Ixx, Iyy, Izz per rod; h = 1 is the anchor) and to each episode's initial state (72 more unknowns
-per episode).  With the sensor noise of the issue (1 mm, 1 mrad, 1 cm/s, 0.01 rad/s, white) the
+per episode).  With the reference sensor noise (1 mm, 1 mrad, 1 cm/s, 0.01 rad/s, white) the
 Fisher information is ``JᵀJ`` of the whitened sensitivities; the initial states are profiled out
 per episode (projection, by QR) and the bound is ``sqrt(diag(F⁻¹))``, from the stacked triangular
 factors (no normal equations).  It is the bound of output-error (simulation) fitting over whole

@@ -103,7 +103,7 @@ def run_case(tmp: Path, preset: str, kind: str, size: float, seed: int) -> dict:
         train = dataclasses.replace(train, gravity=np.array([0.0, 0.0, -9.81]))
         test = dataclasses.replace(test, gravity=np.array([0.0, 0.0, -9.81]))
     # the effect's size: how far it moves the rods over the first second of the test episodes (the
-    # same starts, commands and pushes in the plant without it); the issue's line is 1 cm
+    # same starts, commands and pushes in the plant without it); the line drawn is 1 cm
     without = collect(clean, dataclasses.replace(cfg, episodes=4, seed=seed + 1000))
     n = min(test.n_steps, round(1.0 / test.dt)) + 1
     effect = float(np.linalg.norm(test.pos[:, :n] - without.pos[:, :n], axis=-1).mean())
@@ -126,7 +126,7 @@ def children_cpu() -> float:
 
 
 def speed(tmp: Path, busy: bool = False, jobs: int | str = "auto") -> None:
-    """The issue's speed figures: ``fit --effects auto`` on the robot, 20 x 1000 steps, and
+    """The effect search's speed: ``fit --effects auto`` on the robot, 20 x 1000 steps, and
     ``diagnose`` of the result on 4 fresh episodes (wall and CPU seconds, the search's worker
     processes apart); with ``busy``, again with one busy process beside it (``bench_twin.busy_process``)."""
     from identified.diagnose import diagnose
@@ -180,7 +180,7 @@ def main() -> int:
             first, last = (r["loop"][0], r["loop"][-1]) if r["loop"] else ({}, {})
             wanted = want if isinstance(want, list) else [want] if want else []
             ok = sorted(r["added"]) == sorted(wanted)
-            # a miss of an effect that moves the rods less than 1 cm over 1 s is outside the issue's
+            # a miss of an effect that moves the rods less than 1 cm over 1 s is below the 1 cm
             # line; anything added that is not there is a false discovery, whatever the size
             small = not ok and set(r["added"]) < set(wanted) and r["effect"] < 0.01
             bad += not ok

@@ -4,7 +4,7 @@
                                      [--episodes 20] [--steps 2000] [--no-cache] [--refine]
 
 Plants ``build_model("ico", "paper-nonuniform", seed=S)`` for every model seed; data collected with
-50 N pushes every 100 steps and the noise of the issue: 1 mm on positions, 1 cm/s on velocities,
+50 N pushes every 100 steps and the reference sensor noise: 1 mm on positions, 1 cm/s on velocities,
 1 mrad on orientations, 0.01 rad/s on angular velocities (``--steps``/``--episodes`` per dataset,
 one dataset per data seed ``d``, collected with seed ``100 * model seed + d``: :func:`collect`
 draws initial states, pushes and noise in the same order for every model, so datasets of

@@ -1,6 +1,6 @@
 """The robot's twin against its plant: standing, rolling on every cable, free-run error.
 
-Issue 8's robot figures, for any identified model of the robot (default: the shipped one,
+The robot's figures, for any identified model of the robot (default: the shipped one,
 ``identified/data/robot.json``, from ``scripts/make_shipped_model.sh``):
 
 * **standing**: plant and twin from the same reset (seed), neutral commands for 5 s; the centre of
@@ -92,7 +92,7 @@ def main() -> int:
         worst = max(worst, abs(hp - ht))
         flag = "  (terminated: " + ("plant " if tp else "") + ("twin" if tt else "") + ")" if tp or tt else ""
         print(f"{seed:>4} {hp:12.4f} {ht:11.4f} {1e3 * abs(hp - ht):9.2f} {1e3 * np.linalg.norm(xyp - xyt):10.2f}{flag}")
-    print(f"largest height difference: {1e3 * worst:.2f} mm (issue 8: within 50 mm)")
+    print(f"largest height difference: {1e3 * worst:.2f} mm (target: within 50 mm)")
 
     print(f"\nrolling: each cable contracted 2 s, then neutral 2.5 s (a roll: plant moves > {args.roll} m):")
     print(f"{'cable':<8} {'plant dx, dy (m)':>18} {'twin dx, dy (m)':>18} {'|plant|':>8} {'|twin|':>7} "
@@ -107,7 +107,7 @@ def main() -> int:
               f"{np.linalg.norm(dt):7.3f} {(f'{100 * rel:.1f} %' if is_roll else '-'):>20}")
     if rolls:
         print(f"{len(rolls)} cables roll the plant ({', '.join(c for c, _, _ in rolls)}); the twin lands within "
-              f"{100 * max(r for _, r, _ in rolls):.1f} % of the plant's displacement (issue 8: 30 %, aim 10 %)")
+              f"{100 * max(r for _, r, _ in rolls):.1f} % of the plant's displacement (target: 30 %, aim 10 %)")
     if still:
         print(f"{len(still)} cables roll neither: the twin moves at most {max(d for _, _, d in still):.3f} m "
               f"({max(still, key=lambda x: x[2])[0]})")
@@ -123,7 +123,7 @@ def main() -> int:
     after = rollout_errors(model, test, horizon=H)["pos_mean"]
     print(f"\nfree run over 1 s, {args.episodes} fresh plant episodes (seed 4242), mean rod position error: "
           f"without the model's effects {before:.3f} m, with them {after:.4f} m ({before / after:.0f}x; "
-          "issue 8: at least 10x)")
+          "target: at least 10x)")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Counts over several hundred bad inputs (issue 12): tracebacks, damaged files, silent NaNs,
+"""Counts over several hundred bad inputs: tracebacks, damaged files, silent NaNs,
 unclear errors, and error bars that miss the truth.  All of them should be zero.
 
     .venv/bin/python benchmarks/fuzz_bad_input.py [--quick]
@@ -28,14 +28,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import gymnasium as gym
 
-import tensegrity_gym  # noqa: E402,F401
-from identified import Topology  # noqa: E402
-from identified.dataset import save_dataset  # noqa: E402
-from identified.fit.identify import identify  # noqa: E402
-from identified.model import save_model  # noqa: E402
-from tensegrity_gym.collect import CollectConfig, collect  # noqa: E402
-from tensegrity_gym.models import preset_parameters, write_model  # noqa: E402
-from tests._fuzz import (  # noqa: E402
+import tensegrity_gym  # noqa: F401
+from identified import Topology
+from identified.dataset import save_dataset
+from identified.fit.identify import identify
+from identified.model import save_model
+from tensegrity_gym.collect import CollectConfig, collect
+from tensegrity_gym.models import preset_parameters, write_model
+from tests._fuzz import (
     BAD_FLAGS,
     BAD_FLOATS,
     DATASET_KEYS,
@@ -136,7 +136,7 @@ def main() -> None:
             obs, _ = env.reset(seed=0)
             ok = finite(obs)
             for _ in range(3):
-                obs, r, term, trunc, _ = env.step(env.action_space.sample())
+                obs, r, _term, _trunc, _ = env.step(env.action_space.sample())
                 ok = ok and finite(obs) and np.isfinite(r)
             if not ok:
                 counts["silent NaN"] += 1

@@ -14,7 +14,7 @@
 ``--wrong-twin`` repeats 4-5 on two wrong twins, built from the robot's nominal parameters with
 every K, c, M and I off by +30 % or -30 % (random signs), and prints the gaps side by side:
 
-* ``wrong twin (+-30 %, no effects)``, as the issue states it: without the identified effects the
+* ``wrong twin (+-30 %, no effects)``: without the identified effects the
   twin has no ground (ground contact is an identified effect; the spring-rod model alone has
   none), so the robot falls from its 0.71 m stance below the healthy height (0.4 m) and every
   episode ends after ~13 control steps ("collapsed"): PPO learns nothing about rolling there;

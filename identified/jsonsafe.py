@@ -7,7 +7,16 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["json_safe"]
+__all__ = ["finite_or_none", "json_safe"]
+
+
+def finite_or_none(x: Any) -> float | None:
+    """``x`` as a float, or ``None`` when it is not a finite number (NaN, infinity, not a number)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
 
 
 def json_safe(obj: Any) -> Any:

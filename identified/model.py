@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import atomic_write
-from identified.effects import KNOWN_NAMES
+from identified.effects import known_names
 from identified.jsonsafe import json_safe
 from identified.topology import Rod, Spring, Topology
 
-__all__ = ["KNOWN_EFFECTS", "IdentifiedModel", "ModelFileError", "check_effect_objects", "load_model", "save_model",
+__all__ = ["IdentifiedModel", "ModelFileError", "check_effect_objects", "load_model", "save_model",
            "validate_fields"]
 
 FORMAT = "tensegrity-identified/1"
@@ -86,6 +86,11 @@ class IdentifiedModel:
                 line += (f", one-step {g(step['one_step_before'])} -> {g(step.get('one_step_after'))} "
                          f"(evidence: {step.get('evidence')})")
             lines.append(line)
+        res = self.metrics.get("residual") or {}
+        if res.get("large"):
+            lines.append(f"NOT A DESCRIPTION OF ITS DATA: the equations leave {res['relative_one_step']:.3g} of the "
+                         "recorded wrench unexplained (the model lacks something the plant has; the parameters "
+                         "above absorb it)")
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ JSON
@@ -266,10 +271,6 @@ def load_model(path: str | os.PathLike) -> IdentifiedModel:
     return model
 
 
-#: the effects an identified model may list (DESIGN.md, "Files"): the effect library's names
-KNOWN_EFFECTS = KNOWN_NAMES
-
-
 def validate_fields(model: IdentifiedModel) -> None:
     """Check the values a loaded model steps with; raise ModelFileError naming the field.
 
@@ -297,16 +298,17 @@ def validate_fields(model: IdentifiedModel) -> None:
         raise ModelFileError("'effects' must be a list")
     for e in model.effects:
         name = e.get("name") if isinstance(e, dict) else None
-        if name not in KNOWN_EFFECTS:
-            raise ModelFileError(f"unknown effect {name!r} (known: {', '.join(KNOWN_EFFECTS)})")
+        if name not in known_names():
+            raise ModelFileError(f"unknown effect {name!r} (known: {', '.join(known_names())})")
 
 
 def check_effect_objects(effects: list) -> None:
     """Raise ValueError for an engine effect that is not one (a name, a number): before any step."""
     for k, e in enumerate(effects):
         if isinstance(e, str):
-            why = ("an effect's name: pass the effect object" if e in KNOWN_EFFECTS
-                   else f"an unknown name (known effects: {', '.join(KNOWN_EFFECTS)})")
-            raise ValueError(f"effects[{k}] = {e!r} is {why}")
+            why = ("an effect's name: pass the effect object" if e in known_names()
+                   else f"an unknown name (known effects: {', '.join(known_names())})")
+            raise ValueError(f"effects[{k}] = {e!r} is {why}")  # noqa: TRY004 (bad input: one ValueError line)
         if not callable(e):
-            raise ValueError(f"effects[{k}] = {e!r} is not an effect (a callable (state, ctx) -> (force, torque))")
+            raise ValueError(  # noqa: TRY004 (bad input: one ValueError line)
+                f"effects[{k}] = {e!r} is not an effect (a callable (state, ctx) -> (force, torque))")

@@ -13,7 +13,7 @@ every env, so twin and plant start from the same perturbed pose):
 
 Each of the first three has ``return`` (mean undiscounted episode return) and ``progress_m`` (mean
 forward distance of the centre of mass per episode, m), plus the per-episode values and lengths.
-``transfer`` has the ratios the issue's targets are stated in: plant progress over twin progress
+``transfer`` has the ratios a transfer is judged by: plant progress over twin progress
 and over the random policy's.
 """
 
@@ -31,7 +31,8 @@ import numpy as np
 
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["EpisodeSet", "measure_gap", "run_episodes", "write_mp4"]
+__all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
+           "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
 #: Videos: frame size (pixels) and one frame every this many control steps (25 fps at 50 Hz):
@@ -182,6 +183,15 @@ def open_loop_divergence(plant: EpisodeSet, twin: EpisodeSet, dt: float) -> dict
     }
 
 
+def transfer_ratios(twin: dict[str, Any], plant: dict[str, Any], random_plant: dict[str, Any]
+                    ) -> dict[str, float | None]:
+    """The ratios a transfer is judged by, from :meth:`EpisodeSet.summary` blocks: the policy's
+    mean progress on the plant over its progress on the twin, and over a random policy's on the
+    plant (``None`` where the denominator is not positive)."""
+    return {"plant_over_twin": _ratio(plant["progress_m"], twin["progress_m"]),
+            "plant_over_random": _ratio(plant["progress_m"], random_plant["progress_m"])}
+
+
 def _ratio(a: float, b: float) -> float | None:
     return float(a / b) if b > 0 and np.isfinite(a / b) else None
 
@@ -232,7 +242,8 @@ def _episode_frames(env: gym.Env, act: Act, seed: int, every: int) -> list[np.nd
 def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None, episodes: int,
                 seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
                 progress: bool = True, threads: int = 1,
-                backend_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+                backend_kwargs: dict[str, Any] | None = None,
+                random_plant: dict[str, Any] | None = None) -> dict[str, Any]:
     """The gap report (see the module docstring) as a JSON-ready dict.
 
     Args:
@@ -243,6 +254,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         episode_steps: time limit (``None``: the one the policy was trained with).
         video_dir: write ``twin.mp4``, ``plant.mp4`` and ``random_plant.mp4`` of episode ``seed``.
         threads: torch threads while the twin runs.
+        random_plant: the ``random_plant`` block of an earlier report with the same plant, seeds,
+            ``seed`` and episode length, reused instead of running the random policy again.
     """
     import tensegrity_gym  # noqa: F401  (registers the env)
 
@@ -261,10 +274,10 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=4 * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
+        bar = tqdm(total=(4 if random_plant is None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
-            mjcf = plant_mjcf(identified)
+            mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:
@@ -274,7 +287,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
                 A = int(twin.single_action_space.shape[0])  # type: ignore[index]
                 on_twin = run_episodes(twin, pol.act, seeds, bar=bar)
                 on_plant = run_episodes(plant, pol.act, seeds, bar=bar)
-                on_random = run_episodes(plant, _random_act(A, seed), seeds, bar=bar)
+                on_random = (None if random_plant is not None else
+                             run_episodes(plant, _random_act(A, seed), seeds, bar=bar))
             finally:
                 twin.close()
                 plant.close()
@@ -299,16 +313,14 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     finally:
         if bar is not None:
             bar.close()
-    t, p, r = on_twin.summary(), on_plant.summary(), on_random.summary()
+    t, p = on_twin.summary(), on_plant.summary()
+    r = random_plant if on_random is None else on_random.summary()
     out: dict[str, Any] = {
         "twin": t,
         "plant": p,
         "random_plant": r,
         "open_loop": open_loop,
-        "transfer": {
-            "plant_over_twin": _ratio(p["progress_m"], t["progress_m"]),
-            "plant_over_random": _ratio(p["progress_m"], r["progress_m"]),
-        },
+        "transfer": transfer_ratios(t, p, r),
         "twin_diverged_episodes": int(on_twin.diverged.sum()),
         "policy": {k: pol.meta.get(k) for k in ("algo", "trained_on", "identified", "timesteps", "seed")},
         "identified": None if identified is None else os.path.abspath(identified),
@@ -344,3 +356,46 @@ def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: 
         write_mp4(path, frames, fps=1.0 / (dt * VIDEO_EVERY))
         paths[name] = path
     return paths
+
+
+def measure_gaps(policies: list[str], identified: str | None, episodes: int, seed: int = 0,
+                 episode_steps: int | None = None, video_dir: str | None = None, progress: bool = True,
+                 threads: int = 1, log: Callable[[str], None] | None = None,
+                 backend_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """:func:`measure_gap` of several policies (e.g. the seeds of ``tensegrity train --seeds``) from
+    the same reset seeds, and their mean and spread over policies.
+
+    Returns ``{"policies": [path, ...], "reports": [the gap report of each], "over_policies": {...}}``
+    where ``over_policies`` holds, for ``twin`` and ``plant`` progress and return and for the
+    ``plant_over_twin`` ratio, the mean, standard deviation, minimum and maximum over the policies
+    (:func:`tensegrity_gym.sweep.spread`), plus ``random_plant`` (run once per episode length and
+    env settings: the same for every policy that shares them) and how many policies roll at least ``0.5`` m on the plant. ``video_dir``: the videos
+    of policy ``i`` in ``video_dir/<i>``.
+    """
+    from tensegrity_gym.sweep import spread
+
+    if not policies:
+        raise ValueError("no policy given")
+    reports: list[dict[str, Any]] = []
+    randoms: dict[str, dict[str, Any]] = {}  # the random policy's block per episode length and env settings
+    for i, path in enumerate(policies):
+        pol = load_policy(path)
+        key = f"{int(episode_steps or pol.episode_steps)} {sorted(pol.env_kwargs.items())!r}"
+        vd = None if video_dir is None else (video_dir if len(policies) == 1 else os.path.join(video_dir, str(i)))
+        rep = measure_gap(pol, identified, episodes, seed=seed, episode_steps=episode_steps, video_dir=vd,
+                          progress=progress, threads=threads, random_plant=randoms.get(key),
+                          backend_kwargs=backend_kwargs)
+        randoms[key] = rep["random_plant"]
+        reports.append(rep)
+        if log is not None:
+            log(f"{pol}: twin {rep['twin']['progress_m']:.3f} m, plant {rep['plant']['progress_m']:.3f} m")
+    over: dict[str, Any] = {}
+    for where in ("twin", "plant"):
+        over[where] = {"progress_m": spread(r[where]["progress_m"] for r in reports),
+                       "return": spread(r[where]["return"] for r in reports)}
+    over["plant_over_twin"] = spread(r["transfer"]["plant_over_twin"] for r in reports)
+    over["random_plant"] = {"progress_m": spread(r["random_plant"]["progress_m"] for r in reports)["mean"],
+                            "return": spread(r["random_plant"]["return"] for r in reports)["mean"]}
+    over["plant_progress_at_least_0.5m"] = sum(r["plant"]["progress_m"] >= 0.5 for r in reports)
+    return {"policies": [os.fspath(p) for p in policies], "reports": reports, "over_policies": over,
+            "episodes": int(episodes), "seeds": reports[0]["seeds"]}

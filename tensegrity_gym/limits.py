@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import os
+from typing import Self
 
 import mujoco
 
@@ -74,7 +75,7 @@ class MujocoWarnings:
     def _catch(self, msg: str) -> None:
         self.messages.append(str(msg).strip())
 
-    def __enter__(self) -> MujocoWarnings:
+    def __enter__(self) -> Self:
         self._previous = mujoco.get_mju_user_warning()
         mujoco.set_mju_user_warning(self._catch)
         return self

@@ -218,15 +218,27 @@ class TrainResult:
     config: dict[str, Any]
     model: Any = field(default=None, repr=False)
     vecnormalize: Any = field(default=None, repr=False)
+    #: the learning curve: one row per finished episode, in the order they ended, with
+    #: ``timesteps`` (steps trained when it ended), ``wall_s`` (since training started),
+    #: ``return``, ``progress_m`` (forward distance of the centre of mass) and ``length`` (steps)
+    episode_log: list[dict[str, float]] = field(default_factory=list, repr=False)
 
 
 # ---------------------------------------------------------------------- helpers
-def plant_mjcf(identified: str | None) -> str:
+def plant_mjcf(identified: str | None, mjcf: str | None = None) -> str:
     """MJCF text of the plant an identified model belongs to (its source MJCF, as the twin resolves
-    it; ``None``: the robot preset)."""
+    it; ``None``: the robot preset); ``mjcf`` (a path): that MJCF, a lab's own robot."""
     from tensegrity_gym.backends.identified_backend import resolve_source_mjcf
     from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 
+    if mjcf is not None:
+        from identified.mjcf import read_mjcf_text
+
+        if identified is not None:
+            from identified.model import load_model
+
+            resolve_source_mjcf(load_model(identified), mjcf)  # the twin's topology must be the MJCF's
+        return read_mjcf_text(mjcf)
     if identified is None:
         return default_robot_xml()
     from identified.model import load_model
@@ -392,11 +404,14 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             self.returns: deque[float] = deque(maxlen=20)
             self.progress: deque[float] = deque(maxlen=20)
             self.episodes = 0
+            self.log: list[dict[str, float]] = []
+            self._t0 = time.perf_counter()
             self.last_checkpoint: int | None = None
             self._dist = np.zeros(cfg.n_envs)
             self._bar: Any = None
 
         def _on_training_start(self) -> None:
+            self._t0 = time.perf_counter()
             if progress:
                 from tqdm.auto import tqdm
 
@@ -414,6 +429,11 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
                     if ep is not None:
                         self.returns.append(float(ep["r"]))
                     self.progress.append(float(self._dist[i]))
+                    self.log.append({"timesteps": int(self.num_timesteps),
+                                     "wall_s": time.perf_counter() - self._t0,
+                                     "return": float(ep["r"]) if ep is not None else float("nan"),
+                                     "progress_m": float(self._dist[i]),
+                                     "length": int(ep["l"]) if ep is not None else -1})
                     self._dist[i] = 0.0
                     self.episodes += 1
             if self._bar is not None:
@@ -466,7 +486,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
     with torch_threads(cfg.threads):
         mjcf = None
         if cfg.plant:
-            mjcf = plant_mjcf(cfg.identified)
+            mjcf = plant_mjcf(cfg.identified, (cfg.backend_kwargs or {}).get("mjcf"))
             probe = gym.make(ENV_ID, model=mjcf, **cfg.env_kwargs)  # spaces and control period, here
             dt = float(probe.unwrapped.dt)  # type: ignore[attr-defined]
             spaces = (probe.observation_space, probe.action_space)
@@ -540,7 +560,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         mean_progress_m=float(np.mean(prog)) if prog else None,
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
-        model=model, vecnormalize=venv,
+        model=model, vecnormalize=venv, episode_log=list(callback.log),
     )
 
 

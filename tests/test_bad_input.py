@@ -1,4 +1,4 @@
-"""Bad input never produces silent nonsense, a destroyed file or a dishonest error bar (issue 12).
+"""Bad input never produces silent nonsense, a destroyed file or a dishonest error bar.
 
 Targeted tests of each guard (residual degrees of freedom, physical constraints, the model
 loader, outputs that are inputs, limits checked before work, one clear line), the tests that kill
@@ -17,7 +17,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import tensegrity_gym  # noqa: F401  (registers the env)
@@ -88,12 +88,12 @@ def one_error(err: str) -> str:
 
 # ---------------------------------------------------------------------- 1. honest estimates
 def test_no_residual_dof_is_refused_with_how_much_more_data(files, work):
-    """The issue's case: 1 x 400 noisy steps, weak form: 72 equations for 72 parameters."""
+    """1 x 400 noisy steps, weak form: 72 equations for 72 parameters."""
     noisy = collect(files["ico"], CollectConfig(episodes=1, steps=400, seed=1, push_every=50, noise_pos=1e-3,
                                                 noise_vel=1e-2, noise_quat=1e-3, noise_angvel=1e-2))
     save_dataset("noisy.npz", noisy)
     before = digest(work)
-    rc, out, err = run_cli(["fit", "noisy.npz", "--model", files["ico"], "--out", "F.json", "--quiet"])
+    rc, _out, err = run_cli(["fit", "noisy.npz", "--model", files["ico"], "--out", "F.json", "--quiet"])
     line = one_error(err)
     assert rc == 2 and "free parameters" in line and "more steps" in line, line
     assert digest(work) == before  # no F.json
@@ -138,7 +138,7 @@ def test_few_run_error_bars_equal_the_textbook_covariance():
     y = B @ [1.0, 2.0, 3.0] + rng.normal(0, 0.5, n)
     theta = np.linalg.lstsq(B, y, rcond=None)[0]
     rss = float(np.sum((B @ theta - y) ** 2))
-    U, s, Vt = np.linalg.svd(B, full_matrices=False)
+    _U, s, Vt = np.linalg.svd(B, full_matrices=False)
     lin = LinearSolve(M=Vt.T / s, IK=None, singular_values=s, residual=rss)
     factors = BlockFactors(R=[], rows=[n], blocks=[], columns=[], cluster_R=[[], []])
     cov, how = covariance(factors, np.eye(p), np.eye(p), theta, np.ones(1), None, lin)
@@ -196,7 +196,7 @@ def test_robot_fit_warns_and_writes_a_loadable_model(work):
     stderr and in the JSON, never silently kept; every inertia the loader needs is positive."""
     write_model("robot.xml", "ico", preset="robot")
     save_dataset("rob.npz", collect("robot.xml", CollectConfig(episodes=2, steps=400, seed=0, push_every=50)))
-    rc, out, err = run_cli(["fit", "rob.npz", "--model", "robot.xml", "--out", "R.json", "--quiet"])
+    rc, _out, err = run_cli(["fit", "rob.npz", "--model", "robot.xml", "--out", "R.json", "--quiet"])
     assert rc == 0, err
     warned = [ln for ln in err.splitlines() if ln.startswith("tensegrity: warning: ")]
     obj = json.loads(Path("R.json").read_text())
@@ -359,7 +359,7 @@ def test_vector_env_keeps_an_unhealthy_sub_env_running_when_told(files):
         pos, quat, vel, angvel = v.physics.states_numpy()
         pos[1, :, 2] -= 5.0  # sub-env 1 far below the healthy height range
         v.physics.reset(pos[1:2], quat[1:2], vel[1:2], angvel[1:2], v.physics.rest_numpy()[1:2], index=[1])
-        obs, rew, term, trunc, info = v.step(np.zeros((2, A), np.float32))
+        obs, rew, term, _trunc, _info = v.step(np.zeros((2, A), np.float32))
         assert np.all(np.isfinite(obs)) and np.all(np.isfinite(rew))
         ended[flag] = bool(term[1])
     assert ended == {False: False, True: True}
@@ -447,15 +447,23 @@ def test_fuzz_bad_flags(files, work, flag):
 @FUZZ
 @given(ctrl=st.sampled_from([0.0, 0.01, 1e6, *BAD_FLOATS]), noise=st.sampled_from([0.0, 0.01, 0.5, *BAD_FLOATS]),
        lo=st.sampled_from([0.4, -1.0, float("nan"), 3.0]), seed=st.integers(0, 2**31))
+@example(ctrl=0.01, noise=0.01, lo=0.4, seed=0)  # valid: must go through
+@example(ctrl=0.01, noise=0.01, lo=3.0, seed=0)  # an empty healthy range: refused
 def test_fuzz_env_arguments(ctrl, noise, lo, seed):
+    """Refused up front exactly when a value is out of range (a weight not finite, the reset noise
+    outside [0, 1], an empty healthy range); otherwise the env runs with finite observations and
+    rewards."""
+    valid = bool(np.isfinite(ctrl) and np.isfinite(noise) and 0.0 <= noise <= 1.0 and np.isfinite(lo) and lo < 2.0)
     try:
         env = gym.make("TensegrityIco-v0", ctrl_cost_weight=ctrl, reset_noise_scale=noise, healthy_z_range=(lo, 2.0))
-    except ValueError:
-        return  # refused up front: fine
+    except ValueError as err:
+        assert not valid, f"a valid input was refused: {err}"
+        return
+    assert valid, f"accepted ctrl_cost_weight={ctrl}, reset_noise_scale={noise}, healthy_z_range=({lo}, 2.0)"
     obs, _ = env.reset(seed=seed)
     assert finite(obs)
     for _ in range(3):
-        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        obs, reward, terminated, _truncated, _info = env.step(env.action_space.sample())
         assert finite(obs) and np.isfinite(reward)
         if terminated:
             break

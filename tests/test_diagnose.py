@@ -16,13 +16,26 @@ import pytest
 
 from identified import Topology
 from identified.dataset import DatasetError
-from identified.diagnose import diagnose, ljung_box, write_report
+from identified.diagnose import DOFS, diagnose, ljung_box, verdict, write_report
+from identified.diagnose.stats import corr_matrix, input_correlation
 from identified.effects import EFFECTS, make_effect
 from identified.fit.identify import identify
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.models import write_model
 
 HORIZON = 0.25  # s; the episodes hold 0.3 s
+
+
+def _residual_series(model, data, rod: int, dof: int) -> np.ndarray:
+    """One residual series (all episodes, flattened) of the model on the data, forward scheme."""
+    import torch
+
+    from identified.evaluate import recorded_samples, residual_wrench
+    from identified.twin import engine_from_model
+
+    ch, _, point = recorded_samples(data, "forward")
+    rw = residual_wrench(engine_from_model(model), ch, point)
+    return torch.cat((rw.force, rw.torque_body), -1)[:, rod, dof].numpy()
 CFG = CollectConfig(episodes=3, steps=300, seed=1, push_every=100)
 
 
@@ -122,7 +135,14 @@ def test_regions_statistics_and_inputs(viscous_result, plants):
     assert lb["median_Q_per_dof"] > 10
     ic = r["input_correlation"]
     assert ic["rest_length"]["corr"] is None  # the paper preset's rest lengths never change
-    assert -1.0 <= ic["push_force"]["corr"] <= 1.0
+    # the reported correlation is the Pearson correlation of that residual series with that push
+    # component, recomputed here from the model's residual wrench
+    _, data, _, model = plants["viscous"]
+    pf = ic["push_force"]
+    rod, dof, axis = data.rod_names.index(pf["rod"]), DOFS.index(pf["dof"]), "xyz".index(pf["input"][-1])
+    series, push = _residual_series(model, data, rod, dof), data.push_force[:, :, rod, axis].reshape(-1)
+    assert pf["corr"] == pytest.approx(np.corrcoef(series, push)[0, 1], rel=1e-9)
+    assert abs(pf["corr"]) > 0.05  # the drag slows the pushed rods: not a chance correlation
     per = r["one_step"]["per_rod"]
     assert [p["rod"] for p in per] == list(plants["viscous"][2].rod_names)
     assert all(len(p["force_rms"]) == 3 and len(p["torque_rms"]) == 3 for p in per)
@@ -193,3 +213,107 @@ def test_diagnose_out_never_overwrites_an_input(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("tensegrity: error: --out") and err.count("\n") == 1
     assert data.read_bytes() == b"not touched" and model.read_text() == "{}"
+
+
+def test_free_run_error_is_the_mean_over_steps_one_to_h(viscous_result, plants):
+    """error_after: the rods' centre-of-mass distance, mean over episodes, rods and steps 1..H (the
+    recorded start, where the error is 0 by construction, is not averaged in)."""
+    from identified.twin import engine_from_model
+
+    _, data, _, model = plants["viscous"]
+    H = viscous_result["horizon_steps"]
+    eng = engine_from_model(model)
+    s0 = eng.state(data.pos[:, 0], data.quat[:, 0], data.vel[:, 0], data.angvel[:, 0])
+    st = eng.rollout(s0, data.rest_length[:, :H], data.push_force[:, :H], data.push_point[:, :H])
+    err = np.linalg.norm(st.pos.numpy() - data.pos[:, : H + 1], axis=-1).mean(axis=(0, 2))
+    assert err[0] == 0.0 and H == round(HORIZON / data.dt)
+    assert viscous_result["error_after"] == pytest.approx(err[1:].mean(), rel=1e-12)
+    assert viscous_result["free_run"]["after"][-1] == pytest.approx(err[-1], rel=1e-12)
+
+
+def test_corr_matrix_gives_known_correlations_exactly():
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((500, 2))
+    y = np.column_stack((3.0 * x[:, 0] + 1.0, -2.0 * x[:, 1], 5.0 * np.ones(500)))
+    c = corr_matrix(y, x)
+    assert c[0, 0] == pytest.approx(1.0, abs=1e-12) and c[1, 1] == pytest.approx(-1.0, abs=1e-12)
+    assert c[0, 1] == pytest.approx(np.corrcoef(x[:, 0], x[:, 1])[0, 1], abs=1e-12)
+    assert np.all(c[2] == 0.0)  # a constant series correlates with nothing
+    assert corr_matrix(y, np.ones((500, 2))) is None
+
+
+def test_input_correlation_finds_the_push_a_residual_follows(plants):
+    _, data, _, _ = plants["viscous"]
+    E, T, R = data.n_episodes, data.n_steps, data.n_rods
+    res = np.random.default_rng(0).standard_normal((E, T, R, 6)) * 1e-3
+    res[:, :, 4, 1] += 0.5 * data.push_force[:, :T, 4, 2]  # rod 4's fy follows its push's z
+    out = input_correlation(res, np.arange(T), data)
+    pf = out["push_force"]
+    assert (pf["rod"], pf["dof"], pf["input"]) == (data.rod_names[4], "fy", "push_force.z")
+    want = np.corrcoef(res[:, :, 4, 1].reshape(-1), data.push_force[:, :T, 4, 2].reshape(-1))[0, 1]
+    assert pf["corr"] == pytest.approx(want, rel=1e-12) and pf["corr"] > 0.99
+    assert out["rest_length"]["corr"] is None  # the preset's rest lengths never change
+
+
+def _rows(inside, outside, per_in=None, per_out=None):
+    entry = {"effect": "ground_contact", "region": "near_ground",
+             "inside": {"force": inside, "torque": inside / 2}, "outside": {"force": outside, "torque": outside}}
+    entry["inside_per_episode"] = [{"force": v, "torque": v / 2} for v in (per_in or [inside])]
+    entry["outside_per_episode"] = [{"force": v, "torque": v} for v in (per_out or [outside])]
+    return [entry]
+
+
+def test_verdict_true_partial_false():
+    # a clear signature on the effect's rows: partial, naming the effect and the part
+    ex, why, partial = verdict(False, False, True, _rows(0.21, 1e-13, [0.2, 0.22], [1e-13, 2e-13]))
+    assert ex == "partial" and why == ["improved"]
+    assert [(p["effect"], p["part"]) for p in partial] == [("ground_contact", "force"), ("ground_contact", "torque")]
+    # at the thresholds exactly (1 % and 10x): still partial; just below either: explained
+    assert verdict(True, False, False, _rows(0.01, 0.001))[0] == "partial"
+    assert verdict(True, False, False, _rows(0.0099, 1e-9))[0] is True
+    assert verdict(True, False, False, _rows(0.05, 0.0051))[0] is True
+    # one episode without the signature: not clear
+    assert verdict(True, False, False, _rows(0.2, 1e-6, [0.3, 0.1], [1e-6, 0.02]))[0] is True
+    # no rule explains it: false whatever the rows say; no effect with a region: true
+    assert verdict(False, False, False, _rows(0.2, 1e-13)) == (False, [], [])
+    assert verdict(False, True, False, []) == (True, ["white"], [])
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory):
+    """The shipped robot model (ground contact) on fresh robot data."""
+    from identified.model import load_model
+
+    xml = str(tmp_path_factory.mktemp("robot") / "robot.xml")
+    write_model(xml, "ico", preset="robot")
+    data = collect(xml, CollectConfig(episodes=2, steps=400, seed=5, push_every=50))
+    path = os.path.join(os.path.dirname(__file__), "..", "identified", "data", "robot.json")
+    return xml, data, load_model(path)
+
+
+def test_contact_rods_reported_apart_and_explained_partial(robot):
+    """Ground contact's law leaves tens of percent of the contact wrench on the rods it acts on and
+    nothing elsewhere: diagnose says so (effect_rows) and calls the residual partly explained."""
+    import torch
+
+    from identified.effects import read_contact_geometry
+    from identified.rotation import quat_to_matrix
+
+    xml, data, model = robot
+    r = diagnose(model, data, horizon_s=0.2, mjcf=xml)
+    json.dumps(r, allow_nan=False)
+    rows = r["one_step"]["effect_rows"]
+    assert [e["effect"] for e in rows] == ["ground_contact"]
+    e = rows[0]
+    assert e["inside"]["force"] > 0.05 and e["inside"]["torque"] > 0.05
+    assert e["outside"]["force"] < 1e-6 and e["outside"]["torque"] < 1e-6  # the free rods are exact
+    assert r["explained"] == "partial" and "improved" in r["explained_by"]
+    assert {p["effect"] for p in r["partial_by"]} == {"ground_contact"}
+    # the near-ground rods: an end sphere of the capsule within 1 cm of the plane, by hand
+    geo = read_contact_geometry(xml, model.topology.rod_names)
+    rot = quat_to_matrix(torch.as_tensor(data.quat[:, :-1])).numpy()  # the analysed instants (forward)
+    ends = data.pos[:, :-1, :, None] + np.einsum("etrij,rkj->etrki", rot, np.asarray(geo["segment"]))
+    depth = geo["ground_height"] + np.asarray(geo["radius"])[:, None] - ends @ np.asarray(geo["normal"])
+    near = (depth > -0.01).any(-1)
+    assert r["regions"]["near_ground"]["fraction"] == pytest.approx(near.mean(), abs=1e-12)
+    assert e["fraction"] == pytest.approx(near.mean(), abs=1e-12)

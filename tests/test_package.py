@@ -1,19 +1,7 @@
-"""The package split of docs/ARCHITECTURE.md: ``identified`` stands on its own."""
+"""The package as a whole: the env registers on import. The layers of docs/ARCHITECTURE.md are
+import-linter contracts (pyproject.toml), checked by ``lint-imports`` in scripts/test.sh."""
 
 from __future__ import annotations
-
-import subprocess
-import sys
-
-
-def test_identified_imports_neither_gymnasium_nor_mujoco_nor_tensegrity_gym():
-    code = (
-        "import sys, identified, identified.engine, identified.fit.identify, identified.fit.refine, "
-        "identified.predict, identified.model\n"
-        "print(sorted(m for m in ('gymnasium', 'mujoco', 'tensegrity_gym') if m in sys.modules))"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
 
 
 def test_registration_on_import():
@@ -23,3 +11,35 @@ def test_registration_on_import():
 
     assert "TensegrityIco-v0" in gym.registry
     assert gym.registry["TensegrityIco-v0"].max_episode_steps is not None
+
+
+def test_the_architecture_document_is_printed_from_the_contracts_and_the_registry():
+    """docs/ARCHITECTURE.md's layer tables, data path and effect table are what
+    scripts/architecture.py prints from pyproject.toml's contracts and the effect registry."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("architecture", root / "scripts" / "architecture.py")
+    arch = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(arch)
+    text = (root / "docs" / "ARCHITECTURE.md").read_text()
+    assert arch.render(text) == text, "docs/ARCHITECTURE.md is out of date: run python scripts/architecture.py"
+    for layer in ("identified.fit", "identified.twin", "identified.engine", "tensegrity_gym.checks"):
+        assert f"`{layer}`" in text
+
+
+def test_the_readme_lists_the_effects_the_registry_holds():
+    """The README's effect table and its list of the names a model file may hold are the registry's."""
+    import re
+    from pathlib import Path
+
+    from identified.effects import EFFECTS, known_names
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    m = re.search(r"lists an effect other than ((?:`\w+`,?\s*)+)", readme)
+    assert m, "the README's sentence on the effects a model file may list is gone"
+    assert tuple(re.findall(r"`(\w+)`", m.group(1))) == known_names()
+    table = readme[readme.index("| effect | law | parameters |"):]
+    table = table[: table.index("\n\n")]
+    assert tuple(re.findall(r"^\| `(\w+)` \|", table, re.MULTILINE)) == tuple(EFFECTS)

@@ -20,14 +20,11 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 import tensegrity_gym  # noqa: F401  (registers the env)
+from identified.mjcf import nominal_pose
 from identified.model import IdentifiedModel, load_model, save_model
 from identified.topology import Topology
 from tensegrity_gym.backends import make_backend
-from tensegrity_gym.backends.identified_backend import (
-    IdentifiedBackend,
-    default_model_path,
-    nominal_pose_from_mjcf,
-)
+from tensegrity_gym.backends.identified_backend import IdentifiedBackend, default_model_path
 from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 from tensegrity_gym.envs.tensegrity_ico_v0 import (
     TensegrityIcoEnv,
@@ -159,12 +156,12 @@ def test_same_spaces_reset_distribution_and_info_as_the_plant():
 def test_nominal_pose_from_xml_is_the_plants():
     xml = default_robot_xml()
     b = make_backend("mujoco", xml)
-    s = nominal_pose_from_mjcf(xml, b.rod_names)
+    s = nominal_pose(xml, b.rod_names)
     assert states_diff(s, b.nominal_states()) == 0.0
     # without a keyframe: the bodies' pos/quat (MuJoCo's qpos0)
     root = ET.fromstring(xml)
     root.remove(root.find("keyframe"))
-    q0 = nominal_pose_from_mjcf(ET.tostring(root, encoding="unicode"), b.rod_names)
+    q0 = nominal_pose(ET.tostring(root, encoding="unicode"), b.rod_names)
     body = root.find("worldbody").find("body[@name='rod1']")
     np.testing.assert_allclose(q0.pos[1], [float(x) for x in body.get("pos").split()])
 

@@ -13,6 +13,7 @@ from identified.engine import SpringRodEngine
 from identified.model import IdentifiedModel
 from identified.rotation import quat_to_matrix
 from identified.topology import Topology
+from identified.twin import engine_from_model
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend
 from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 from tensegrity_gym.backends.twin_physics import (
@@ -56,7 +57,7 @@ def _episode(model, xml, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray,
 
 def _run(b: IdentifiedBackend, dtype: torch.dtype, compile: bool) -> tuple[np.ndarray, ...]:
     """The episode of :func:`_episode` on ``b``'s model and motors, in ``dtype``."""
-    engine = SpringRodEngine.from_model(b.model, dtype=dtype)
+    engine = engine_from_model(b.model, dtype=dtype)
     ph = TwinPhysics(engine, b.motor, b.actuated_index, batch=N, compile=compile)
     rng = np.random.default_rng(0)
     starts = [perturb_start(b.nominal_states(), rng, 0.05) for _ in range(N)]

@@ -1,21 +1,18 @@
-"""The effect library: forces the spring-rod model lacks, one file each (:mod:`.base`).
+"""The effect library: forces the spring-rod model lacks, one file per effect on one base class
+(:mod:`.base`: its law, its regression columns, its JSON, its fit strategy), and one line each in
+:data:`LIBRARY`.
 
-========================  ===========================================================
-name                      what it adds
-========================  ===========================================================
-``ground_contact``        rod capsules on a ground plane (normal force, friction)
-``linear_drag``           viscous drag per rod (translation and rotation)
-``quadratic_drag``        drag quadratic in speed per rod-frame axis
-``cable_friction``        dry friction along each cable: it sticks, slips at F
-``cable_slack``           a spring declared two-sided that only pulls
-``constant_force``        a constant force per rod (gravity mismatch, tilt, wind)
-``actuator_lag``          (not implemented: the dataset records the actual rest lengths)
-========================  ===========================================================
+Everything else reads the library from here: the names a model file may hold, the candidates of
+the fit's effect search (:func:`search_labels`), the command line's help, the documentation's
+table (``scripts/architecture.py``). A plug-in effect is one more class given to
+:func:`register_effect`.
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+import numpy as np
 
 from identified.effects.base import Effect, ParamBlock
 from identified.effects.cable_friction import CableFriction
@@ -27,32 +24,77 @@ from identified.effects.quadratic_drag import QuadraticDrag
 
 __all__ = [
     "EFFECTS",
+    "LIBRARY",
+    "RESERVED",
     "Effect",
     "GeometryError",
     "ParamBlock",
     "effect_from_json",
-    "effects_from_model",
+    "known_names",
     "make_effect",
     "read_contact_geometry",
+    "register_effect",
+    "search_labels",
+    "split_label",
 ]
 
-#: every effect by its JSON name
-EFFECTS: dict[str, type[Effect]] = {
-    cls.name: cls
-    for cls in (GroundContact, LinearDrag, QuadraticDrag, CableFriction, CableSlack, ConstantForce)
+#: the library, in the order the effect search tries it
+LIBRARY: tuple[type[Effect], ...] = (GroundContact, LinearDrag, QuadraticDrag, CableFriction, CableSlack,
+                                     ConstantForce)
+#: every effect by its JSON name (the library and registered plug-ins)
+EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in LIBRARY}
+#: names the model file format reserves without an effect behind them, and why
+RESERVED: dict[str, str] = {
+    "actuator_lag": "the dataset records the cables' actual rest lengths, so a motor lag is already in the data",
 }
-#: names the model file may use (DESIGN.md), in this order; actuator_lag is reserved
-KNOWN_NAMES = tuple(EFFECTS) + ("actuator_lag",)
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Add an effect class to :data:`EFFECTS` (usable as a decorator); ValueError on a taken name,
+    TypeError for what is not an :class:`Effect` class."""
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise TypeError(f"{cls!r} is not an Effect class")
+    if cls.name in EFFECTS and EFFECTS[cls.name] is not cls or cls.name in RESERVED:
+        raise ValueError(f"effect name '{cls.name}' is taken")
+    EFFECTS[cls.name] = cls
+    return cls
+
+
+def known_names() -> tuple[str, ...]:
+    """Names a model file may use: every effect's, then the reserved ones."""
+    return (*EFFECTS, *RESERVED)
+
+
+def search_labels() -> tuple[str, ...]:
+    """The effect search's candidates: every effect the class lets the search try (``searched``),
+    each followed by its variants as ``name:variant`` (``variants``)."""
+    return tuple(label for cls in EFFECTS.values() if cls.searched
+                 for label in (cls.name, *(f"{cls.name}:{v}" for v in cls.variants)))
+
+
+def split_label(label: str) -> tuple[str, dict[str, Any]]:
+    """``"name"`` or ``"name:variant"`` -> the effect's name and the options of the variant
+    (ValueError naming the known ones otherwise)."""
+    name, _, variant = label.partition(":")
+    if name in RESERVED:
+        raise ValueError(f"effect '{name}' is not available: {RESERVED[name]}")
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect '{name}' (known: {', '.join(EFFECTS)})")
+    if not variant:
+        return name, {}
+    variants = EFFECTS[name].variants
+    if variant not in variants:
+        known = ", ".join(f"{name}:{v}" for v in variants) or "none"
+        raise ValueError(f"unknown variant '{label}' (variants of {name}: {known})")
+    return name, dict(variants[variant])
 
 
 def make_effect(name: str, topology: Any, mjcf: str | None = None) -> Effect:
-    """An unfitted effect by name for a system (ValueError naming the known ones otherwise)."""
-    if name == "actuator_lag":
-        raise ValueError("effect 'actuator_lag' is not available: the dataset records the cables' actual "
-                         "rest lengths, so a lag of the motors is already in the data")
-    if name not in EFFECTS:
-        raise ValueError(f"unknown effect '{name}' (known: {', '.join(EFFECTS)})")
-    return EFFECTS[name].for_system(topology, mjcf)
+    """An unfitted effect by name or ``name:variant`` for a system (ValueError naming the known ones)."""
+    base, options = split_label(name)
+    eff = EFFECTS[base].for_system(topology, mjcf)
+    eff.options.update(options)
+    return eff
 
 
 def effect_from_json(obj: dict[str, Any], n_rods: int, n_springs: int) -> Effect:
@@ -72,17 +114,9 @@ def effect_from_json(obj: dict[str, Any], n_rods: int, n_springs: int) -> Effect
     return eff
 
 
-def _flatten_loose(eff: Effect, obj: dict[str, Any]):
-    import numpy as np
-
+def _flatten_loose(eff: Effect, obj: dict[str, Any]) -> np.ndarray:
     parts = []
     for b in eff.blocks:
         v = np.asarray(obj[b.name], dtype=float)
         parts.append(v.reshape(-1, b.width) if eff.kind != "global" else v.reshape(1, b.width))
     return np.concatenate(parts, axis=1).reshape(-1)
-
-
-def effects_from_model(model: Any) -> list[Effect]:
-    """The fitted effects an :class:`~identified.model.IdentifiedModel` lists, ready for the engine."""
-    topo = model.topology
-    return [effect_from_json(e, topo.n_rods, topo.n_springs) for e in model.effects]

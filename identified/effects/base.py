@@ -19,17 +19,23 @@ Parameter layout of an effect: its blocks concatenated, each block flattened in 
 component) order, e.g. ``linear_drag`` per rod ``[b_lin, b_rot]`` -> ``rod0.b_lin, rod0.b_rot,
 rod1.b_lin, ...``.
 
-Iterative effects (``iterative = True``: cable friction, whose law sticks or slips) have columns that
-depend on a classification of every instant made from their own values; the fit then iterates
-(:func:`identified.fit.identify.identify`: :meth:`starts` for the first classification,
-:meth:`prepare` before each pass, :meth:`reclassify` to stop, :meth:`hold` for parameters a pass
-finds unidentifiable -- solved again on the same rows --, :meth:`release` at a new start) and the
-twin evaluates the law at the accelerations it produces, not the columns at recorded ones.
+How the fit identifies an effect is declared on its class, ``fit_strategy`` (a strategy of
+:mod:`identified.fit`, as PySINDy keeps its optimizers apart from its feature libraries):
 
-Stages: ``stage = "joint"`` effects enter the main regression as extra columns (fitted together
-with K, c, M, I, h); ``stage = "residual"`` effects (ground contact) need the accelerations under
-every other force, so they are fitted on the residual of the jointly fitted model, on the rows
-they touch, after the joint fit has left those rows out (:mod:`identified.fit.pipeline`).
+* ``"joint"`` (default): its columns join the main regression, fitted together with K, c, M, I, h;
+* ``"classification"``: joint columns that depend on a classification of every instant made from
+  the effect's own values (cable friction sticks or slips): the fit iterates
+  (:mod:`identified.fit.classification`), and the twin evaluates the law at the accelerations it
+  produces, not the columns at recorded ones;
+* ``"residual"``: the law needs the accelerations under every other force (ground contact), so it
+  is fitted on the residual wrench of the jointly fitted model, on the rods it touches
+  (:meth:`Effect.rows_affected`), which the joint fit leaves out
+  (:func:`identified.fit.identify.fit_residual_effects`; the effect's own least squares,
+  :meth:`Effect.fit_residual`).
+
+The engine's fused step (the twin's compiled substep) needs an effect's law in component form:
+``component_form = True`` declares :meth:`Effect.wrench_components`; an engine holding an effect
+without it steps through the tensor form (:attr:`identified.engine.SpringRodEngine.fused`).
 """
 
 from __future__ import annotations
@@ -83,10 +89,24 @@ class Effect(ABC):
     name: ClassVar[str]
     description: ClassVar[str] = ""
     blocks: ClassVar[tuple[ParamBlock, ...]]
-    stage: ClassVar[str] = "joint"
+    #: how the fit identifies it: "joint", "classification" or "residual" (module docstring)
+    fit_strategy: ClassVar[str] = "joint"
     explicit: ClassVar[bool] = True  # the implicit integrator treats its force as explicit
+    #: a constraint-like law that reads the accelerations under every other force
+    #: (``StepContext.base_lin_acc``): the engine adds it after the others
     needs_base_acceleration: ClassVar[bool] = False
-    iterative: ClassVar[bool] = False
+    #: whether it has :meth:`wrench_components`, the law in component form the twin's fused step runs
+    component_form: ClassVar[bool] = False
+    #: the region of the system its force acts in, where it has one (``"near_ground"``): the rods
+    #: :meth:`rows_affected` names, which the diagnosis reports apart
+    region: ClassVar[str | None] = None
+    #: whether the fit's effect search (``--effects auto``) tries it
+    searched: ClassVar[bool] = True
+    #: variants the search also tries and a user may name as ``name:variant``: options of each
+    variants: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: parameters its own fit settles by a profile scan (not by least squares); a refit of a model
+    #: that holds the effect keeps them (the effect search's later rounds)
+    profiled: ClassVar[tuple[str, ...]] = ()
     #: how long its fit takes relative to a plain linear effect's: the effect search starts the
     #: slowest candidates first when it fits them side by side (:mod:`identified.fit.workers`)
     fit_cost: ClassVar[float] = 1.0
@@ -99,8 +119,8 @@ class Effect(ABC):
         self._cache: dict[tuple, Any] = {}
         self.values = None if values is None else np.asarray(values, dtype=float).reshape(P)
         self.stderr = None if stderr is None else np.asarray(stderr, dtype=float).reshape(P)
-        #: an iterative effect given ``values``: search its classification anyway, the given values
-        #: one start among its own (else the fit starts from them alone)
+        #: a classification effect given ``values``: search its classification anyway, the given
+        #: values one start among its own (else the fit starts from them alone)
         self.search_too = False
 
     @property
@@ -112,6 +132,12 @@ class Effect(ABC):
     def values(self, v: np.ndarray | None) -> None:
         self._values = v
         self._cache = {k: x for k, x in self._cache.items() if k[0] != "theta"}
+
+    @property
+    def stage(self) -> str:
+        """``"residual"`` for an effect fitted on the joint model's residual, else ``"joint"`` (its
+        columns join the main regression)."""
+        return "residual" if self.fit_strategy == "residual" else "joint"
 
     # ------------------------------------------------------------------ layout
     @property
@@ -208,9 +234,29 @@ class Effect(ABC):
     def __call__(self, state: Any, ctx: Any) -> tuple[torch.Tensor, torch.Tensor]:
         return self.wrench(state, ctx)
 
+    def implicit_damping(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(b_lin (R,), b_rot (R,))`` when the integrator takes this effect implicitly as a damping
+        (the engine scales the accelerations by ``M / (M + dt b)``), else None (explicit: default)."""
+        return None
+
     def rows_affected(self, state: Any, ctx: Any) -> torch.Tensor | None:
         """(..., R) bool: rods whose equations this effect touches (residual-stage effects); None: all."""
         return None
+
+    def wrench_components(self, pos: Any, vel: Any, angvel: Any, rot: Any, base_lin_acc: Any,
+                          base_ang_acc_body: Any, mass: torch.Tensor, inertia: Any) -> tuple[Any, Any]:
+        """The law in component form for the engine's fused step (``component_form = True``);
+        every argument's components (..., R)."""
+        raise NotImplementedError(f"effect '{self.name}' has no component form (component_form = False)")
+
+    def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
+                     groups: np.ndarray, rows: torch.Tensor) -> dict[str, Any]:
+        """A residual-strategy effect's own least squares on the residual wrench ``force``/``torque``
+        (N, R, 3) world of the rows ``rows`` (N, R) (:func:`identified.fit.identify.fit_residual_effects`):
+        sets ``values``
+        and ``stderr``, returns fit statistics."""
+        raise NotImplementedError(f"effect '{self.name}' is not fitted on a residual (fit_strategy = "
+                                  f"{self.fit_strategy!r})")
 
     # ------------------------------------------------------------------ JSON
     def structured(self, flat: np.ndarray | None) -> dict[str, Any] | None:

@@ -25,8 +25,8 @@ parameters themselves (``|m L̈ + d L̇| < F``), so the fit iterates: the first 
 stuck while ``|L̈ + b L̇| < θ``, with ``b`` read off the data (:meth:`CableFriction.starts`: a
 sticking cable's rate decays as ``e^{-bt}``, a sharp peak of ``-L̈ / L̇``) and four widths ``θ``
 tried on a part of the data; every later pass classifies with the previous pass's parameters,
-until they stop moving (:meth:`CableFriction.reclassify`;
-:func:`identified.fit.identify._iterate_classification`).  Cables the data never show sticking
+until they stop moving (:meth:`CableFriction.reclassify`): the fit's classification strategy,
+:mod:`identified.fit.classification`, which the class declares (``fit_strategy``).  Cables the data never show sticking
 (or slipping) have their stick law (their slip force and stick damping) held, and the fit's
 metrics say which.  On clean data of a MuJoCo plant the law is exact, and so are the parameters
 (measured: F, m and b to 1e-6 on the paper icosahedron with frictionloss 1-5 N).
@@ -65,8 +65,17 @@ class CableFriction(Effect):
         ParamBlock("stick_damping", "spring", unit="N s/m"),
     )
     needs_base_acceleration = True  # the twin solves for the force given every other force
-    iterative = True  # the fit's features depend on a classification made from its own values
+    fit_strategy = "classification"  # its columns depend on a classification made from its own values
     fit_cost = 15.0  # several passes of the fit (measured ~15x a drag fit on the robot)
+
+    def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,
+                 options: dict[str, Any] | None = None) -> None:
+        super().__init__(n_rods, n_springs, values, stderr, options)
+        # what the data showed under the last classification (:meth:`observe`): nothing yet
+        self._never_stuck = np.zeros(self.n_springs, dtype=bool)
+        self._never_slipped = np.zeros(self.n_springs, dtype=bool)
+        self._qmax = np.zeros(self.n_springs)
+        self._held = np.zeros(self.n_params, dtype=bool)
 
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> CableFriction:
@@ -116,7 +125,7 @@ class CableFriction(Effect):
         """Which cables stick (..., S) bool, and the direction of the slip force (±1).
 
         With fitted values: the constraint's own condition ``|m L̈ + d L̇| < F``; at a start of the
-        fit's search (options ``start_rate`` b, ``start_band`` θ): ``|L̈ + b L̇| < θ``; else (an
+        fit's search (options ``start_rate`` b, ``start_band`` θ, :func:`identified.fit.classification.starts`): ``|L̈ + b L̇| < θ``; else (an
         unfitted candidate) a length rate below 1 mm/s, slipping against it."""
         if self.values is None and "start_rate" in self.options:  # a start of the fit's search
             z = acc + float(self.options["start_rate"]) * rate
@@ -127,68 +136,28 @@ class CableFriction(Effect):
         q = m * acc + d * rate
         return q.abs() < F.clamp_min(0.0), torch.sign(q)
 
-    def starts(self, data: Any, topology: Any) -> list[dict[str, float]]:
-        """Initial classifications to try (the fit keeps the one whose passes leave the smallest
-        equation residual): stick within ``|L̈ + b L̇| < θ``.  ``b``: the decay rate of a sticking
-        cable's length rate (``-L̈ / L̇ -> b`` while ``|b L̇|`` dominates the stick force), read off
-        the data as the sharp mode of ``-L̈ / L̇`` on a log scale (the slipping cables spread over
-        a broad range); ``θ``: 0.1, 0.3, 1 and 3 times the median ``|L̈ + b L̇|`` -- only 1 when the
-        mode is not sharp (no sticking in the data)."""
-        from identified.fit.derivatives import iter_chunks
-        from identified.fit.identify import _chunk_context
+    def length_motion(self, ctx: Any, lin_acc: torch.Tensor, ang_acc_body: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each cable's length acceleration ``L̈`` (..., S) under the rod accelerations ``lin_acc``
+        (..., R, 3) world and ``ang_acc_body`` (..., R, 3) rod frame, and its length rate ``L̇``
+        (..., S): what :meth:`classify` reads."""
+        acc = self._length_acceleration(ctx, self._length_rows(ctx), lin_acc, ang_acc_body)
+        return acc, ctx.geometry.rate
 
-        ch, _ = next(iter(iter_chunks(data, 20_000)))
-        ctx = _chunk_context(topology, ch)
-        P = self._length_rows(ctx)
-        acc = self._length_acceleration(ctx, P, ch.acc, ch.alpha_body).reshape(-1).numpy()
-        rate = ctx.geometry.rate.reshape(-1).numpy()
-        sel = np.abs(rate) > 1e-3 * np.percentile(np.abs(rate), 90)  # not the cables at rest
-        ratio = -acc[sel] / rate[sel]
-        ratio = ratio[ratio > 0]
-        if ratio.size < 10:
-            return [{"start_rate": 0.0, "start_band": float(np.median(np.abs(acc)))}]
-        h, edges = np.histogram(np.log10(ratio), bins=80, range=(-1.0, 5.0))
-        # sticking cables make a sharp peak: a bin far above the bins a few away on both sides
-        # (measured: 2-7x, where the broad mode of the slipping cables is 1.2-1.4x; with little
-        # sticking, 0.7 N, the peak is lower than the broad mode but still 6x its surroundings);
-        # the sharpest bin among those of at least a fifth of the highest count is taken
-        sharpness = np.zeros(h.size)
-        for k in np.flatnonzero(h >= 0.2 * h.max()):
-            near = np.concatenate([h[max(0, k - 6): max(0, k - 2)], h[k + 3: k + 7]])
-            sharpness[k] = h[k] / max(float(np.median(near)) if near.size else 0.0, 1.0)
-        k = int(np.argmax(sharpness))
-        # the peak's place to a fiftieth of a bin: a fine histogram over the bins around it
-        fine, fe = np.histogram(np.log10(ratio), bins=250, range=(edges[max(k - 2, 0)], edges[min(k + 3, 80)]))
-        j = int(np.argmax(fine))
-        b = float(10 ** (0.5 * (fe[j] + fe[j + 1])))
-        scale = float(np.median(np.abs(acc + b * rate)))
-        # without that signature one start is enough to show F ~ 0
-        sharp = sharpness[k] > 1.5
-        return [{"start_rate": b, "start_band": scale * g} for g in ((0.1, 0.3, 1.0, 3.0) if sharp else (1.0,))]
+    def stick_force(self, acc: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:
+        """The stick law's force ``|m L̈ + d L̇|`` (..., S) with the fitted values."""
+        _, m, d = self._split(acc)
+        return (m * acc + d * rate).abs()
 
-    def prepare(self, data: Any, topology: Any, min_rows: int = 100) -> None:
-        """Before a pass of the fit: count each cable's sticking instants under the current
-        classification; a cable seen sticking fewer than ``min_rows`` times has a stick law the
-        data cannot tell, and its ``m``, ``d`` are held at 0 in the pass (:meth:`pinned`): the
-        twin then lets it slip at ``F`` -- or, with ``F`` = 0, carry no friction at all."""
-        from identified.fit.derivatives import iter_chunks
-        from identified.fit.identify import _chunk_context
-
-        stuck = np.zeros(self.n_springs)
-        rows = 0
-        qmax = np.zeros(self.n_springs)
-        with torch.no_grad():
-            for ch, _ in iter_chunks(data, 8192):
-                ctx = _chunk_context(topology, ch)
-                acc = self._length_acceleration(ctx, self._length_rows(ctx), ch.acc, ch.alpha_body)
-                stuck += self.classify(acc, ctx.geometry.rate)[0].sum(0).numpy()
-                rows += acc.shape[0]
-                if self.values is not None:
-                    _, m, d = self._split(acc)
-                    qmax = np.maximum(qmax, (m * acc + d * ctx.geometry.rate).abs().amax(0).numpy())
-        self._never_stuck = stuck < min_rows
-        self._never_slipped = rows - stuck < min_rows
-        self._qmax = qmax
+    def observe(self, stuck: np.ndarray, rows: int, qmax: np.ndarray, min_rows: int = 100) -> None:
+        """Record what the data showed of each cable under the current classification: ``stuck``
+        (S,) instants seen sticking out of ``rows``, ``qmax`` (S,) the largest stick force seen.
+        A cable seen sticking fewer than ``min_rows`` times has a stick law the data cannot tell:
+        its ``m``, ``d`` are held at 0 (:meth:`pinned`), and the twin lets it slip at ``F`` -- or,
+        with ``F`` = 0, carry no friction at all (:mod:`identified.fit.classification`)."""
+        self._never_stuck = np.asarray(stuck) < min_rows
+        self._never_slipped = rows - np.asarray(stuck) < min_rows
+        self._qmax = np.asarray(qmax, dtype=float)
 
     def release(self) -> None:
         """Forget the parameters :meth:`hold` held (a new start of the search)."""
@@ -201,7 +170,7 @@ class CableFriction(Effect):
         idx = [mine.index(n) for n in names if n in mine]
         if not idx:
             return False
-        self._held = getattr(self, "_held", np.zeros(self.n_params, dtype=bool)).copy()
+        self._held = self._held.copy()
         self._held[idx] = True
         return True
 
@@ -212,31 +181,28 @@ class CableFriction(Effect):
         slipping: its slip force (held at the largest stick force seen, a lower bound) and its
         stick damping ``d`` (held at 0: while it sticks, ``d`` and the spring's own damping ``c``
         act alike, and ``c`` takes both)."""
-        none = np.zeros(self.n_springs, dtype=bool)
-        stick, slip = getattr(self, "_never_stuck", none), getattr(self, "_never_slipped", none)
-        held = getattr(self, "_held", np.zeros(self.n_params, dtype=bool))
-        return np.stack([slip, stick, stick | slip], 1).reshape(-1) | held
+        stick, slip = self._never_stuck, self._never_slipped
+        return np.stack([slip, stick, stick | slip], 1).reshape(-1) | self._held
 
     def pinned_values(self) -> np.ndarray:
         """(P,) the values of the held parameters (:meth:`pinned`)."""
-        F = getattr(self, "_qmax", np.zeros(self.n_springs))
+        F = self._qmax
         return np.stack([F, np.zeros_like(F), np.zeros_like(F)], 1).reshape(-1)
 
     def inert(self) -> bool:
         """Whether the last classification saw no cable stick (nothing for more passes to settle)."""
-        return bool(np.all(getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))))
+        return bool(np.all(self._never_stuck))
 
     def partly_unseen(self) -> bool:
         """Whether the last classification saw some cables stick and others not (too few rows to
         tell their stick law): the data the classification was made on are too few for it."""
-        never = getattr(self, "_never_stuck", np.zeros(self.n_springs, dtype=bool))
+        never = self._never_stuck
         return bool(np.any(never) and not np.all(never))
 
     def unseen(self) -> dict[str, list[int]]:
         """Cables the data never showed sticking or slipping (for the fit's report)."""
-        none = np.zeros(self.n_springs, dtype=bool)
-        return {"never_stuck": np.flatnonzero(getattr(self, "_never_stuck", none)).tolist(),
-                "never_slipped": np.flatnonzero(getattr(self, "_never_slipped", none)).tolist()}
+        return {"never_stuck": np.flatnonzero(self._never_stuck).tolist(),
+                "never_slipped": np.flatnonzero(self._never_slipped).tolist()}
 
     def reclassify(self, previous: np.ndarray | None) -> bool:
         """Whether another pass of the fit is needed: the parameters moved since ``previous`` by

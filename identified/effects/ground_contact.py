@@ -128,8 +128,11 @@ class GroundContact(Effect):
         ParamBlock("mu", "global", mass_scaled=False),
         ParamBlock("epsilon", "global", mass_scaled=False),
     )
-    stage = "residual"
+    fit_strategy = "residual"
     needs_base_acceleration = True
+    component_form = True
+    region = "near_ground"
+    profiled = ("epsilon",)  # the regulariser's profile scan (mu's is redone at every fit)
     fit_cost = 10.0  # its friction coefficient is scanned (measured ~12x a drag fit on the robot)
 
     @classmethod

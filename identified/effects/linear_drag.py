@@ -12,7 +12,7 @@ drag then acts in the rod frame (MuJoCo's free-joint angular velocity is the bod
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
@@ -26,6 +26,8 @@ class LinearDrag(Effect):
     name = "linear_drag"
     description = "viscous drag per rod: force -b_lin v, torque -b_rot w"
     blocks = (ParamBlock("b_lin", "rod", unit="N s/m"), ParamBlock("b_rot", "rod", unit="N m s"))
+    #: linear_drag:implicit, as MuJoCo's Euler takes joint damping
+    variants: ClassVar[dict[str, dict[str, Any]]] = {"implicit": {"implicit": True}}
 
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> LinearDrag:

@@ -129,18 +129,6 @@ class SpringRodParams:
             p.validate(n_rods, n_springs)
         return p
 
-    @classmethod
-    def from_model(
-        cls, model: Any, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu"
-    ) -> SpringRodParams:
-        """From an :class:`identified.model.IdentifiedModel` (its stiffness, damping, mass,
-        inertia, control_scale and gravity)."""
-        topo = model.topology
-        return cls.from_values(
-            model.stiffness, model.damping, model.mass, model.inertia, model.control_scale, model.gravity,
-            n_rods=topo.n_rods, n_springs=topo.n_springs, dtype=dtype, device=device,
-        )
-
     def validate(self, n_rods: int, n_springs: int) -> None:
         """Raise ValueError if a parameter's trailing shape does not fit ``n_rods``/``n_springs``."""
         want = {"stiffness": (n_springs,), "damping": (n_springs,), "mass": (n_rods,),
@@ -210,6 +198,11 @@ class Effect(Protocol):
     Called once per step with the current state and the :class:`StepContext`; returns a force
     (..., R, 3) and a torque about each rod's COM (..., R, 3), both WORLD frame (either may be
     ``None`` for zero).  Must be differentiable torch code if gradients are wanted.
+
+    A plug-in may declare, as class attributes, ``needs_base_acceleration`` (added after every
+    other force, with the accelerations they cause in the context) and ``component_form`` (has
+    ``wrench_components``, for :meth:`SpringRodEngine.step_components`); the library's effects
+    (:class:`identified.effects.base.Effect`) declare both, a plain callable neither.
     """
 
     def __call__(self, state: RodState, ctx: StepContext) -> tuple[torch.Tensor | None, torch.Tensor | None]:
@@ -268,23 +261,6 @@ class SpringRodEngine:
         self.dt = float(dt)
         self.effects = list(effects)
 
-    @classmethod
-    def from_model(
-        cls,
-        model: Any,
-        effects: Sequence[Effect] = (),
-        dtype: torch.dtype = torch.float64,
-        device: torch.device | str = "cpu",
-    ) -> SpringRodEngine:
-        """The engine of an :class:`identified.model.IdentifiedModel`: its topology, parameters, dt,
-        integrator and every effect its file lists (``model.effects``), then ``effects`` (extra
-        plug-ins) after them."""
-        from identified.effects import effects_from_model
-
-        return cls(model.topology, SpringRodParams.from_model(model, dtype, device), model.dt,
-                   effects=[*effects_from_model(model), *effects], dtype=dtype, device=device,
-                   integrator=model.integrator)
-
     @property
     def n_rods(self) -> int:
         return self.graph.n_rods
@@ -335,7 +311,7 @@ class SpringRodEngine:
         ctx = StepContext(p, self.dt, self.graph, rot, w_b, ends, geom, tension, rest, fu, ru)
         late = []
         for effect in self.effects:
-            if getattr(effect, "needs_base_acceleration", False):
+            if _declares(effect, "needs_base_acceleration"):
                 late.append(effect)
                 continue
             ef, et = effect(state, ctx)
@@ -362,8 +338,7 @@ class SpringRodEngine:
         ``(M + dt b) a = F - b v`` and ``(I + dt b_rot) α_b = ...``, i.e. the explicit accelerations
         scaled by ``M / (M + dt b)`` and ``I / (I + dt b_rot)`` (each effect's velocity derivative)."""
         for effect in self.effects:
-            damping = getattr(effect, "implicit_damping", None)
-            d = damping(lin_acc) if damping is not None else None
+            d = self._damping_of(effect, lin_acc)
             if d is None:
                 continue
             b_lin, b_rot = d
@@ -371,6 +346,13 @@ class SpringRodEngine:
             lin_acc = lin_acc * (m / (m + self.dt * b_lin)).unsqueeze(-1)
             ang_acc_b = ang_acc_b * inertia / (inertia + self.dt * b_rot.unsqueeze(-1))
         return lin_acc, ang_acc_b
+
+    def _damping_of(self, effect: Effect, like: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """An effect's implicit damping ``(b_lin, b_rot)`` (its optional ``implicit_damping``), or
+        None: explicit."""
+        damping = getattr(effect, "implicit_damping", None)
+        return None if damping is None else damping(self.params.mass if like is None else like)
 
     def step(
         self,
@@ -407,11 +389,11 @@ class SpringRodEngine:
     @property
     def fused(self) -> bool:
         """True when :meth:`step_components` steps this engine: the Euler integrator and every
-        effect a constraint-like one with a component-form wrench (``wrench_components``: ground
-        contact) and no implicit damping. Otherwise the twin steps through :meth:`step`."""
+        effect a constraint-like one that declares a component-form wrench (``component_form``:
+        ground contact) and no implicit damping. Otherwise the twin steps through :meth:`step`."""
         return self.integrator == "euler" and all(
-            getattr(e, "needs_base_acceleration", False) and hasattr(e, "wrench_components")
-            and getattr(e, "implicit_damping", None) is None for e in self.effects)
+            _declares(e, "needs_base_acceleration") and _declares(e, "component_form")
+            and self._damping_of(e) is None for e in self.effects)
 
     def step_components(self, pos: Vec, quat: tuple, vel: Vec, angvel: Vec, rest_length: torch.Tensor,
                         push_force: torch.Tensor | None = None, push_point: torch.Tensor | None = None
@@ -478,3 +460,8 @@ class SpringRodEngine:
             out.append(state)
         return RodState(*(torch.stack(xs, dim=-3) for xs in zip(*out)))
 
+
+def _declares(effect: Effect, flag: str) -> bool:
+    """Whether a plug-in declares ``flag`` (:class:`Effect`'s optional class attributes
+    ``needs_base_acceleration``, ``component_form``); a plain callable declares none."""
+    return bool(getattr(effect, flag, False))

@@ -21,9 +21,21 @@ import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
 
-__all__ = ["ADAM_TOLERANCE", "InsufficientDataError", "adam_convergence", "MIN_DOF_PER_PARAMETER", "check_enough_data", "constrain_inertias",
-           "apply_checks", "overlap_factor", "physical_warnings", "refresh_physics",
-           "residual_dof", "widen_for_overlap", "INERTIA_FLOOR"]
+__all__ = [
+    "ADAM_TOLERANCE",
+    "INERTIA_FLOOR",
+    "MIN_DOF_PER_PARAMETER",
+    "InsufficientDataError",
+    "adam_convergence",
+    "apply_checks",
+    "check_enough_data",
+    "constrain_inertias",
+    "overlap_factor",
+    "physical_warnings",
+    "refresh_physics",
+    "residual_dof",
+    "widen_for_overlap",
+]
 
 #: residual degrees of freedom per free parameter below which standard errors are not estimable
 MIN_DOF_PER_PARAMETER = 1.0
@@ -218,15 +230,14 @@ def adam_convergence(sol: Solution, reference: Solution) -> list[str]:
     rel = np.abs(th - ref) / scale
     worst = float(np.max(rel)) if rel.size else 0.0
     if not np.isfinite(worst) or worst > ADAM_TOLERANCE:
-        return [f"Adam did not converge: its parameters differ from the closed-form least squares of the "
-                f"same equations by up to {100 * worst:.3g} % (use --solver lstsq, or more data per epoch)"]
+        return [(f"Adam did not converge: its parameters differ from the closed-form least squares of the "
+                 f"same equations by up to {100 * worst:.3g} % (use --solver lstsq, or more data per epoch)")]
     return []
 
 
 def _is_physical(warning: str) -> bool:
     """Whether a warning line is one of :func:`physical_warnings`' (not a fit note)."""
-    return (warning.endswith(" is not positive") or warning.endswith(" is negative")
-            or warning.endswith("no rigid body has these moments"))
+    return warning.endswith((" is not positive", " is negative", "no rigid body has these moments"))
 
 
 def refresh_physics(model) -> list[str]:
@@ -257,6 +268,39 @@ def relative_residual(model) -> float | None:
         return None
     scale = max(float(np.max(np.abs(model.stiffness))) * 0.1, float(np.max(model.mass)) * 1.0, 1e-300)
     return float(max(cond)) / scale
+
+
+#: a fit on clean data whose one-step residual wrench exceeds this share of the recorded inertial
+#: wrench does not describe its own data (its equations hold to ~1e-13 on a plant they model)
+LARGE_RESIDUAL = 1e-2
+
+
+def residual_check(model, data) -> dict:
+    """Whether the model's equations describe the data it was fitted on, in ``metrics.residual``.
+
+    The one-step residual wrench relative to the recorded inertial wrench
+    (:func:`identified.evaluate.relative_one_step_errors`, rows of residual-strategy effects left
+    out). Above :data:`LARGE_RESIDUAL` on clean data the fit is flagged ``large`` with a warning in
+    ``metrics.warnings``: the model lacks something the plant has (geometry it cannot express, an
+    effect), and its parameters absorb it. On data that record sensor noise the differenced
+    accelerations carry the noise, so the figure is reported and not judged.
+    """
+    from identified.evaluate import relative_one_step_errors
+
+    rel = float(relative_one_step_errors([model], data)[0])
+    noisy = bool(np.any(np.asarray(data.noise) > 0))
+    large = bool(not noisy and not rel <= LARGE_RESIDUAL)
+    out = {"relative_one_step": rel if np.isfinite(rel) else None, "threshold": LARGE_RESIDUAL,
+           "judged": not noisy, "large": large}
+    model.metrics["residual"] = out
+    if large:
+        line = (f"the fitted equations leave {rel:.3g} of the recorded wrench unexplained on their own data "
+                f"(above {LARGE_RESIDUAL:g}): the model lacks something the plant has; its parameters are "
+                "not the plant's")
+        model.metrics.setdefault("warnings", [])
+        if line not in model.metrics["warnings"]:
+            model.metrics["warnings"].append(line)
+    return out
 
 
 def json_safe_nan(tree):

@@ -9,7 +9,7 @@ discretisation of the integration module):
 with the spring tension reduced to 1D, ``T_j = K_j x_j + c_j xdot_j`` (stretch ``x_j`` beyond the
 rest length, dead-banded for cables, and stretch rate ``xdot_j``), ``s_ij = +1/-1`` for the two
 ends and ``u_j`` the unit vector along the spring.  The accelerations ``a`` and ``a_b`` come from
-the recorded states (:mod:`identified.fit.derivatives`).  Every term is linear in
+the recorded states (:mod:`identified.samples`).  Every term is linear in
 ``(K, c, M, Ixx, Iyy, Izz, h)``, so the unknowns follow by linear least squares.
 
 A plant on MuJoCo's implicit integrators (``implicit``, ``implicitfast``) steps with
@@ -49,33 +49,10 @@ from identified.engine.integration import (
 )
 from identified.fit.layout import ParameterLayout
 from identified.rotation import matrix_apply_transpose, quat_to_matrix
+from identified.samples import Chunk
 from identified.topology import Topology
 
-__all__ = ["Chunk", "RodColumns", "equation_rows", "step_context"]
-
-
-@dataclass
-class Chunk:
-    """A slab of steps, flattened over (episode, time): ``N`` steps.
-
-    ``pos, quat, vel, angvel``: (N, R, .) the state at instant t (world-frame angular velocity);
-    ``angvel_body``: (N, R, 3) the same in the rod frame; ``acc``: (N, R, 3) linear acceleration
-    and ``alpha_body``: (N, R, 3) rod-frame angular acceleration over step t (see
-    :mod:`identified.fit.derivatives`); ``rest``: (N, S); ``push_force``: (N, R, 3) world and
-    ``push_torque_body``: (N, R, 3) its torque about the COM in the rod frame (both per unit ``h``).
-    """
-
-    pos: torch.Tensor
-    quat: torch.Tensor
-    vel: torch.Tensor
-    angvel: torch.Tensor
-    angvel_body: torch.Tensor
-    acc: torch.Tensor
-    alpha_body: torch.Tensor
-    rest: torch.Tensor
-    push_force: torch.Tensor
-    push_torque_body: torch.Tensor
-    row_weight: torch.Tensor | None = None  # (N, R): 0 drops a rod's equations at an instant
+__all__ = ["RodColumns", "chunk_context", "equation_rows", "step_context"]
 
 
 @dataclass(frozen=True)
@@ -246,3 +223,11 @@ def _effect_columns(A: torch.Tensor, eff: Effect, c0: int, state: RodState, ctx:
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """R^T v for batched rotation matrices (..., 3, 3) and vectors (..., 3)."""
     return matrix_apply_transpose(rot, v)
+
+
+def chunk_context(topology: Topology, ch: Chunk, params: Any = None) -> StepContext:
+    """The :class:`~identified.engine.StepContext` of a chunk of recorded instants (rotation,
+    spring end kinematics and geometry from the recorded states; :func:`step_context`)."""
+    rot = quat_to_matrix(ch.quat)
+    ends = endpoint_kinematics(topology, ch.pos, ch.quat, ch.vel, ch.angvel, rot=rot)
+    return step_context(topology, ch, rot, ends, spring_geometry(ends), params)

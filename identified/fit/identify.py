@@ -9,7 +9,6 @@ rollouts (:mod:`identified.fit.refine`), and returns an :class:`~identified.mode
 
 from __future__ import annotations
 
-import itertools
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -22,39 +21,33 @@ from threadpoolctl import threadpool_limits
 from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
 from identified.engine.integration import INTEGRATORS, RodState
+from identified.evaluate import recorded_samples, residual_wrench
 from identified.fit.checks import (
-    ROUNDING,
     adam_convergence,
     apply_checks,
     check_enough_data,
     constrain_inertias,
-    relative_residual,
     widen_for_overlap,
 )
-from identified.fit.derivatives import default_window, iter_chunks, weak_form
-from identified.fit.features import RodColumns, equation_rows
+from identified.fit.classification import iterate_classification
+from identified.fit.derivatives import default_window, weak_form
+from identified.fit.features import RodColumns, chunk_context, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.noise import with_noise_replicates
 from identified.fit.regression import Anchor, IdentifiabilityError, Solution, accumulate, solve
+from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
+from identified.samples import iter_chunks
 from identified.topology import Topology
+from identified.twin import engine_from_model
 
 __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
-#: fits of an iterative effect's classification (cable friction) per start of the search on a part
-#: of the data: it settles in 2-4 on clean data; where it does not (little or no sticking) the
-#: passes wander and the best one is kept
-MAX_CLASSIFICATION_PASSES = 5
-#: passes on all the data from a settled classification -- the search's on a part, or one given as
-#: the effect's values (a refit, or the effect search's next round) -- measured: 1-2 where the law
-#: is there; where it is not (F ~ 0) the classification of the rows near |m L̈ + d L̇| ~ F flickers
-#: and the passes stop at this cap
-MAX_FULL_PASSES = 3
-#: steps of the part of the data the first classification is searched on
-SEARCH_STEPS = 4000
-
-
+#: the fit's strategies an effect may declare (``Effect.fit_strategy``): its columns join the main
+#: regression; the same after a classification search (:mod:`identified.fit.classification`); on the
+#: joint model's residual (:func:`fit_residual_effects`)
+STRATEGIES = ("joint", "classification", "residual")
 @dataclass(frozen=True)
 class ScaleSpec:
     """What fixes the global scale: known rod masses, a known total mass, or known pushes."""
@@ -128,6 +121,14 @@ def resolve_anchor(
     return Anchor(e, 1.0, desc["description"]), fixed, desc
 
 
+def check_strategies(effects: Sequence[Effect]) -> None:
+    """ValueError naming an effect whose declared ``fit_strategy`` is not one of :data:`STRATEGIES`."""
+    for e in effects:
+        if e.fit_strategy not in STRATEGIES:
+            raise ValueError(f"effect '{e.name}' declares fit_strategy {e.fit_strategy!r}; the fit has "
+                             f"{', '.join(STRATEGIES)}")
+
+
 def identify(
     dataset: Dataset,
     topology: Topology,
@@ -142,6 +143,7 @@ def identify(
     device: str = "cpu",
     noise_copies: int = 1,
     effects: Sequence[Effect] = (),
+    hold_inertia: Sequence[tuple[int, int]] = (),
     _classified: bool = False,
     _residual_stage: bool = True,
 ) -> IdentifiedModel:
@@ -158,7 +160,9 @@ def identify(
     (MuJoCo's default), ``"implicit"`` (MuJoCo's implicit and implicitfast), ``"rk4"``, or
     ``"auto"``: chosen from the data (:func:`select_integrator`).  ``scheme``: how accelerations
     are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
-    (second order for any integrator; the default for rk4), :mod:`identified.fit.derivatives`.
+    (second order for any integrator; the default for rk4), :mod:`identified.samples`.
+    ``hold_inertia``: (rod, body axis) moments of inertia the data cannot see (a rod whose markers
+    lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable.
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
@@ -166,18 +170,20 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies, effects, _classified)
+                         chunk_steps, progress, device, noise_copies, effects, hold_inertia, _classified)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS + ('auto',))}, got '{integrator}'")
-    iterative = [e for e in effects if e.stage == "joint" and getattr(e, "iterative", False)]
+    check_strategies(effects)
+    iterative = [e for e in effects if e.fit_strategy == "classification"]
     if iterative and not _classified:
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
-                            bar, device, noise_copies, effects, _classified=True, _residual_stage=residual_stage)
+                            bar, device, noise_copies, effects, hold_inertia, _classified=True,
+                            _residual_stage=residual_stage)
 
-        return _iterate_classification(dataset, topology, iterative, fit_once, progress)
+        return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
     if solver not in SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got '{solver}'")
@@ -186,12 +192,13 @@ def identify(
         weak_window = default_window(dataset.dt) if np.any(dataset.noise > 0) else None
     weak = int(weak_window or 0)
     t0 = time.perf_counter()
-    joint = [e for e in effects if e.stage == "joint"]
-    late = [e for e in effects if e.stage != "joint"]
+    joint = [e for e in effects if e.fit_strategy != "residual"]
+    late = [e for e in effects if e.fit_strategy == "residual"]
     layout = ParameterLayout.for_topology(topology, regressors, joint)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
+    fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -227,7 +234,7 @@ def identify(
                     try:
                         return solve(factors, layout, anchor, f)
                     except IdentifiabilityError as err:
-                        if not any(e.hold(err.names, topology) for e in joint if e.iterative):
+                        if not any(e.hold(err.names, topology) for e in iterative):
                             raise
                         f = {**f, **_pinned(joint, layout)}
                 return solve(factors, layout, anchor, f)
@@ -250,6 +257,8 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.integrator = integrator
+    if hold_inertia:  # before the residual stage: its engine divides by every moment
+        _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     apply_checks(model, sol, not_estimable, held, notes, weak)
@@ -261,138 +270,17 @@ def identify(
     return model
 
 
-def _iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequence[Effect],
-                            fit_once: Any, progress: bool) -> IdentifiedModel:
-    """Fit with effects whose columns depend on a classification made from their own values (the
-    cable friction's stick / slip): fit, reclassify with the new values, until they stop moving.
-
-    The first classification is searched on a part of the data (each effect's :meth:`starts`;
-    the one whose passes leave the smallest equation residual is kept); what a pass finds
-    unidentifiable of such an effect is held at the effect's pinned values and the pass redone.
-    """
-
-    def fit_holding(data: Dataset, residual_stage: bool = False, bar: bool = False) -> IdentifiedModel | None:
-        for e in iterative:
-            e.prepare(data, topology)
-        try:  # what the pass finds unidentifiable of these effects it holds (identify's solve_holding)
-            return fit_once(data, residual_stage, bar)
-        except IdentifiabilityError:
-            return None
-
-    def passes_from_here(data: Dataset, most: int) -> tuple[int, float, float]:
-        """Passes until the values settle: how many, the equation residual, and the smallest
-        relative residual of a pass (:func:`relative_residual`: whether the law settled).  The
-        passes are a fixed-point iteration that need not contract (little sticking: a cable that drops below
-        the stick rows it needs loses its stick law, and the next classification is worse); if
-        they end above the best pass's residual, the values that classified the best pass are
-        restored."""
-        res = np.inf
-        best: tuple[float, list | None] = (np.inf, None)
-        settled = np.inf
-        for n in range(1, most + 1):
-            previous = [None if e.values is None else e.values.copy() for e in iterative]
-            try:
-                fit = fit_holding(data)
-            except ValueError:
-                fit = None
-            if fit is None:
-                return n, np.inf, np.inf
-            rms = fit.metrics["equation_residual_rms"]
-            res = (rms["translation"] or 0.0) + (rms["rotation"] or 0.0)
-            settled = min(settled, relative_residual(fit) or np.inf)
-            if all(p is not None for p in previous) and res < best[0]:
-                best = (res, previous)  # the values whose classification gave this pass's fit
-            if not any(e.reclassify(p) for e, p in zip(iterative, previous)):
-                break
-        if best[1] is not None and best[0] < res:  # the passes wandered off: back to the best one
-            for e, v in zip(iterative, best[1]):
-                e.values = v
-            res = best[0]
-        return n, res, settled
-
-    warm = [None if e.values is None else e.values.copy() for e in iterative]
-    searched = any(v is None for v in warm) or any(e.search_too for e in iterative)
-    inert = False
-    if searched:  # search the initial classification (given values, if any, are one more start)
-        best: tuple[float, list | None] = (np.inf, None)
-        starts: list[Any] = list(itertools.product(*[e.starts(dataset, topology) for e in iterative]))
-        if all(v is not None for v in warm):
-            starts.append(None)
-        kept: list | None = None  # a smaller part's best, for a larger part none of whose starts fits
-        for part in _search_parts(dataset):
-            best, spread, rel = (np.inf, None), [], np.inf
-            for start in starts:
-                for k, e in enumerate(iterative):
-                    if start is not None:
-                        e.options.update(start[k])
-                    e.values = None if start is not None else warm[k].copy()
-                    e.release()
-                _, res, settled = passes_from_here(part, MAX_CLASSIFICATION_PASSES)
-                if start is not None:  # the effect's own starts (a given classification may be wrong)
-                    spread.append(res)
-                if res < best[0]:
-                    best, rel = (res, [e.values.copy() for e in iterative]), settled
-            if best[1] is None:
-                continue  # no start could be fitted on this part: a larger one
-            kept = best[1]
-            if not _part_too_small(iterative, best[1], part, topology, spread, rel):
-                break
-        best = (best[0], best[1] or kept)
-        for e, v in zip(iterative, best[1] or [None] * len(iterative)):
-            e.values = v
-            e.release()
-            e.prepare(part, topology)
-        # nothing to classify (no cable ever sticks): no more passes, one final fit
-        inert = all(e.inert() for e in iterative)
-    passes = 0
-    if not inert:
-        passes, _, _ = passes_from_here(dataset, MAX_FULL_PASSES)
-    model = fit_holding(dataset, residual_stage=True, bar=progress)
-    if model is None:  # let the regression say what it cannot identify
-        model = fit_once(dataset, True, progress)
-    model.metrics["classification"] = {"passes": passes + 1, **{e.name: e.unseen() for e in iterative}}
-    return model
-
-
-def _part_too_small(iterative: Sequence[Effect], values: list, part: Dataset, topology: Topology,
-                    residuals: Sequence[float], relative: float) -> bool:
-    """Whether the classification search should go on to a larger part of the data than ``part``:
-    the classification matters there (the effect's own starts' equation ``residuals`` differ by 2x
-    or more, or there was one), the best one, ``values``, leaves a ``relative`` residual above rounding
-    (:data:`ROUNDING`: not settled), and it sees some of an effect's elements and not others (a
-    cable with too few sticking rows to tell its stick law).  The part then holds too few rows of a
-    rare state: the robot's cables stick ~2 % of the time under 10 N of friction, ~60 rows per cable
-    in a 3 s episode, and the search settled a wrong classification on one or two such episodes
-    (F 3.9 N for 10, K 783 N/m for 2000) and the exact one on four; under 30 N (4 %, and no sharp
-    signature: one start) it needed all six.  Where several starts agree (the law is not what the
-    data lack: friction without the ground contact, round 1 on the robot) or the residual is
-    rounding, a larger part cannot do better."""
-    finite = [r for r in residuals if np.isfinite(r)]
-    if relative < ROUNDING or (len(finite) > 1 and max(finite) < 2.0 * min(finite)):
-        return False
-    for e, v in zip(iterative, values):
-        e.values = v.copy()
-        e.prepare(part, topology)
-        if e.partly_unseen():
-            return True
-    return False
-
-
-def _search_parts(dataset: Dataset) -> Iterator[Dataset]:
-    """The parts of the data the first classification is searched on, smallest first:
-    ``SEARCH_STEPS`` steps (whole episodes where they are shorter), then twice the episodes, up to
-    all of them.  A larger part is tried only when no start could be fitted on the smaller one
-    (the robot on 3 s episodes: in one episode a rod that stays on the ground has no equation
-    outside the contact's rows, so its mass is unidentifiable there), or when the best start's
-    classification there sees some elements and not others (:func:`_part_too_small`)."""
-    E, T = dataset.n_episodes, dataset.n_steps
-    k = max(1, min(E, SEARCH_STEPS // T))
-    while True:
-        yield dataset.select(episodes=slice(0, k), steps=min(T, SEARCH_STEPS)) if k < E or T > SEARCH_STEPS \
-            else dataset
-        if k >= E:
-            return
-        k = min(E, 2 * k)
+def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
+    """Held moments of inertia: a placeholder the twin can step with (1e-3 of the rod's largest
+    identified moment), no standard error, and the list in ``metrics.not_identifiable``."""
+    names = model.metrics.setdefault("not_identifiable", [])
+    for i, a in held:
+        others = [model.inertia[i, b] for b in range(3) if (i, b) not in held]
+        model.inertia[i, a] = 1e-3 * max(max(others, default=1.0), 1e-12)
+        if "inertia" in model.stderr:
+            model.stderr["inertia"][i, a] = np.nan
+        names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
+                     "(its spin is not observable)")
 
 
 def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:
@@ -406,22 +294,12 @@ def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:
     """(N, R) bool: rods whose equations hold a residual-stage effect's force."""
-    ctx = _chunk_context(topology, ch)
+    ctx = chunk_context(topology, ch)
     state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
     out = torch.zeros(ch.pos.shape[:2], dtype=torch.bool, device=ch.pos.device)
     for e in late:
         out |= e.rows_affected(state, ctx)
     return out
-
-
-def _chunk_context(topology: Topology, ch: Any, params: Any = None) -> Any:
-    from identified.engine.forces import endpoint_kinematics, spring_geometry
-    from identified.fit.features import step_context
-    from identified.rotation import quat_to_matrix
-
-    rot = quat_to_matrix(ch.quat)
-    ends = endpoint_kinematics(topology, ch.pos, ch.quat, ch.vel, ch.angvel, rot=rot)
-    return step_context(topology, ch, rot, ends, spring_geometry(ends), params)
 
 
 def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequence[Effect], scheme: str = "forward",
@@ -434,29 +312,21 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     effect's law is fitted to (on the rods it touches).  Appends each fitted effect to
     ``model.effects`` and returns per-effect fit statistics.
     """
-    from identified.engine import SpringRodEngine
-    from identified.engine.accelerations import inertial_wrench
-    from identified.rotation import matrix_apply
-
     E = dataset.n_episodes
     per = max(1, min(E, max_steps // max(dataset.n_steps, 1)))
     data = dataset.select(episodes=slice(0, per)) if per < E else dataset
-    ch, n_ep = next(iter_chunks(data, data.n_episodes * data.n_steps + 1, scheme, device=device))
+    ch, n_ep, push_point = recorded_samples(data, scheme, device=device)
     groups = np.repeat(np.arange(n_ep), ch.pos.shape[0] // n_ep)
-    eng = SpringRodEngine.from_model(model, dtype=torch.float64, device=device)
     state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
-    push_point = torch.as_tensor(data.push_point[:, : ch.pos.shape[0] // n_ep].reshape(-1, data.n_rods, 3),
-                                 dtype=ch.pos.dtype) if scheme == "forward" else None
     with torch.no_grad():
-        terms = eng.dynamics(state, ch.rest, ch.push_force, push_point)
-        p = eng.params
-        need_f, need_tb = inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body)
-        need_t = matrix_apply(terms.ctx.rot, need_tb)
+        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point)
+        force, torque = rw.missing_world()
+        terms = rw.terms
         ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
         stats = {}
         for e in late:
             rows = e.rows_affected(state, ctx)
-            stats[e.name] = e.fit_residual(state, ctx, need_f - terms.force, need_t - terms.torque, groups, rows)
+            stats[e.name] = e.fit_residual(state, ctx, force, torque, groups, rows)
             model.effects.append(e.to_json())
     return stats
 
@@ -526,9 +396,9 @@ def _to_model(
             "free_parameters": sol.free,
             "noise": dataset.noise.tolist(),
         },
-        "equation_residual_rms": {"translation": _finite(np.mean(sol.residual_rms[0::2])),
-                                  "rotation": _finite(np.mean(sol.residual_rms[1::2]))},
-        "condition_number": _finite(sol.condition),
+        "equation_residual_rms": {"translation": finite_or_none(np.mean(sol.residual_rms[0::2])),
+                                  "rotation": finite_or_none(np.mean(sol.residual_rms[1::2]))},
+        "condition_number": finite_or_none(sol.condition),
     }
     if not has_pushes:
         scale_desc = dict(scale_desc, control_scale="not identified: no pushes in the data (kept at 1)")
@@ -553,10 +423,6 @@ def _to_model(
         scale=scale_desc,
         metrics=metrics,
     )
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
 
 
 def _progress(enabled: bool, total: int, desc: str):

@@ -6,7 +6,7 @@ Effect search (``effects="auto"``), forward selection on held-out data:
 1. split the episodes: the last quarter (at least one) is *held out*, never fitted;
 2. fit the model with the effects chosen so far on the rest; its held-out error is the free-run
    position error (m, mean over rods and steps) over ``horizon_s`` seconds from every held-out
-   episode's recorded states (:func:`identified.predict.rollout_errors`);
+   episode's recorded states (:func:`identified.evaluate.rollout_errors`);
 3. refit with each remaining candidate of the library added, one at a time, and screen each by
    its held-out error over short windows (a tenth of the horizon, from many recorded states: one
    cheap batched rollout); the screen ranks candidates apart by more than ``min_gain``, and those
@@ -14,14 +14,14 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    The best is added if it lowers the full held-out free-run error by at least the factor
    ``min_gain`` (default 2: the effect must halve the error; a candidate whose parameters the data
    cannot identify is skipped), from above ``FREE_RUN_FLOOR`` (rounding).  Failing that, the candidate with the lowest
-   held-out one-step error (:func:`one_step_errors`: the residual wrench relative to the recorded
+   held-out one-step error (:func:`identified.evaluate.relative_one_step_errors`: the residual wrench relative to the recorded
    one, on the rods no candidate's residual-stage effect touches) is added if it cuts that error
    by ``min_gain`` from above ``ONE_STEP_FLOOR`` without making the free run worse by ``min_gain``
    or more (on the robot with free-joint damping the exact drag, one-step error 0.022 -> 6e-14, K
    1933 -> 2000 N/m, made the contact law's free run 0.0185 -> 0.026 m: the law's own error).  The second
    test finds an effect exact where it acts whose gain the free run hides under another effect's
    inexact law (air drag on the robot: its ground contact law leaves ~3 cm over 1 s);
-4. repeat until no candidate passes; an iterative candidate (the cable friction's stick / slip
+4. repeat until no candidate passes; a classification candidate (the cable friction's stick / slip
    classification) left out has the classification it settled this round as one more start of
    its next round's search (a settled classification alone is not enough: the effect just added
    can change it -- on the robot, ground contact takes the rods on the ground out of the joint
@@ -50,19 +50,25 @@ from typing import Any
 import numpy as np
 
 from identified.dataset import Dataset, DatasetError
-from identified.effects import EFFECTS, Effect, GeometryError, effect_from_json, make_effect
+from identified.effects import (
+    EFFECTS,
+    Effect,
+    GeometryError,
+    effect_from_json,
+    make_effect,
+    search_labels,
+    split_label,
+)
+from identified.evaluate import relative_one_step_errors, rollout_errors, window_error
 from identified.fit.checks import ROUNDING, relative_residual
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
 from identified.fit.workers import TaskPool, resolve_jobs
+from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
-__all__ = ["CANDIDATES", "fit_model", "one_step_errors", "parse_effects", "select_effects", "window_error"]
-
-#: the library's effects the search tries, in this order
-CANDIDATES = ("ground_contact", "linear_drag", "linear_drag:implicit", "quadratic_drag", "cable_friction",
-              "cable_slack", "constant_force")
+__all__ = ["fit_model", "one_step_evidence", "parse_effects", "search_explained", "select_effects"]
 #: a held-out one-step error (relative) below this is rounding or noise-free exactness: no effect
 #: is added on the evidence of the one-step error alone (the free run must then show it)
 ONE_STEP_FLOOR = 1e-6
@@ -71,8 +77,6 @@ ONE_STEP_FLOOR = 1e-6
 #: ratio (measured: exact models leave 3e-16 to 1e-15 m, and among several candidates judged by
 #: their free run one could halve it by chance: cable_slack's exact model got quadratic_drag)
 FREE_RUN_FLOOR = 1e-10
-#: variants a name may carry after a colon: options of the effect
-VARIANTS = {"linear_drag:implicit": {"implicit": True}}
 
 
 def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
@@ -87,13 +91,10 @@ def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
     if not names:
         raise ValueError("--effects: give none, auto or effect names separated by commas")
     for n in names:
-        if n in VARIANTS:
-            continue
-        if n == "actuator_lag":
-            raise ValueError("--effects actuator_lag: not available (the dataset records the cables' actual rest "
-                             "lengths, so a motor lag is already in the data)")
-        if n not in EFFECTS:
-            raise ValueError(f"--effects: unknown effect '{n}' (known: {', '.join(EFFECTS)})")
+        try:
+            split_label(n)
+        except ValueError as err:
+            raise ValueError(f"--effects: {err}") from None
     if len(set(names)) != len(names):
         raise ValueError("--effects names an effect twice")
     return names
@@ -114,6 +115,7 @@ def fit_model(
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
     jobs: int | str | None = "auto",
+    hold_inertia: Sequence[tuple[int, int]] = (),
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -139,8 +141,8 @@ def fit_model(
         integ, selection = select_integrator(data, topo, regressors, scale, weak_window)
     else:
         selection = None
-    kw = dict(regressors=regressors, scale=scale, solver=solver, weak_window=weak_window, integrator=integ,
-              scheme=scheme)
+    kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
+          "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia)}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}
@@ -156,17 +158,18 @@ def fit_model(
     model.source_model = os.path.abspath(mjcf)
     model.loop = loop
     if spec == "auto":
-        model.metrics["effect_search"] = {"explained": explained, "candidates": list(CANDIDATES),
+        model.metrics["effect_search"] = {"explained": explained, "candidates": list(search_labels()),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
     if refine:
         from identified.fit.refine import refine as refine_model
 
         model = refine_model(model, data, progress=progress)
-    from identified.fit.checks import refresh_physics
+    from identified.fit.checks import refresh_physics, residual_check
     from identified.predict import attach_metrics
 
     refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     attach_metrics(model, data)
+    residual_check(model, data)  # a fit that does not describe its own data says so
     return model
 
 
@@ -180,13 +183,12 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
     """Unfitted effects by label (``name`` or ``name:variant``), with options ``fixed`` per label."""
     out = []
     for label in names:
-        eff = make_effect(label.split(":")[0], topo, mjcf)
-        eff.options.update(VARIANTS.get(label, {}))
+        eff = make_effect(label, topo, mjcf)
         opts = dict((fixed or {}).get(label, {}))
         start = opts.pop("start_values", None)
         eff.search_too = bool(opts.pop("search_too", False))
         eff.options.update(opts)
-        if start is not None:  # an iterative effect: start from a settled classification
+        if start is not None:  # a classification effect: start from a settled classification
             eff.values = np.asarray(start, dtype=float)
         out.append(eff)
     return out
@@ -221,8 +223,6 @@ def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bo
 
 def _free_run(m: IdentifiedModel | None, ctx: _Search) -> float:
     """The held-out free-run error (the search's metric); ``inf`` for no model or a diverged run."""
-    from identified.predict import rollout_errors
-
     if m is None:
         return float("inf")
     with np.errstate(over="ignore", invalid="ignore"):  # a candidate whose free run diverges
@@ -256,7 +256,7 @@ def select_effects(
     held = data.select(episodes=slice(E - n_hold, E))
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
     candidates = []
-    for name in CANDIDATES:
+    for name in search_labels():
         try:
             make_effect(name.split(":")[0], topo, mjcf)
         except GeometryError:
@@ -306,7 +306,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         fits = {n: r[0] for n, r in zip(names, results)}
         screens = {n: r[1] for n, r in zip(names, results)}
         cost.update({n: r[3] for n, r in zip(names, results)})
-        one_base, *one = one_step_errors([base_model] + [fits[k] for k in names], held)
+        one_base, *one = relative_one_step_errors([base_model] + [fits[k] for k in names], held)
         ones = dict(zip(names, one))
         best, runs = _judge(screens, base_screen, fits, ctx, min_gain)
         err = runs[best]
@@ -316,45 +316,64 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             # inexact law whose error dominates the free run (drag on a robot rolling on its ground)
             alt = min(ones, key=ones.get)
             alt_err = runs[alt] if alt in runs else _free_run(fits[alt], ctx)
-            if one_base >= min_gain * ones[alt] and np.isfinite(alt_err) and alt_err <= min_gain * base_err:
+            if one_step_evidence(one_base, ones[alt], base_err, alt_err, min_gain):
                 best, err, evidence = alt, alt_err, "one step"
         if evidence is None:
             break
         loop.append({"added": best, "evidence": evidence,
-                     "error_before": _json_float(base_err), "error_after": _json_float(err),
-                     "one_step_before": _json_float(one_base), "one_step_after": _json_float(ones[best]),
-                     "candidates": {k: _json_float(v) for k, v in screens.items()},
+                     "error_before": finite_or_none(base_err), "error_after": finite_or_none(err),
+                     "one_step_before": finite_or_none(one_base), "one_step_after": finite_or_none(ones[best]),
+                     "candidates": {k: finite_or_none(v) for k, v in screens.items()},
                      "screen": f"held-out error over {max(1, ctx.horizon // 10)}-step windows (m)",
-                     "one_step": {k: _json_float(v) for k, v in ones.items()}})
+                     "one_step": {k: finite_or_none(v) for k, v in ones.items()}})
         chosen.append(best)
         base_err, base_model, base_screen = err, fits[best], screens[best]
         for e in base_model.effects:
             label = next(c for c in chosen if c.split(":")[0] == e["name"])
-            if e["name"] == "ground_contact" and e["parameters"].get("epsilon") is not None:
-                fixed[label] = {"epsilon": e["parameters"]["epsilon"]}
-            if EFFECTS[e["name"]].iterative:  # later refits start from its classification
+            cls = EFFECTS[e["name"]]
+            settled = {k: e["parameters"][k] for k in cls.profiled if e["parameters"].get(k) is not None}
+            if settled:  # what its own profile scan settled (the contact regulariser), kept
+                fixed[label] = settled
+            if cls.fit_strategy == "classification":  # later refits start from its classification
                 fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
-        for name, m in fits.items():  # an iterative candidate left out has this round's classification
-            if name != best and m is not None and EFFECTS[name.split(":")[0]].iterative:  # as one more
-                e = next(e for e in m.effects if e["name"] == name.split(":")[0])  # start of its search:
-                # the effect just added changes which rows the fit uses (ground contact: the rods on
-                # the ground leave the joint fit), and a classification settled without it can be wrong
+        for name, m in fits.items():
+            if name != best and m is not None and EFFECTS[name.split(":")[0]].fit_strategy == "classification":
+                # a classification candidate left out has this round's classification as one more start
+                # of its next search: the effect just added changes which rows the fit uses (ground
+                # contact: the rods on the ground leave the joint fit), and a classification settled
+                # without it can be wrong
+                e = next(e for e in m.effects if e["name"] == name.split(":")[0])
                 fixed[name] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist(),
                                "search_too": True}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
     if bar is not None:
         bar.close()
-    rel = relative_residual(base_model)
-    explained = bool((rel is not None and rel < ROUNDING) or (first_err > 0 and base_err <= first_err / 5)
-                     or (first_err == 0))
-    return chosen, loop, explained, fixed
+    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed
 
 
 def halves(before: float, after: float, min_gain: float = 2.0) -> bool:
     """The free-run evidence for an effect: the held-out free-run error falls from ``before`` to
     ``after`` by at least ``min_gain``, from above :data:`FREE_RUN_FLOOR` (rounding)."""
     return bool(np.isfinite(after) and before >= max(min_gain * after, FREE_RUN_FLOOR))
+
+
+def one_step_evidence(one_before: float, one_after: float, free_before: float, free_after: float,
+                      min_gain: float = 2.0) -> bool:
+    """The one-step evidence for an effect: the held-out one-step error falls from ``one_before``
+    (above :data:`ONE_STEP_FLOOR`) by at least ``min_gain``, and the free-run error does not grow
+    from ``free_before`` by ``min_gain`` or more."""
+    return bool(one_before > ONE_STEP_FLOOR and one_before >= min_gain * one_after
+                and np.isfinite(free_after) and free_after <= min_gain * free_before)
+
+
+def search_explained(relative: float | None, first_err: float, last_err: float) -> bool:
+    """Whether what the search leaves is explained: the final model's one-step residual relative to
+    the forces (``relative``) is below :data:`~identified.fit.checks.ROUNDING`, or the held-out
+    free-run error fell at least 5x from the model without effects (``first_err``) to the final
+    one (``last_err``), or it was 0 to begin with."""
+    return bool((relative is not None and relative < ROUNDING) or (first_err > 0 and last_err <= first_err / 5)
+                or first_err == 0)
 
 
 def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,
@@ -370,83 +389,3 @@ def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, Identi
     runs = {n: _free_run(fits[n], ctx) for n in close}
     best = min(close, key=lambda n: (runs[n], screens[n]))
     return best, runs
-
-
-def one_step_errors(models: Sequence[IdentifiedModel], data: Dataset, max_steps: int = 20_000) -> list[float]:
-    """Each model's held-out one-step error on ``data``: the RMS of its residual wrench (recorded
-    ``M (a - g)``, ``I α + ω × I ω`` less the model's) relative to the RMS of the recorded wrench,
-    on the same rows for every model -- the rods no model's residual-stage effect touches (ground
-    contact's rows are left out: its law, not exact, would mask what another effect explains).
-
-    ``inf`` for a model missing or whose residual is not finite; at most ``max_steps`` instants."""
-    import torch
-
-    from identified.effects import effects_from_model
-    from identified.engine import SpringRodEngine
-    from identified.engine.accelerations import inertial_wrench
-    from identified.engine.integration import RodState
-    from identified.fit.derivatives import iter_chunks
-
-    per = max(1, min(data.n_episodes, max_steps // max(data.n_steps, 1)))
-    data = data.select(episodes=slice(0, per))
-    fitted = [m for m in models if m is not None]
-    if not fitted:
-        return [float("inf")] * len(models)
-    scheme = fitted[0].metrics.get("scheme") or "forward"
-    ch, n_ep = next(iter_chunks(data, data.n_episodes * data.n_steps + 1, scheme))
-    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
-    point = (torch.as_tensor(data.push_point[:, : ch.pos.shape[0] // n_ep].reshape(-1, data.n_rods, 3),
-                             dtype=ch.pos.dtype) if scheme == "forward" else None)
-    out: list[tuple[torch.Tensor, torch.Tensor] | None] = []
-    keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool)
-    with torch.no_grad():
-        for m in models:
-            if m is None:
-                out.append(None)
-                continue
-            eng = SpringRodEngine.from_model(m, dtype=torch.float64)
-            p = eng.params
-            terms = eng.dynamics(state, ch.rest, ch.push_force, point)
-            res = torch.cat((p.mass[:, None] * (ch.acc - terms.lin_acc),
-                             p.inertia * (ch.alpha_body - terms.ang_acc_body)), -1)
-            ref = torch.cat(inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body), -1)
-            for e in effects_from_model(m):
-                rows = e.rows_affected(state, terms.ctx) if e.stage != "joint" else None
-                if rows is not None:
-                    keep &= ~rows
-            out.append((res, ref))
-    errs = []
-    for r in out:
-        if r is None or not bool(keep.any()):
-            errs.append(float("inf"))
-            continue
-        res, ref = r[0][keep], r[1][keep]
-        e = float(res.square().mean().sqrt() / ref.square().mean().sqrt().clamp_min(1e-300))
-        errs.append(e if np.isfinite(e) else float("inf"))
-    return errs
-
-
-def window_error(model: IdentifiedModel, data: Dataset, steps: int, stride: int | None = None) -> float:
-    """Mean position error (m) of free runs of ``steps`` steps from recorded states every ``stride``
-    steps of every episode (one batched rollout): a cheap, short-horizon held-out error."""
-    import torch
-
-    from identified.engine import SpringRodEngine
-
-    stride = stride or max(steps, data.n_steps // 20)
-    starts = np.arange(0, data.n_steps - steps + 1, stride)
-    if starts.size == 0:
-        return float("inf")
-    idx = starts[:, None] + np.arange(steps + 1)[None, :]
-    take = lambda a, n: a[:, idx[:, :n]].reshape((-1, n) + a.shape[2:])
-    eng = SpringRodEngine.from_model(model)
-    s0 = eng.state(*(take(getattr(data, k), 1)[:, 0] for k in ("pos", "quat", "vel", "angvel")))
-    with torch.no_grad():
-        out = eng.rollout(s0, take(data.rest_length, steps), take(data.push_force, steps), take(data.push_point, steps))
-    with np.errstate(over="ignore", invalid="ignore"):  # a diverged run is inf, not a warning
-        err = np.linalg.norm(out.pos.numpy() - take(data.pos, steps + 1), axis=-1).mean()
-    return float(err) if np.isfinite(err) else float("inf")
-
-
-def _json_float(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None

@@ -35,6 +35,7 @@ from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
 from identified.model import IdentifiedModel
 from identified.rotation import quat_exp, quat_multiply, quat_normalize, quat_to_matrix
+from identified.twin import effects_from_model, params_from_model
 
 __all__ = ["check_refinable", "refine", "window_starts"]
 
@@ -93,7 +94,7 @@ def refine(
     has_push = bool(torch.any(fu != 0))
 
     length = float(np.mean([r.length for r in model.topology.rods]))
-    base = SpringRodParams.from_model(model)
+    base = params_from_model(model)
     anchor = model.scale.get("anchor", "normalised")
     names = ["stiffness", "damping", "mass", "inertia"] + (["control_scale"] if has_push and anchor != "push" else [])
     def start(v: torch.Tensor) -> torch.Tensor:
@@ -125,7 +126,6 @@ def refine(
             vals["mass"] = m
         return replace(base, **vals)
 
-    from identified.effects import effects_from_model
 
     # the effects' parameters refine with the rest: signed ones as they are, the others on their
     # logarithms (they stay non-negative), pinned ones held

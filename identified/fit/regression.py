@@ -45,7 +45,7 @@ import torch
 
 from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
-from identified.fit.uncertainty import LinearSolve, covariance
+from identified.fit.uncertainty import BlockFactors, LinearSolve, covariance
 
 __all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "solve"]
 
@@ -61,26 +61,6 @@ class IdentifiabilityError(ValueError):
     def __init__(self, message: str, names: list[str] | None = None) -> None:
         super().__init__(message)
         self.names = list(names or [])
-
-
-@dataclass
-class BlockFactors:
-    """Triangular factors of each equation block (rod, equation), merged and per independent run.
-
-    ``R``: (n_full, n_full) merged factor per block; ``rows``: equations summed into it;
-    ``blocks``: (rod, equation 0-5) of each block; ``columns``: full-vector index of each local
-    column of a block; ``cluster_R``: [run][block] local triangular factor of that run's rows;
-    ``noise`` / ``cluster_noise``: the same layout for the measured noise Gram ``E[ΔAᵀΔA]``
-    (``None`` without a noise model).
-    """
-
-    R: list[np.ndarray]
-    rows: list[int]
-    blocks: list[tuple[int, int]]
-    columns: list[np.ndarray]
-    cluster_R: list[list[np.ndarray]]
-    noise: list[np.ndarray] | None = None
-    cluster_noise: list[list[np.ndarray]] | None = None
 
 
 @dataclass(frozen=True)

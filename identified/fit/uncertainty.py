@@ -20,17 +20,33 @@ the iid formula is used (``Solution.covariance`` says which).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from identified.fit.regression import BlockFactors
-
-__all__ = ["MIN_RUNS", "LinearSolve", "covariance"]
+__all__ = ["MIN_RUNS", "BlockFactors", "LinearSolve", "covariance"]
 
 #: fewest independent runs (episodes) for the cluster-robust covariance
 MIN_RUNS = 10
+
+
+@dataclass
+class BlockFactors:
+    """Triangular factors of each equation block (rod, equation), merged and per independent run.
+
+    ``R``: (n_full, n_full) merged factor per block; ``rows``: equations summed into it;
+    ``blocks``: (rod, equation 0-5) of each block; ``columns``: full-vector index of each local
+    column of a block; ``cluster_R``: [run][block] local triangular factor of that run's rows;
+    ``noise`` / ``cluster_noise``: the same layout for the measured noise Gram ``E[ΔAᵀΔA]``
+    (``None`` without a noise model).
+    """
+
+    R: list[np.ndarray]
+    rows: list[int]
+    blocks: list[tuple[int, int]]
+    columns: list[np.ndarray]
+    cluster_R: list[list[np.ndarray]]
+    noise: list[np.ndarray] | None = None
+    cluster_noise: list[list[np.ndarray]] | None = None
 
 
 @dataclass

@@ -11,9 +11,9 @@ import importlib
 import os
 from typing import Any
 
-from tensegrity_gym.backends.base import Backend, MotorSpec, RodState, RodStates
+from tensegrity_gym.backends.base import Backend, MotorSpec, RodState
 
-__all__ = ["BACKENDS", "Backend", "MotorSpec", "RodState", "RodStates", "make_backend", "register_backend"]
+__all__ = ["BACKENDS", "Backend", "MotorSpec", "RodState", "make_backend", "register_backend"]
 
 #: backend name -> "module:Class"; the class is called as ``Class(model, **kwargs)``
 BACKENDS: dict[str, str] = {

@@ -11,7 +11,10 @@ Static metadata a backend exposes (fixed for its lifetime):
 * ``rod_names`` (R,), ``tendon_names`` (S,), ``actuated_names`` (A,) — actuated in command order;
 * ``dt`` — one physics step, s;
 * ``motor`` — the :class:`~tensegrity_gym.cables.MotorSpec` (speed, rest_min, rest_max per
-  actuated cable), the one motor model both backends share.
+  actuated cable), the one motor model both backends share;
+* ``actuator_names`` (U,) — MuJoCo tendon actuators (``motor``, ``position``, ``general``), with
+  :meth:`Backend.ctrl_bounds` their ``ctrlrange``; commanded by :meth:`Backend.set_ctrl` (held
+  until changed), their state read by :meth:`Backend.actuator_state`. Empty by default.
 
 Dynamic interface: :meth:`Backend.reset`, :meth:`Backend.step`, :meth:`Backend.states`,
 :meth:`Backend.rest_lengths`, plus :meth:`Backend.nominal_states` and
@@ -19,10 +22,11 @@ Dynamic interface: :meth:`Backend.reset`, :meth:`Backend.step`, :meth:`Backend.s
 of one robot must return the same nominal pose (the plant's MJCF keyframe ``nominal``) for the
 env's reset distribution to be the same on both.
 
-Input checks live here, once, for every backend and for the plant itself
-(:func:`check_rest_lengths`, :func:`check_targets`, :func:`check_push`, :func:`check_substeps`):
-a backend calls them at its entry points, so a bad shape or a NaN gives the same message whichever
-physics is behind the env.
+Input checks live in :mod:`tensegrity_gym.checks`, once, for every backend and for the plant itself
+(:func:`~tensegrity_gym.checks.check_rest_lengths`, :func:`~tensegrity_gym.checks.check_targets`,
+:func:`~tensegrity_gym.checks.check_push`, :func:`~tensegrity_gym.checks.check_substeps`): a backend
+calls them at its entry points, so a bad shape or a NaN gives the same message whichever physics is
+behind the env.
 
 Divergence: a backend never raises when its physics blows up; it returns non-finite rod states
 (NaN) until the next :meth:`Backend.reset`, and the env ends the episode.
@@ -41,7 +45,7 @@ from __future__ import annotations
 
 import abc
 import os
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,58 +55,7 @@ from tensegrity_gym.cables import MotorSpec
 if TYPE_CHECKING:
     from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["Backend", "MotorSpec", "RodState", "RodStates", "check_push", "check_rest_lengths",
-           "check_substeps", "check_targets"]
-
-#: Former name of :class:`~identified.state.RodState`, kept for existing callers.
-RodStates = RodState
-
-
-# ---------------------------------------------------------------------- input checks (one place)
-def check_substeps(n_substeps: Any) -> int:
-    """``n_substeps`` as an int >= 1 (ValueError otherwise)."""
-    if int(n_substeps) != n_substeps or n_substeps < 1:
-        raise ValueError(f"n_substeps must be an integer >= 1, got {n_substeps}")
-    return int(n_substeps)
-
-
-def check_targets(target_rest: Any, n_actuated: int) -> np.ndarray:
-    """(A,) finite motor targets as float64 (ValueError on a bad shape or a non-finite value)."""
-    t = np.asarray(target_rest, dtype=float)
-    if t.shape != (n_actuated,):
-        raise ValueError(f"targets must have shape ({n_actuated},), got {t.shape}")
-    if not np.isfinite(t).all():
-        raise ValueError("targets must be finite")
-    return t
-
-
-def check_rest_lengths(rest_lengths: Any, n: int, actuated_index: np.ndarray, motor: MotorSpec) -> np.ndarray:
-    """(n,) rest lengths as float64: finite, positive, actuated ones inside the motor bounds."""
-    r = np.asarray(rest_lengths, dtype=float)
-    if r.shape != (n,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
-        raise ValueError(f"rest_lengths must be {n} finite positive numbers, got shape {r.shape}")
-    act = r[actuated_index]
-    if np.any(act < motor.rest_min - 1e-12) or np.any(act > motor.rest_max + 1e-12):
-        raise ValueError("rest_lengths of actuated cables must lie inside the motor bounds (rest_bounds())")
-    return r
-
-
-def check_push(push_force: Any, push_point: Any, n_rods: int) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The optional push: (R, 3) finite world force and (R, 3) finite rod-frame point, float64;
-    a point without a force is an error."""
-    if push_force is None:
-        if push_point is not None:
-            raise ValueError("push_point given without push_force")
-        return None, None
-    f = np.asarray(push_force, dtype=float)
-    if f.shape != (n_rods, 3) or not np.isfinite(f).all():
-        raise ValueError(f"push_force must be finite with shape ({n_rods}, 3), got {f.shape}")
-    if push_point is None:
-        return f, None
-    p = np.asarray(push_point, dtype=float)
-    if p.shape != (n_rods, 3) or not np.isfinite(p).all():
-        raise ValueError(f"push_point must be finite with shape ({n_rods}, 3), got {p.shape}")
-    return f, p
+__all__ = ["Backend", "MotorSpec", "RodState"]
 
 
 class Backend(abc.ABC):
@@ -124,6 +77,9 @@ class Backend(abc.ABC):
     tendon_names: tuple[str, ...]
     actuated_names: tuple[str, ...]
     motor: MotorSpec
+    actuator_names: tuple[str, ...] = ()
+    #: height of the model's ground plane, m (``None``: no ground)
+    ground: float | None = None
 
     # ------------------------------------------------------------------ metadata
     @property
@@ -140,6 +96,21 @@ class Backend(abc.ABC):
         """(A,) int: position of every actuated cable in ``tendon_names``."""
         idx = {n: i for i, n in enumerate(self.tendon_names)}
         return np.array([idx[n] for n in self.actuated_names], dtype=int)
+
+    # ------------------------------------------------------------------ MuJoCo actuators
+    def ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high), each (U,): the actuators' command ranges."""
+        return np.zeros(0), np.zeros(0)
+
+    def set_ctrl(self, ctrl: np.ndarray) -> None:
+        """Set the (U,) actuator commands, held until changed (cleared by :meth:`reset`)."""
+        if np.asarray(ctrl).size:
+            raise ValueError(f"the {self.name!r} backend has no actuators")
+
+    def actuator_state(self) -> np.ndarray:
+        """(U,) what each actuator's force acts on now: its activation where it has dynamics, else
+        its command."""
+        return np.zeros(0)
 
     # ------------------------------------------------------------------ the standing pose
     @abc.abstractmethod

@@ -12,7 +12,9 @@ XML only (:func:`read_source_mjcf`):
 
 * the motor specification (which cables are actuated, speed, bounds: ``read_motor_spec``);
 * the nominal pose the env perturbs at reset: keyframe ``nominal`` (:func:`identified.mjcf.nominal_pose`),
-  so plant and twin start from the same reset distribution;
+  or for a model without one the plant's own standing pose (:func:`tensegrity_gym.plant.standing_pose`,
+  the MJCF's first keyframe or the pose it settles in), so plant and twin start from the same reset
+  distribution;
 * the neutral rest length of every actuated cable (its ``springlength``): the motor setting the
   robot starts from, a command, not a fitted parameter. Non-actuated springs keep the identified
   ``model.rest_length``;
@@ -42,27 +44,22 @@ from importlib import resources
 import numpy as np
 import torch
 
-from identified.engine import Effect, SpringRodEngine
+from identified.engine import Effect
 from identified.mjcf import nominal_pose, parse_mjcf, read_mjcf_text, spring_lengths
 from identified.model import IdentifiedModel, check_effect_objects, load_model, validate_fields
 from identified.state import RodState
 from identified.topology import Topology
-from tensegrity_gym.backends.base import (
-    Backend,
-    check_push,
-    check_rest_lengths,
-    check_substeps,
-    check_targets,
-)
+from identified.twin import engine_from_model
+from tensegrity_gym.backends.base import Backend
 from tensegrity_gym.backends.twin_physics import TwinPhysics
 from tensegrity_gym.cables import read_motor_spec
+from tensegrity_gym.checks import check_push, check_rest_lengths, check_substeps, check_targets
 
 __all__ = [
     "PRESET_PREFIX",
     "IdentifiedBackend",
     "TwinPhysics",
     "default_model_path",
-    "nominal_pose_from_mjcf",
     "read_source_mjcf",
     "resolve_source_mjcf",
 ]
@@ -72,8 +69,6 @@ __all__ = [
 #: it resolves on a fresh clone).
 PRESET_PREFIX = "preset:"
 _FALLBACK = ("ico", "robot")
-#: Former names, kept for existing callers: the MJCF readers now live in :mod:`identified.mjcf`.
-nominal_pose_from_mjcf = nominal_pose
 _DTYPES = {"float64": torch.float64, "double": torch.float64,
            "float32": torch.float32, "float": torch.float32}
 
@@ -161,7 +156,7 @@ class IdentifiedBackend(Backend):
             and ``TENSEGRITY_TWIN_COMPILE`` is not ``0``), ``True`` or ``False``.
         effects: engine :class:`~identified.engine.Effect` plug-ins (forces the spring-rod model
             lacks) added after the effects the model lists in ``model.effects``, which the engine
-            builds from the model file (:func:`identified.effects.effects_from_model`).
+            builds from the model file (:func:`identified.twin.effects_from_model`).
         mjcf: the MJCF (path or text) to take motors, keyframe and drawing from, instead of
             ``model.source_model`` (see :func:`resolve_source_mjcf`).
 
@@ -208,8 +203,21 @@ class IdentifiedBackend(Backend):
         unknown = [n for n in self.actuated_names if n not in self.tendon_names]
         if unknown:
             raise ValueError(f"actuated cables {unknown} of the MJCF are not springs of the identified model")
-        self.engine = SpringRodEngine.from_model(m, effects=effects, dtype=dtype, device=device)
-        self._nominal = nominal_pose(self.mjcf, self.rod_names)
+        self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
+        topo_mjcf = Topology.from_mjcf(self.mjcf)
+        self.ground = topo_mjcf.ground
+        forces = [a.name for a in topo_mjcf.actuators if a.kind != "rest_length"]
+        if forces:
+            raise ValueError(f"the MJCF '{self.mjcf_source}' has MuJoCo actuators {forces}, which the identified "
+                             "model does not hold: the twin cannot step them")
+        if parse_mjcf(self.mjcf).find("keyframe/key[@name='nominal']") is not None:
+            self._nominal = nominal_pose(self.mjcf, self.rod_names)
+        else:  # a lab's model: the pose the plant stands in (a keyframe, or settled from qpos0)
+            from tensegrity_gym.plant import MujocoPlant, standing_pose
+
+            pose, _ = standing_pose(MujocoPlant(self.mjcf))
+            order = [topo_mjcf.rod_names.index(n) for n in self.rod_names]
+            self._nominal = RodState(pose.pos[order], pose.quat[order], pose.vel[order], pose.angvel[order])
         rest = np.array(m.rest_length, dtype=float)
         written = spring_lengths(self.mjcf)
         act = self.actuated_index

@@ -25,7 +25,7 @@ import numpy as np
 
 from identified.baselines.base import Estimate, ParameterProblem
 from identified.dataset import Dataset
-from tensegrity_gym.plant import MujocoPlant, RodStates
+from tensegrity_gym.plant import MujocoPlant, RodState
 
 __all__ = ["MujocoSysId", "TrajectorySimulator", "sysid_available"]
 
@@ -50,7 +50,7 @@ class TrajectorySimulator:
         self.ref_pos = reference.pos[0, 1:]
         self.ref_quat = reference.quat[0, 1:]
         self.nstep = reference.n_steps
-        self.plant.set_states(RodStates(reference.pos[0, 0], reference.quat[0, 0], reference.vel[0, 0],
+        self.plant.set_states(RodState(reference.pos[0, 0], reference.quat[0, 0], reference.vel[0, 0],
                                         reference.angvel[0, 0]))
         spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.state0 = np.empty(mujoco.mj_stateSize(m, spec))

@@ -24,9 +24,9 @@ import torch
 
 from identified.baselines import KoopmanInt, rollout_errors
 from identified.dataset import Dataset
-from identified.engine import SpringRodEngine
 from identified.fit.identify import ScaleSpec, identify
 from identified.model import IdentifiedModel
+from identified.twin import engine_from_model
 from tensegrity_gym.reproduce.common import Context, Result, error_row, generate, single_thread
 from tensegrity_gym.reproduce.plots import curves_figure, figure_path, series_figure
 
@@ -69,7 +69,7 @@ def _fit(data: Dataset, topo, truth, regressors: str = "multiple") -> tuple[Iden
 
 
 def _ours_row(name: str, model: IdentifiedModel, sec: float, test: Dataset, truth) -> tuple[dict, dict]:
-    errs = rollout_errors(SpringRodEngine.from_model(model).step, test)
+    errs = rollout_errors(engine_from_model(model).step, test)
     row = {"method": name, **error_row(errs), **parameter_errors(model, truth), "fit_seconds": sec}
     return row, errs["per_step"]
 
@@ -281,7 +281,7 @@ def fit_control_scale(model: IdentifiedModel, data: Dataset) -> float:
     alpha_b = matrix_apply_transpose(quat_to_matrix(s0.quat), alpha)
     acc = []
     for h in (0.0, 1.0):
-        eng = SpringRodEngine.from_model(replace(model, control_scale=h))
+        eng = engine_from_model(replace(model, control_scale=h))
         with torch.no_grad():
             terms = eng.dynamics(s0, f(data.rest_length), f(data.push_force), f(data.push_point))
         acc.append(torch.cat([terms.lin_acc, terms.ang_acc_body], dim=-1))
@@ -320,7 +320,7 @@ def generalization(ctx: Context) -> Result:
             te, _, _ = generate(ctx, "ico", "paper-nonuniform", split, n, T, model_seed=ctx.seed, push_every=100)
             for name, hv in variants:
                 ctx.log(f"generalization: {name} on {n} x {T} steps")
-                errs = rollout_errors(SpringRodEngine.from_model(replace(model, control_scale=hv)).step, te)
+                errs = rollout_errors(engine_from_model(replace(model, control_scale=hv)).step, te)
                 rows.append({"method": name, "test_steps": T, "test_trajectories": n, **error_row(errs),
                              "h": hv, "h_x_mean_mass": hv * mean_mass,
                              "h_rel_error": abs(hv * mean_mass - 1.0) if hv else None, "fit_seconds": fit_sec,

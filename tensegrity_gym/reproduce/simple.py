@@ -219,8 +219,8 @@ def simple_physics(ctx: Context) -> Result:
     """Learned one-step models against ours on the simple system: free-run error on test data."""
     import time
 
-    from identified.engine import SpringRodEngine
     from identified.fit.identify import identify
+    from identified.twin import engine_from_model
 
     sz = physics_sizes(ctx.quick)
     train_d, topo, _ = generate(ctx, "simple", "paper", "train", sz["train"], sz["steps"])
@@ -261,7 +261,7 @@ def simple_physics(ctx: Context) -> Result:
         t0 = time.perf_counter()
         model = identify(train_d, topo, regressors="multiple", weak_window=None)
         sec = time.perf_counter() - t0
-        errs = rollout_errors(SpringRodEngine.from_model(model).step, test_d)
+        errs = rollout_errors(engine_from_model(model).step, test_d)
         rows.append({"method": "Ours", **error_row(errs), "train_seconds": sec,
                      "parameters": int(2 * topo.n_springs + 4 * topo.n_rods)})
         curves["Ours"] = errs["per_step"]

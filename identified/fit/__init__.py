@@ -1,0 +1,1 @@
+"""Identification by linear regression: the equations, their solution, the effect search."""

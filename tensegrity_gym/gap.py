@@ -31,7 +31,8 @@ import numpy as np
 
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "run_episodes", "write_mp4"]
+__all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
+           "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
 #: Videos: frame size (pixels) and by default one frame every this many control steps (25 fps at
@@ -185,6 +186,15 @@ def open_loop_divergence(plant: EpisodeSet, twin: EpisodeSet, dt: float) -> dict
     }
 
 
+def transfer_ratios(twin: dict[str, Any], plant: dict[str, Any], random_plant: dict[str, Any]
+                    ) -> dict[str, float | None]:
+    """The ratios a transfer is judged by, from :meth:`EpisodeSet.summary` blocks: the policy's
+    mean progress on the plant over its progress on the twin, and over a random policy's on the
+    plant (``None`` where the denominator is not positive)."""
+    return {"plant_over_twin": _ratio(plant["progress_m"], twin["progress_m"]),
+            "plant_over_random": _ratio(plant["progress_m"], random_plant["progress_m"])}
+
+
 def _ratio(a: float, b: float) -> float | None:
     return float(a / b) if b > 0 and np.isfinite(a / b) else None
 
@@ -274,7 +284,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         bar = tqdm(total=(4 if random_plant is None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
-            mjcf = plant_mjcf(identified)
+            mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:
@@ -317,10 +327,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         "plant": p,
         "random_plant": r,
         "open_loop": open_loop,
-        "transfer": {
-            "plant_over_twin": _ratio(p["progress_m"], t["progress_m"]),
-            "plant_over_random": _ratio(p["progress_m"], r["progress_m"]),
-        },
+        "transfer": transfer_ratios(t, p, r),
         "twin_diverged_episodes": int(on_twin.diverged.sum()),
         "policy": {k: pol.meta.get(k) for k in ("algo", "trained_on", "identified", "timesteps", "seed")},
         "identified": None if identified is None else os.path.abspath(identified),
@@ -375,7 +382,7 @@ def side_by_side(left: list[np.ndarray], right: list[np.ndarray], gap: int = 4) 
 def measure_gaps(policies: list[str], identified: str | None, episodes: int, seed: int = 0,
                  episode_steps: int | None = None, video_dir: str | None = None, progress: bool = True,
                  threads: int = 1, log: Callable[[str], None] | None = None,
-                 video_every: int = VIDEO_EVERY) -> dict[str, Any]:
+                 backend_kwargs: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY) -> dict[str, Any]:
     """:func:`measure_gap` of several policies (e.g. the seeds of ``tensegrity train --seeds``) from
     the same reset seeds, and their mean and spread over policies.
 
@@ -398,7 +405,7 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
         vd = None if video_dir is None else (video_dir if len(policies) == 1 else os.path.join(video_dir, str(i)))
         rep = measure_gap(pol, identified, episodes, seed=seed, episode_steps=episode_steps, video_dir=vd,
                           progress=progress, threads=threads, random_plant=randoms.get(key),
-                          video_every=video_every)
+                          backend_kwargs=backend_kwargs, video_every=video_every)
         randoms[key] = rep["random_plant"]
         reports.append(rep)
         if log is not None:

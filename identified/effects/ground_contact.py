@@ -306,7 +306,9 @@ class GroundContact(Effect):
         are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves by
         3x3 blocks, all elementwise over rods and envs, which ``torch.compile`` fuses and
         vectorises (tests/test_twin_speed.py checks the two forms agree)."""
-        th = self.theta(pos[0])  # the cached tensor: a compiled step never converts ``values``
+        # the cached tensor: a compiled step never converts ``values``; (P,), or (N, 1, P) bound
+        # per environment (each env its own law, broadcast over its rods)
+        th = self.theta(pos[0])
         radius, seg, n, t1, height = self._geom_components(pos[0])
         # friction axes per rod: along the rod's shadow on the ground (a) and across it (p)
         axis = (rot[2], rot[5], rot[8])
@@ -328,11 +330,11 @@ class GroundContact(Effect):
             # velocity and its acceleration under every other force
             v = vadd(vel, vcross(angvel, lever))
             a0 = vadd(base_lin_acc, vcross(alpha_w, lever))
-            refs.append(tuple(-(th[1 + 2 * k] * vdot(d, v) + th[2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
+            refs.append(tuple(-(th[..., 1 + 2 * k] * vdot(d, v) + th[..., 2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
             levers.append(lever)
-        refs[0] = (refs[0][0] + th[0] * depths[0], *refs[0][1:])
-        refs[1] = (refs[1][0] + th[0] * depths[1], *refs[1][1:])
-        inv_m, eps = 1.0 / mass, th[NL + 1]
+        refs[0] = (refs[0][0] + th[..., 0] * depths[0], *refs[0][1:])
+        refs[1] = (refs[1][0] + th[..., 0] * depths[1], *refs[1][1:])
+        inv_m, eps = 1.0 / mass, th[..., NL + 1]
 
         def block(b: Mat, c: Mat, regularised: bool) -> Mat:  # I/M + B_b B_cᵀ (ε on the diagonal)
             out = []
@@ -350,7 +352,7 @@ class GroundContact(Effect):
         raw = _masked_block_solve(P, Q, W, active, refs)
         # solved again with the pulling ends released (always: one graph)
         raw = _masked_block_solve(P, Q, W, (active[0] & (raw[0][0] > 0), active[1] & (raw[1][0] > 0)), refs)
-        mu = th[NL]
+        mu = th[..., NL]
         force: Vec = (0.0, 0.0, 0.0)
         torque: Vec = (0.0, 0.0, 0.0)
         for lever, (rn, ra, rp) in zip(levers, raw):

@@ -143,6 +143,7 @@ def identify(
     device: str = "cpu",
     noise_copies: int = 1,
     effects: Sequence[Effect] = (),
+    hold_inertia: Sequence[tuple[int, int]] = (),
     _classified: bool = False,
     _residual_stage: bool = True,
 ) -> IdentifiedModel:
@@ -160,6 +161,8 @@ def identify(
     ``"auto"``: chosen from the data (:func:`select_integrator`).  ``scheme``: how accelerations
     are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
     (second order for any integrator; the default for rk4), :mod:`identified.samples`.
+    ``hold_inertia``: (rod, body axis) moments of inertia the data cannot see (a rod whose markers
+    lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable.
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
@@ -167,7 +170,7 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies, effects, _classified)
+                         chunk_steps, progress, device, noise_copies, effects, hold_inertia, _classified)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -177,7 +180,8 @@ def identify(
     if iterative and not _classified:
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
-                            bar, device, noise_copies, effects, _classified=True, _residual_stage=residual_stage)
+                            bar, device, noise_copies, effects, hold_inertia, _classified=True,
+                            _residual_stage=residual_stage)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
@@ -194,6 +198,7 @@ def identify(
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
+    fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -252,6 +257,8 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.integrator = integrator
+    if hold_inertia:  # before the residual stage: its engine divides by every moment
+        _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     apply_checks(model, sol, not_estimable, held, notes, weak)
@@ -261,6 +268,19 @@ def identify(
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
     return model
+
+
+def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
+    """Held moments of inertia: a placeholder the twin can step with (1e-3 of the rod's largest
+    identified moment), no standard error, and the list in ``metrics.not_identifiable``."""
+    names = model.metrics.setdefault("not_identifiable", [])
+    for i, a in held:
+        others = [model.inertia[i, b] for b in range(3) if (i, b) not in held]
+        model.inertia[i, a] = 1e-3 * max(max(others, default=1.0), 1e-12)
+        if "inertia" in model.stderr:
+            model.stderr["inertia"][i, a] = np.nan
+        names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
+                     "(its spin is not observable)")
 
 
 def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:

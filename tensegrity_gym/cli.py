@@ -394,6 +394,8 @@ def cmd_gap(args: argparse.Namespace) -> None:
         raise CommandError(f"--episodes must be at least 1, got {args.episodes}")
     if args.episode_steps is not None and args.episode_steps < 1:
         raise CommandError(f"--episode-steps must be at least 1, got {args.episode_steps}")
+    if args.video_every < 1:
+        raise CommandError(f"--video-every must be at least 1, got {args.video_every}")
     _check_readable(args.identified)
     policies = policies_in(args.policy)
     if args.video is not None:
@@ -406,7 +408,7 @@ def cmd_gap(args: argparse.Namespace) -> None:
         return
     r = measure_gap(policies[0], args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
-                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"))
+                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"), video_every=args.video_every)
     if args.json:
         print(json.dumps(r, indent=2))
         return
@@ -441,7 +443,7 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
 
     r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
                      video_dir=args.video, progress=not args.quiet, threads=args.threads,
-                     backend_kwargs=backend_kwargs)
+                     backend_kwargs=backend_kwargs, video_every=args.video_every)
     if args.json:
         print(json.dumps(json_safe(r), indent=2))
         return
@@ -708,7 +710,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time limit of an episode (default: the policy's training limit)")
     g.add_argument("--json", action="store_true", help="machine-readable output")
     g.add_argument("--video", default=None, metavar="DIR",
-                   help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here")
+                   help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here, and "
+                   "twin_plant.mp4: the twin (left) beside the plant (right)")
+    g.add_argument("--video-every", type=int, default=2, metavar="K",
+                   help="one video frame every K control steps, played at 25 fps (default 2: real time; "
+                   "K > 2: a time-lapse, fewer frames to render)")
     g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
     g.add_argument("--xml-file", default=None, metavar="PATH",
                    help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "

@@ -174,6 +174,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
           f"integrator {model.integrator}, effects: {added})")
+    _strict(args, model)
+
+
+def _strict(args: argparse.Namespace, model) -> None:
+    """``fit --strict``: an error when the fitted equations do not describe their own data."""
     res = model.metrics.get("residual") or {}
     if args.strict and res.get("large"):
         raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
@@ -209,6 +214,7 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
           f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")
+    _strict(args, model)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:

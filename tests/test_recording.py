@@ -59,7 +59,7 @@ def test_round_trip_and_dropout(robot, tmp_path):
     out = tmp_path / "r.csv"
     save_recording(out, rec)
     back = read_recording(out)
-    assert back.marker_names == rec.marker_names and back.rest_names == data.actuated_names
+    assert back.marker_names == rec.marker_names and back.rest_names == data.tendon_names
     assert back.n_episodes == 2 and back.n_frames == rec.n_frames
     np.testing.assert_array_equal(np.isnan(back.markers), np.isnan(rec.markers))
     np.testing.assert_allclose(back.markers, rec.markers, atol=6e-8, equal_nan=True)

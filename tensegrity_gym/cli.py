@@ -230,7 +230,12 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise CommandError(f"--out '{args.out}' exists and is not a folder")
     model = load_model(args.identified)
-    data = load_dataset(args.data)
+    if _is_recording(args.data):  # rod states reconstructed from the markers (identified.fit.markers)
+        from identified.fit.markers import recording_dataset
+
+        data = recording_dataset(args.data, model)
+    else:
+        data = load_dataset(args.data)
     check_compatible(data, model.topology)
     if args.horizon <= 0:
         raise CommandError(f"--horizon {args.horizon}: must be a positive number of seconds")
@@ -590,7 +595,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "data it was not fitted on), by rod, axis and region of state; residual whiteness "
                         "(Ljung-Box); each effect of the library scored by the share of the residual it would "
                         "remove; the error without and with the model's own effects.")
-    dg.add_argument("data", help="dataset .npz")
+    dg.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its markers)")
     dg.add_argument("--identified", required=True, help="identified-model .json")
     dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
     dg.add_argument("--horizon", type=finite_float(0.0, 1e6, "s", True), default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")

@@ -41,7 +41,7 @@ class IdentifiedModel:
     topology: Topology
     stiffness: np.ndarray  # (S,) N/m
     damping: np.ndarray  # (S,) N s/m
-    rest_length: np.ndarray  # (S,) nominal rest length (mean recorded), m
+    rest_length: np.ndarray  # (S,) m: identified for passive springs; an actuated cable's mean command
     mass: np.ndarray  # (R,) kg
     inertia: np.ndarray  # (R, 3) kg m^2, rod frame diagonal
     control_scale: float = 1.0
@@ -67,7 +67,9 @@ class IdentifiedModel:
             k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j)
             c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j)
             kind = "cable" if s.pull_only else "spring"
-            lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; rest {self.rest_length[j]:.4g} m")
+            rest = (f"rest {self.rest_length[j]:.6g} m (its command, mean)" if s.actuated else
+                    f"rest {self.rest_length[j]:.6g} m" + _pm(se.get("rest_length"), j))
+            lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; {rest}")
         lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")
@@ -124,6 +126,7 @@ class IdentifiedModel:
                     "damping": float(self.damping[j]),
                     "damping_stderr": err("damping", j),
                     "rest_length": float(self.rest_length[j]),
+                    "rest_length_stderr": err("rest_length", j),
                     "pull_only": bool(s.pull_only),
                     "actuated": bool(s.actuated),
                 }
@@ -176,6 +179,7 @@ class IdentifiedModel:
             sp = [springs_json[s.name] for s in springs]
             stderr: dict[str, np.ndarray] = {}
             for key, src, n in (("stiffness", sp, "stiffness_stderr"), ("damping", sp, "damping_stderr"),
+                                ("rest_length", sp, "rest_length_stderr"),
                                 ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr")):
                 vals = [x.get(n) for x in src]
                 if all(v is not None for v in vals):

@@ -57,10 +57,12 @@ __all__ = ["RodColumns", "chunk_context", "equation_rows", "step_context"]
 
 @dataclass(frozen=True)
 class RodColumns:
-    """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``.
+    """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``,
+    then (when the layout identifies rest lengths) ``P = K l0`` of its springs (D), then the effects'.
 
-    ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs) map
-    to full index -1 and stay zero.  Building the equations in this compact form keeps the work
+    ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs, and
+    the ``P`` slot of an actuated cable, whose rest length is its command) map to full index -1
+    and stay zero.  Building the equations in this compact form keeps the work
     proportional to the graph's degree, not to the total number of parameters.
     """
 
@@ -68,25 +70,34 @@ class RodColumns:
     slot: np.ndarray  # (S, 2) local slot of spring j on the rod at each of its ends (-1 for anchors)
     degree: int
     effect_start: tuple[int, ...] = ()  # first local column of each joint effect
+    preload: bool = False  # the P columns follow h (passive springs' rest lengths identified)
+    #: (S,) a reference length per spring, m: a passive spring's columns are ``l - l_ref`` (K) and
+    #: ``-1`` (``P = K (l0 - l_ref)``) while taut, which keeps K and P apart where ``l`` varies little
+    length_ref: np.ndarray | None = None
 
     @classmethod
-    def build(cls, topology: Topology, layout: ParameterLayout) -> RodColumns:
+    def build(cls, topology: Topology, layout: ParameterLayout, length_ref: np.ndarray | None = None) -> RodColumns:
+        """The columns of ``layout`` on ``topology``; ``length_ref`` (S,): the reference lengths of
+        the preload columns (0 when not given: ``P = K l0``)."""
         R, S = topology.n_rods, topology.n_springs
         per_rod = [topology.springs_of_rod(i) for i in range(R)]
         D = max(len(x) for x in per_rod)
         widths = [D * e.width if e.kind == "spring" else e.width for e in layout.effects]
-        full = -np.ones((R, 2 * D + 5 + sum(widths)), dtype=np.int64)
+        P = D if layout.rest_lengths else 0
+        full = -np.ones((R, 2 * D + 5 + P + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
                 full[i, k], full[i, D + k] = layout.k(j), layout.c(j)
+                if P and not topology.springs[j].actuated:
+                    full[i, 2 * D + 5 + k] = layout.preload(j)
                 for e in range(2):
                     if topology.springs[j].rods[e] == i:
                         slot[j, e] = k
             full[i, 2 * D] = layout.m(i)
             full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
             full[i, 2 * D + 4] = layout.h
-        starts, col = [], 2 * D + 5
+        starts, col = [], 2 * D + 5 + P
         for k, (eff, w) in enumerate(zip(layout.effects, widths)):
             off = layout.effect_offset(k)
             starts.append(col)
@@ -100,7 +111,9 @@ class RodColumns:
                     full[i, col : col + len(js) * W] = (off + np.array(js, dtype=np.int64)[:, None] * W
                                                         + np.arange(W)).reshape(-1)
             col += w
-        return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts))
+        ref = np.zeros(S) if length_ref is None else np.asarray(length_ref, dtype=float).reshape(S)
+        return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts), preload=bool(P),
+                   length_ref=ref if P else None)
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
         """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
@@ -147,17 +160,28 @@ def equation_rows(
     # springs: force per unit K (stretch) and per unit c (rate) on each end, and its torque
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device).view(1, 1, 2, 1)
     u = sign * unit.unsqueeze(-2)  # (N, S, 2, 3): direction of the force on each end
-    f = torch.stack([-stretch[..., None, None] * u, -rate_e[..., None] * u])  # (2, N, S, 2, 3)
+    per_unit = [stretch, rate_e]  # what multiplies K and c in each end's tension
+    starts = [0, D]  # their first local column
+    if columns.preload:  # a passive spring: K l - P while taut (a cable: while longer than its rest)
+        passive = torch.as_tensor(~np.array([s.actuated for s in topology.springs], dtype=bool), device=device)
+        pull = torch.as_tensor(topology.pull_only, device=device)
+        taut = torch.where(pull, length > chunk.rest, True).to(dtype)
+        ref = torch.as_tensor(columns.length_ref, dtype=dtype, device=device)
+        per_unit[0] = torch.where(passive, (length - ref) * taut, stretch)
+        per_unit.append(torch.where(passive, -taut, 0.0))
+        starts.append(2 * D + 5)
+    n_kinds = len(per_unit)
+    f = torch.stack([-(x if x.dim() == 3 else x[..., None])[..., None] * u for x in per_unit])  # (n, N, S, 2, 3)
     rods_e = torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=device)  # (S, 2)
     rot_e = rot[:, rods_e]  # (N, S, 2, 3, 3)
     tau = _to_body(rot_e, torch.cross(ends.lever.expand_as(f), f, dim=-1))
     on = np.flatnonzero(topology.endpoint_rods.reshape(-1) >= 0)  # ends on a rod (not anchors)
     flat_rod = topology.endpoint_rods.reshape(-1)[on]
     flat_slot = columns.slot.reshape(-1)[on]
-    idx = torch.as_tensor(np.concatenate([flat_rod * L + flat_slot, flat_rod * L + D + flat_slot]), device=device)
+    idx = torch.as_tensor(np.concatenate([flat_rod * L + c0 + flat_slot for c0 in starts]), device=device)
     pick = torch.as_tensor(on, device=device)
-    vals = torch.cat([f, tau], dim=-1).reshape(2, N, -1, 6)[:, :, pick]  # (2, N, ends, 6)
-    vals = torch.cat([vals[0], vals[1]], dim=1).transpose(1, 2)  # (N, 6, 2 * ends)
+    vals = torch.cat([f, tau], dim=-1).reshape(n_kinds, N, -1, 6)[:, :, pick]  # (n, N, ends, 6)
+    vals = torch.cat(tuple(vals), dim=1).transpose(1, 2)  # (N, 6, n * ends)
     A.view(N, 6, R * L).index_copy_(2, idx, vals)
 
     # mass: M (a - g)

@@ -20,6 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
+from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.engine.integration import INTEGRATORS, RodState
 from identified.evaluate import recorded_samples, residual_wrench
 from identified.fit.checks import (
@@ -198,14 +199,24 @@ def identify(
     t0 = time.perf_counter()
     joint = [e for e in effects if e.fit_strategy != "residual"]
     late = [e for e in effects if e.fit_strategy == "residual"]
-    layout = ParameterLayout.for_topology(topology, regressors, joint)
+    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
+    # an actuated cable's rest length is its command (an input): its preload column stays empty
+    passive = np.array([not s.actuated for s in topology.springs], dtype=bool)
+    if regressors == "multiple" or not passive.any():  # tied ("single"): the passive springs' P sets it
+        fixed.update({layout.preload(j): 0.0 for j in np.flatnonzero(~passive)})
+    # passive rest lengths: the fit's own estimate, never the recorded values (the recorded column
+    # of a passive spring is replaced before any feature is built); 0 at first (every cable taut)
+    rest_estimate = np.zeros(topology.n_springs)
     fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
-    columns = RodColumns.build(topology, layout)
+    length_ref = mean_lengths(dataset, topology)
+    if regressors == "single":  # one P for all springs: one reference length too
+        length_ref[:] = length_ref.mean()
+    columns = RodColumns.build(topology, layout, length_ref)
     implicit_dt = dataset.dt if integrator == "implicit" else None
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
@@ -213,6 +224,7 @@ def identify(
     def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
+            ch.rest = _with_estimate(ch.rest, passive, rest_estimate)
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 hit = _affected(late, topology, ch)
                 keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
@@ -245,6 +257,17 @@ def identify(
                 return solve(factors, layout, anchor, f)
 
             sol = solve_holding(fixed)
+            # a passive cable is taut while longer than its rest length: classify the rows by the
+            # estimate and fit again until the rest lengths settle (exact once the classes are)
+            slack = passive & topology.pull_only
+            for _ in range(REST_ITERATIONS if slack.any() else 0):
+                new = _rest_from(sol.theta, layout, passive, columns.length_ref)
+                settled = np.max(np.abs(new - rest_estimate)[slack]) <= REST_TOL * max(np.max(np.abs(new)), 1e-12)
+                rest_estimate[passive] = new[passive]
+                if settled:
+                    break
+                factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
+                sol = solve_holding(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
             sol, notes, held = constrain_inertias(sol, solve_holding,
@@ -260,7 +283,8 @@ def identify(
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0
-    model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed,
+                      columns.length_ref)
     model.integrator = integrator
     if hold_inertia:  # before the residual stage: its engine divides by every moment
         _mark_unobservable(model, hold_inertia)
@@ -273,6 +297,50 @@ def identify(
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
     return model
+
+
+#: at most this many reclassifications of passive cables' taut rows; stop when the rest lengths
+#: change by less than REST_TOL (relative)
+REST_ITERATIONS = 12
+REST_TOL = 1e-13
+
+
+def _with_estimate(rest: torch.Tensor, passive: np.ndarray, estimate: np.ndarray) -> torch.Tensor:
+    """The chunk's rest lengths (N, S) with every passive spring's column the fit's estimate."""
+    mask = torch.as_tensor(passive, device=rest.device)
+    return torch.where(mask, torch.as_tensor(estimate, dtype=rest.dtype, device=rest.device), rest)
+
+
+def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(S,) every spring's mean length over (up to ``max_instants`` of) the recorded states, m: the
+    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+    E, T = dataset.n_episodes, dataset.n_steps + 1
+    stride = max(1, (E * T) // max_instants)
+    t = lambda x: torch.as_tensor(x.reshape(-1, *x.shape[2:])[::stride], dtype=torch.float64)
+    ends = endpoint_kinematics(topology, t(dataset.pos), t(dataset.quat), t(dataset.vel), t(dataset.angvel))
+    return spring_geometry(ends).length.mean(0).numpy()
+
+
+def _rest_from(theta: np.ndarray, layout: ParameterLayout, passive: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Passive springs' rest lengths ``l0 = l_ref + P / K`` from a solution (NaN where K is 0);
+    0 elsewhere."""
+    S = layout.n_springs
+    k = theta[layout.k(np.arange(S))]
+    p = theta[layout.preload(np.arange(S))]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(passive, np.where(k != 0, ref + p / np.where(k != 0, k, 1.0), np.nan), 0.0)
+
+
+def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, passive: np.ndarray) -> np.ndarray:
+    """Standard error of ``l0 = l_ref + P / K`` by first-order propagation of the (K, P)
+    covariance: ``var l0 = (var P - 2 x cov(K, P) + x² var K) / K²`` with ``x = P / K``; 0 for
+    actuated cables (an input)."""
+    S = layout.n_springs
+    ki, pi = layout.k(np.arange(S)), layout.preload(np.arange(S))
+    k = theta[ki]
+    x = _rest_from(theta, layout, passive, np.zeros(S))
+    var = (cov[pi, pi] - 2 * x * cov[ki, pi] + x**2 * cov[ki, ki]) / np.where(k != 0, k, np.nan) ** 2
+    return np.where(passive, np.sqrt(np.clip(var, 0.0, None)), 0.0)
 
 
 def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
@@ -385,6 +453,7 @@ def _to_model(
     regressors: str,
     solver: str,
     elapsed: float,
+    length_ref: np.ndarray | None = None,
 ) -> IdentifiedModel:
     S, R = topology.n_springs, topology.n_rods
     th = sol.theta
@@ -393,8 +462,14 @@ def _to_model(
     m_idx = np.array([layout.m(i) for i in range(R)])
     i_idx = np.array([[layout.inertia(i, a) for a in range(3)] for i in range(R)])
     stderr: dict[str, np.ndarray] = {}
+    passive = np.array([not s.actuated for s in topology.springs], dtype=bool)
+    rest = dataset.rest_length.mean(axis=(0, 1))  # an actuated cable's: its mean command
+    if layout.rest_lengths:
+        rest = np.where(passive, _rest_from(th, layout, passive, length_ref), rest)
     if se is not None:
         stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": se[i_idx]}
+        if layout.rest_lengths:
+            stderr["rest_length"] = _rest_stderr(th, sol.cov, layout, passive)
         if has_pushes:
             stderr["control_scale"] = np.array(se[layout.h])
     metrics = {
@@ -426,7 +501,7 @@ def _to_model(
         topology=topology,
         stiffness=th[k_idx],
         damping=th[c_idx],
-        rest_length=dataset.rest_length.mean(axis=(0, 1)),
+        rest_length=rest,
         mass=th[m_idx],
         inertia=th[i_idx],
         control_scale=float(th[layout.h]),

@@ -54,6 +54,9 @@ class IdentifiedModel:
     metrics: dict[str, Any] = field(default_factory=dict)
     source_model: str | None = None
     integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
+    #: MuJoCo tendon actuators: {name, tendon, kind, dynamics, gain, gain_stderr, bias, bias_stderr,
+    #: time_constant, time_constant_stderr} (identified.fit.actuation)
+    actuators: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
@@ -71,6 +74,13 @@ class IdentifiedModel:
                     f"rest {self.rest_length[j]:.6g} m" + _pm(se.get("rest_length"), j))
             lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; {rest}")
         lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
+        for a in self.actuators:
+            pm = lambda v: "" if v is None else f" ± {v:.2g}"
+            line = (f"actuator {a['name']} on {a['tendon']}: gain {a['gain']:.6g} N{pm(a.get('gain_stderr'))}, "
+                    f"bias {a['bias']:.4g} N{pm(a.get('bias_stderr'))}")
+            if a.get("time_constant") is not None:
+                line += f", time constant {a['time_constant']:.4g} s{pm(a.get('time_constant_stderr'))}"
+            lines.append(line)
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")
         from identified.effects import effect_from_json
@@ -133,6 +143,7 @@ class IdentifiedModel:
                 for j, s in enumerate(topo.springs)
             ],
             "control_scale": {"value": float(self.control_scale), "stderr": err("control_scale", None)},
+            "actuators": self.actuators,
             "effects": self.effects,
             "loop": self.loop,
             "metrics": self.metrics,
@@ -204,6 +215,7 @@ class IdentifiedModel:
                 metrics=dict(obj.get("metrics", {})),
                 source_model=obj.get("source_model"),
                 integrator=str(obj.get("integrator", "euler")),
+                actuators=list(obj.get("actuators", [])),
             )
         except ModelFileError:
             raise

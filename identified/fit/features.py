@@ -26,7 +26,7 @@ The spring geometry and the implicit terms are the engine's own (:mod:`identifie
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -74,6 +74,13 @@ class RodColumns:
     #: (S,) a reference length per spring, m: a passive spring's columns are ``l - l_ref`` (K) and
     #: ``-1`` (``P = K (l0 - l_ref)``) while taut, which keeps K and P apart where ``l`` varies little
     length_ref: np.ndarray | None = None
+    #: MuJoCo tendon actuators (layout order): the spring each acts on, (U,), and the local slot of
+    #: its columns on the rod at each end of that spring (U, 2; -1 for anchors); the rod's columns
+    #: ``gain`` (W), ``bias`` (W), ``gain x d tau`` (W) start at ``actuator_start``
+    actuator_spring: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    actuator_slot: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    actuator_start: int = 0
+    actuator_width: int = 0
 
     @classmethod
     def build(cls, topology: Topology, layout: ParameterLayout, length_ref: np.ndarray | None = None) -> RodColumns:
@@ -84,7 +91,12 @@ class RodColumns:
         D = max(len(x) for x in per_rod)
         widths = [D * e.width if e.kind == "spring" else e.width for e in layout.effects]
         P = D if layout.rest_lengths else 0
-        full = -np.ones((R, 2 * D + 5 + P + sum(widths)), dtype=np.int64)
+        U = len(layout.actuators)
+        a_spring = np.array([topology.spring_names.index(next(a.tendon for a in topology.actuators if a.name == n))
+                             for n in layout.actuators], dtype=np.int64)
+        per_rod_act = [[a for a in range(U) if i in topology.springs[a_spring[a]].rods] for i in range(R)]
+        W = max((len(x) for x in per_rod_act), default=0)
+        full = -np.ones((R, 2 * D + 5 + P + 3 * W + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
@@ -97,7 +109,16 @@ class RodColumns:
             full[i, 2 * D] = layout.m(i)
             full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
             full[i, 2 * D + 4] = layout.h
-        starts, col = [], 2 * D + 5 + P
+        a0 = 2 * D + 5 + P
+        a_slot = -np.ones((U, 2), dtype=np.int64)
+        for i, acts in enumerate(per_rod_act):
+            for k, a in enumerate(acts):
+                full[i, a0 + k], full[i, a0 + W + k], full[i, a0 + 2 * W + k] = (
+                    layout.gain(a), layout.bias(a), layout.gain_dtau(a))
+                for e in range(2):
+                    if topology.springs[a_spring[a]].rods[e] == i:
+                        a_slot[a, e] = k
+        starts, col = [], a0 + 3 * W
         for k, (eff, w) in enumerate(zip(layout.effects, widths)):
             off = layout.effect_offset(k)
             starts.append(col)
@@ -113,7 +134,8 @@ class RodColumns:
             col += w
         ref = np.zeros(S) if length_ref is None else np.asarray(length_ref, dtype=float).reshape(S)
         return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts), preload=bool(P),
-                   length_ref=ref if P else None)
+                   length_ref=ref if P else None, actuator_spring=a_spring, actuator_slot=a_slot,
+                   actuator_start=a0, actuator_width=W)
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
         """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
@@ -183,6 +205,8 @@ def equation_rows(
     vals = torch.cat([f, tau], dim=-1).reshape(n_kinds, N, -1, 6)[:, :, pick]  # (n, N, ends, 6)
     vals = torch.cat(tuple(vals), dim=1).transpose(1, 2)  # (N, 6, n * ends)
     A.view(N, 6, R * L).index_copy_(2, idx, vals)
+    if len(columns.actuator_spring):
+        _actuator_columns(A, columns, chunk, u, ends.lever, rot_e, topology.endpoint_rods)
 
     # mass: M (a - g)
     A[:, 0:3, :, 2 * D] = (chunk.acc - gravity).transpose(1, 2)
@@ -209,6 +233,31 @@ def equation_rows(
     if chunk.row_weight is not None:
         A = A * chunk.row_weight[:, :, None, None]
     return A
+
+
+def _actuator_columns(A: torch.Tensor, columns: RodColumns, chunk: Chunk, u: torch.Tensor, lever: torch.Tensor,
+                      rot_e: torch.Tensor, end_rods: np.ndarray) -> None:
+    """Write the MuJoCo tendon actuators' columns into ``A`` (N, 6, R, L).
+
+    An actuator's force ``F = g act + b`` on its tendon (positive: lengthening, MuJoCo's
+    convention; ``g`` its gain times gear, ``b`` its constant bias times gear) acts on the tendon's
+    ends as a tension ``-F``; per unit ``g`` the tension is ``-act``, per unit ``b`` it is ``-1``,
+    and per unit ``g dtau`` it is ``-d act / d tau`` (the Gauss-Newton column of the filter's time
+    constant).  ``chunk.ctrl`` holds the activations (N, U) then their derivatives (N, U)."""
+    U, W, a0 = len(columns.actuator_spring), columns.actuator_width, columns.actuator_start
+    act, dact = chunk.ctrl[:, :U], chunk.ctrl[:, U : 2 * U]
+    js = torch.as_tensor(columns.actuator_spring, device=A.device)
+    for k, x in enumerate((act, torch.ones_like(act), dact)):  # tension per unit parameter: -x
+        f = x[..., None, None] * u[:, js]  # minus (minus tension along u): (N, U, 2, 3)
+        tau = _to_body(rot_e[:, js], torch.cross(lever[:, js], f, dim=-1))
+        vals = torch.cat([f, tau], dim=-1)  # (N, U, 2, 6)
+        for a in range(U):
+            for e in range(2):
+                slot = int(columns.actuator_slot[a, e])
+                if slot < 0:
+                    continue
+                rod = int(end_rods[columns.actuator_spring[a], e])
+                A[:, :, rod, a0 + k * W + slot] += vals[:, a, e]
 
 
 def step_context(topology: Topology, chunk: Chunk, rot: torch.Tensor, ends: Any,

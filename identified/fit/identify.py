@@ -23,6 +23,7 @@ from identified.effects.base import Effect
 from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.engine.integration import INTEGRATORS, RodState
 from identified.evaluate import recorded_samples, residual_wrench
+from identified.fit.actuation import FILTERS, activation_dataset, step_time_constant
 from identified.fit.checks import (
     adam_convergence,
     apply_checks,
@@ -199,7 +200,9 @@ def identify(
     t0 = time.perf_counter()
     joint = [e for e in effects if e.fit_strategy != "residual"]
     late = [e for e in effects if e.fit_strategy == "residual"]
-    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True)
+    forces = [a for a in topology.actuators if a.kind != "rest_length"]
+    use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
+    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
@@ -210,6 +213,18 @@ def identify(
     # passive rest lengths: the fit's own estimate, never the recorded values (the recorded column
     # of a passive spring is replaced before any feature is built); 0 at first (every cable taut)
     rest_estimate = np.zeros(topology.n_springs)
+    # MuJoCo tendon actuators: gain and bias linear, a filter's time constant by Gauss-Newton
+    # steps from 20 dt (identified.fit.actuation); a motor has no bias, only filters a time constant
+    act_by_name = {a.name: a for a in topology.actuators}
+    dynamics = [act_by_name[n].dynamics for n in layout.actuators]
+    filters = np.isin(np.array(dynamics, dtype=object), FILTERS).astype(bool)
+    tau = np.where(filters, 20.0 * dataset.dt, 0.0)
+    for a, n in enumerate(layout.actuators):
+        if act_by_name[n].kind == "motor":
+            fixed[layout.bias(a)] = 0.0
+        if not filters[a]:
+            fixed[layout.gain_dtau(a)] = 0.0
+    src = {"data": activation_dataset(dataset, layout.actuators, dynamics, tau) if layout.actuators else dataset}
     fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
@@ -236,13 +251,13 @@ def identify(
             yield (weak_form(A, n_ep, weak) if weak > 1 else A), n_ep
 
     def rows() -> Iterator[torch.Tensor]:
-        return (A for A, _ in runs(dataset))
+        return (A for A, _ in runs(src["data"]))
 
     # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
     # (and far faster on a shared, loaded machine); torch keeps its threads for the features
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
-            factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
+            factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
 
             def solve_holding(f: dict[int, float]) -> Any:
                 """Solve; parameters of an iterative effect the data cannot identify are held
@@ -256,18 +271,52 @@ def identify(
                         f = {**f, **_pinned(joint, layout)}
                 return solve(factors, layout, anchor, f)
 
-            sol = solve_holding(fixed)
+            def solve_separating(f: dict[int, float]) -> Any:
+                """Solve; an actuator's constant bias on a cable that never went slack is the same
+                column as that cable's preload: held at 0 (absorbed into its rest length), noted."""
+                try:
+                    return solve_holding(f)
+                except IdentifiabilityError as err:
+                    hit = [a for a, n in enumerate(layout.actuators) if f"{n}.bias" in err.names
+                           and layout.bias(a) not in f]
+                    if not hit:
+                        raise
+                    for a in hit:
+                        f[layout.bias(a)] = 0.0
+                        absorbed.append(layout.actuators[a])
+                    return solve_separating(f)
+
+            absorbed: list[str] = []
+            sol = solve_separating(fixed)
             # a passive cable is taut while longer than its rest length: classify the rows by the
             # estimate and fit again until the rest lengths settle (exact once the classes are)
+            # and step the filters' time constants until they settle too
             slack = passive & topology.pull_only
-            for _ in range(REST_ITERATIONS if slack.any() else 0):
+            U = len(layout.actuators)
+            for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
-                settled = np.max(np.abs(new - rest_estimate)[slack]) <= REST_TOL * max(np.max(np.abs(new)), 1e-12)
+                settled = not slack.any() or (np.max(np.abs(new - rest_estimate)[slack])
+                                              <= REST_TOL * max(np.max(np.abs(new)), 1e-12))
                 rest_estimate[passive] = new[passive]
+                if filters.any():
+                    th = sol.theta
+                    tau_new = step_time_constant(tau, th[layout.gain(np.arange(U))], th[layout.gain_dtau(np.arange(U))],
+                                                 dynamics, dataset.dt)
+                    settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
+                    tau = tau_new
+                    src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
                 if settled:
                     break
-                factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
-                sol = solve_holding(fixed)
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                sol = solve_separating(fixed)
+            tau_se = np.zeros(U)
+            if filters.any():  # the last step's spread, then the fit at the settled time constants
+                g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))
+                tau_se = np.where(filters, np.sqrt(np.clip(np.diag(sol.cov)[d_i], 0, None)) / np.abs(sol.theta[g_i]),
+                                  0.0) if sol.cov is not None else np.full(U, np.nan)
+                fixed.update({layout.gain_dtau(a): 0.0 for a in np.flatnonzero(filters)})
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                sol = solve_separating(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
             sol, notes, held = constrain_inertias(sol, solve_holding,
@@ -276,7 +325,9 @@ def identify(
         else:
             from identified.fit.adam import adam_solve
 
+            absorbed = []
             sol = adam_solve(rows, columns, layout, anchor, fixed)
+            tau_se = np.full(len(layout.actuators), np.nan)  # Adam: the start, not searched
             not_estimable, held = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak), []
             notes = adam_convergence(sol, solve(accumulate(runs(dataset, False), columns, layout.n_full),
                                                 layout, anchor, fixed))
@@ -286,6 +337,12 @@ def identify(
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed,
                       columns.length_ref)
     model.integrator = integrator
+    model.actuators = _actuators_json(layout, sol, act_by_name, dynamics, tau, tau_se, topology)
+    for a in model.actuators:
+        if a["name"] in absorbed:
+            a["bias"], a["bias_stderr"] = 0.0, None
+            a["note"] = (f"its constant bias is not separable from the rest length of '{a['tendon']}' (the cable "
+                         "never went slack in the data): held at 0, the rest length holds it")
     if hold_inertia:  # before the residual stage: its engine divides by every moment
         _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
@@ -301,8 +358,27 @@ def identify(
 
 #: at most this many reclassifications of passive cables' taut rows; stop when the rest lengths
 #: change by less than REST_TOL (relative)
-REST_ITERATIONS = 12
+REST_ITERATIONS = 25
 REST_TOL = 1e-13
+TAU_TOL = 1e-11  # relative change of a filter's time constant at which the search stops
+
+
+def _actuators_json(layout: ParameterLayout, sol: Solution, by_name: dict, dynamics: Sequence[str],
+                    tau: np.ndarray, tau_se: np.ndarray, topology: Topology) -> list[dict[str, Any]]:
+    """The identified actuators: ``name``, ``tendon``, ``gain`` (force on the tendon per unit
+    activation, N; positive lengthens), ``bias`` (N), their standard errors, ``dynamics`` and
+    ``time_constant`` (s; None without a filter)."""
+    se = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None)) if sol.cov is not None else None
+    out = []
+    for a, n in enumerate(layout.actuators):
+        g, b = layout.gain(a), layout.bias(a)
+        filt = dynamics[a] in FILTERS
+        out.append({"name": n, "tendon": by_name[n].tendon, "kind": by_name[n].kind, "dynamics": dynamics[a],
+                    "gain": float(sol.theta[g]), "gain_stderr": None if se is None else float(se[g]),
+                    "bias": float(sol.theta[b]), "bias_stderr": None if se is None else float(se[b]),
+                    "time_constant": float(tau[a]) if filt else None,
+                    "time_constant_stderr": float(tau_se[a]) if filt else None})
+    return out
 
 
 def _with_estimate(rest: torch.Tensor, passive: np.ndarray, estimate: np.ndarray) -> torch.Tensor:

@@ -48,22 +48,26 @@ class ParameterLayout:
     rod_names: tuple[str, ...]
     effects: tuple[Effect, ...] = field(default=())
     rest_lengths: bool = False  # the preload block P = K l0 is part of the vector
+    actuators: tuple[str, ...] = ()  # MuJoCo tendon actuators: gain, bias, gain x d(time constant)
 
     @classmethod
     def for_topology(cls, topology: Topology, regressors: str = "multiple",
-                     effects: Sequence[Effect] = (), rest_lengths: bool = False) -> ParameterLayout:
+                     effects: Sequence[Effect] = (), rest_lengths: bool = False,
+                     actuators: bool = False) -> ParameterLayout:
         """The layout of a topology; ``rest_lengths``: identify passive springs' rest lengths
-        (the preload block)."""
+        (the preload block); ``actuators``: identify the force law of its MuJoCo tendon actuators."""
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
+        forces = tuple(a.name for a in topology.actuators if a.kind != "rest_length") if actuators else ()
         return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names,
-                   tuple(effects), bool(rest_lengths))
+                   tuple(effects), bool(rest_lengths), forces)
 
     # ---------------------------------------------------------------- blocks and offsets
     @property
     def n_base(self) -> int:
         """Size of the spring-rod blocks ``[K, c, M, I, h]`` (and ``P`` when rest lengths are identified)."""
-        return sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS) + self.n_springs * self.rest_lengths
+        return (sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS) + self.n_springs * self.rest_lengths
+                + 3 * len(self.actuators))
 
     def effect_offset(self, k: int) -> int:
         """Full-vector index of the first parameter of effect ``k``."""
@@ -99,6 +103,19 @@ class ParameterLayout:
             raise ValueError("this layout does not identify rest lengths")
         return self.h + 1 + j
 
+    def gain(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of actuator ``a``'s gain (force on its tendon per unit activation, N)."""
+        return self.h + 1 + self.n_springs * self.rest_lengths + a
+
+    def bias(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of actuator ``a``'s constant bias force on its tendon, N."""
+        return self.gain(a) + len(self.actuators)
+
+    def gain_dtau(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of ``gain x d tau`` of actuator ``a`` (the Gauss-Newton step of its
+        filter's time constant, :mod:`identified.fit.actuation`)."""
+        return self.gain(a) + 2 * len(self.actuators)
+
     @property
     def signed(self) -> np.ndarray:
         """(n_full,) bool: parameters that may be negative (the rest are physical magnitudes)."""
@@ -116,6 +133,8 @@ class ParameterLayout:
         names += ["control_scale"]
         if self.rest_lengths:
             names += [f"{s}.preload" for s in self.spring_names]
+        for kind in ("gain", "bias", "gain_dtau"):
+            names += [f"{a}.{kind}" for a in self.actuators]
         for e in self.effects:
             names += e.param_names(self.rod_names, self.spring_names)
         return names
@@ -128,7 +147,8 @@ class ParameterLayout:
             return np.eye(self.n_full)
         S, R = self.n_springs, self.n_rods
         n_eff = self.n_full - self.n_base
-        n_tied = 7 + self.rest_lengths
+        U = len(self.actuators)
+        n_tied = 7 + self.rest_lengths + 3 * U
         G = np.zeros((self.n_full, n_tied + n_eff))
         G[0:S, 0] = 1.0  # K
         G[S : 2 * S, 1] = 1.0  # c
@@ -138,6 +158,9 @@ class ParameterLayout:
         G[self.h, 6] = 1.0
         if self.rest_lengths:
             G[self.h + 1 : self.h + 1 + S, 7] = 1.0  # P = K l0: one rest length for all springs
+        if U:  # actuators are never tied
+            g0 = self.gain(0)
+            G[g0 : g0 + 3 * U, n_tied - 3 * U :] = np.eye(3 * U)
         G[self.n_base:, n_tied:] = np.eye(n_eff)
         return G
 
@@ -147,6 +170,7 @@ class ParameterLayout:
             return self.full_names
         base = ["stiffness", "damping", "mass", "inertia_xx", "inertia_yy", "inertia_zz", "control_scale"]
         base += ["preload"] * self.rest_lengths
+        base += self.full_names[self.h + 1 + self.n_springs * self.rest_lengths : self.n_base]
         return base + self.full_names[self.n_base:]
 
     def describe_free(self, weights: np.ndarray, threshold: float = 0.1) -> list[str]:

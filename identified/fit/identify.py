@@ -359,8 +359,8 @@ def identify(
 #: at most this many reclassifications of passive cables' taut rows; stop when the rest lengths
 #: change by less than REST_TOL (relative)
 REST_ITERATIONS = 25
-REST_TOL = 1e-13
-TAU_TOL = 1e-11  # relative change of a filter's time constant at which the search stops
+REST_TOL = 1e-11
+TAU_TOL = 1e-10  # relative change of a filter's time constant at which the search stops
 
 
 def _actuators_json(layout: ParameterLayout, sol: Solution, by_name: dict, dynamics: Sequence[str],

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from identified.fit.actuation import activations
+from identified.engine.actuators import activations
 from identified.fit.identify import ScaleSpec
 from identified.fit.pipeline import fit_model
 from tensegrity_gym.collect import CollectConfig, collect

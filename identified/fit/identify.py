@@ -22,7 +22,7 @@ from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
 from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.engine.integration import INTEGRATORS, RodState
-from identified.evaluate import recorded_samples, residual_wrench
+from identified.evaluate import model_inputs, recorded_samples, residual_wrench
 from identified.fit.actuation import FILTERS, activation_dataset, step_time_constant
 from identified.fit.checks import (
     adam_convergence,
@@ -476,7 +476,10 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     groups = np.repeat(np.arange(n_ep), ch.pos.shape[0] // n_ep)
     state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
     with torch.no_grad():
-        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point)
+        rest, tendon_force = model_inputs(model, data, ch)
+        ch.rest = rest.to(ch.pos.device)
+        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point,
+                             None if tendon_force is None else tendon_force.to(ch.pos.device))
         force, torque = rw.missing_world()
         terms = rw.terms
         ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)

@@ -295,8 +295,15 @@ def identify(
             U = len(layout.actuators)
             for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
-                settled = not slack.any() or (np.max(np.abs(new - rest_estimate)[slack])
-                                              <= REST_TOL * max(np.max(np.abs(new)), 1e-12))
+                # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
+                # its rows is taut (its columns vanish, and the solve names it as unidentifiable)
+                if sol.cov is not None:
+                    k_i = layout.k(np.arange(topology.n_springs))
+                    k_se = np.sqrt(np.clip(np.diag(sol.cov)[k_i], 0.0, None))
+                    new[slack & ~(sol.theta[k_i] > 3.0 * k_se)] = np.inf
+                change = np.where(new == rest_estimate, 0.0, np.abs(new - rest_estimate))[slack]
+                size = max(np.max(np.abs(new[np.isfinite(new)]), initial=0.0), 1e-12)
+                settled = not slack.any() or bool(np.max(change) <= REST_TOL * size)
                 rest_estimate[passive] = new[passive]
                 if filters.any():
                     th = sol.theta

@@ -12,6 +12,14 @@ ends and ``u_j`` the unit vector along the spring.  The accelerations ``a`` and 
 the recorded states (:mod:`identified.samples`).  Every term is linear in
 ``(K, c, M, Ixx, Iyy, Izz, h)``, so the unknowns follow by linear least squares.
 
+A passive spring's rest length ``l0`` is not an input but a parameter: its tension while taut is
+``K (l - l_ref) - P`` with ``P = K (l0 - l_ref)`` (``l_ref`` a fixed reference length), linear in
+``(K, P)``; a pull-only cable is taut while ``l > l0`` (``chunk.rest`` holds the fit's current
+estimate of ``l0`` for the passive springs, :func:`identified.fit.identify.identify`).  A MuJoCo
+tendon actuator adds ``-(g act + b)`` to its tendon's tension (:mod:`identified.engine.actuators`),
+linear in its gain ``g`` and bias ``b``, and ``-g dtau (d act / d tau)`` for the Gauss-Newton step of
+a filter's time constant (:mod:`identified.fit.actuation`).
+
 A plant on MuJoCo's implicit integrators (``implicit``, ``implicitfast``) steps with
 ``(M - dt D) qacc = f`` (:mod:`identified.engine.integration`); its equations keep the same form
 with two extra terms that are still linear in the parameters: each damper sees the stretch rate
@@ -155,7 +163,8 @@ def equation_rows(
     effects: Sequence[Effect] = (),
     dt: float = 0.0,
 ) -> torch.Tensor:
-    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5 + E).
+    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, L) with the local
+    columns of :class:`RodColumns`.
 
     Rows 0-2 are translation (world frame), rows 3-5 rotation (rod frame).  The equations are
     homogeneous (``A theta = 0``): the scale is fixed later by an anchor.  ``implicit_dt``: the

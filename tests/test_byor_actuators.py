@@ -5,6 +5,7 @@ plant whose rods the spring-rod equations describe exactly (the prism of ``examp
 
 from __future__ import annotations
 
+import json
 import os
 import re
 
@@ -15,6 +16,7 @@ import pytest
 from identified.engine.actuators import activations
 from identified.fit.identify import ScaleSpec
 from identified.fit.pipeline import fit_model
+from identified.model import IdentifiedModel, load_model, save_model
 from tensegrity_gym.collect import CollectConfig, collect
 
 PRISM = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "prism3.xml")
@@ -23,7 +25,7 @@ PRISM = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "prism3.x
 def _prism(actuators: str) -> str:
     with open(PRISM, encoding="utf-8") as fh:
         xml = fh.read()
-    out, n = re.subn(r"<actuator>.*?</actuator>", f"<actuator>{actuators}</actuator>", xml, flags=re.S)
+    out, n = re.subn(r"<actuator>.*?</actuator>", f"<actuator>{actuators}</actuator>", xml, flags=re.DOTALL)
     assert n == 1
     return out
 
@@ -58,7 +60,7 @@ def test_activations_step_as_mujoco_steps_them(dyn, tmp_path):
     np.testing.assert_allclose(dact, (up - dn) / (2 * h), rtol=1e-5, atol=1e-9)
 
 
-def test_motor_gains_identified_exactly():
+def test_motor_gains_identified_exactly(tmp_path):
     m, total = _truth(PRISM)
     data = collect(PRISM, CollectConfig(episodes=2, steps=500, seed=3, push_every=50, push_magnitude=5.0))
     fit = fit_model(data, PRISM, effects="ground_contact", scale=ScaleSpec(total_mass=total), jobs=1)
@@ -71,6 +73,18 @@ def test_motor_gains_identified_exactly():
     tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, s.name) for s in fit.topology.springs]
     np.testing.assert_allclose(fit.stiffness, m.tendon_stiffness[tid], rtol=1e-9)
     np.testing.assert_allclose(fit.rest_length, m.tendon_lengthspring[tid, 1], rtol=1e-9)
+    # the fit's own verdict counts the actuators' forces: a description of its data
+    assert fit.metrics["residual"]["relative_one_step"] < 1e-9
+    save_model(tmp_path / "prism.json", fit)
+    back = load_model(tmp_path / "prism.json")
+    assert back.actuators == fit.actuators
+    np.testing.assert_array_equal(back.stderr["rest_length"], fit.stderr["rest_length"])
+    assert "actuator motor1 on vert1: gain -6" in back.summary()
+    old = json.loads((tmp_path / "prism.json").read_text())  # a file written before actuators existed
+    del old["actuators"]
+    for sp in old["springs"]:
+        del sp["rest_length_stderr"]
+    assert IdentifiedModel.from_json(old).actuators == []
 
 
 def test_filter_time_constants_found_by_search(tmp_path):

@@ -143,6 +143,8 @@ def identify(
     device: str = "cpu",
     noise_copies: int = 1,
     effects: Sequence[Effect] = (),
+    hold_inertia: Sequence[tuple[int, int]] = (),
+    contact_margin: int = 0,
     _classified: bool = False,
     _residual_stage: bool = True,
 ) -> IdentifiedModel:
@@ -160,6 +162,10 @@ def identify(
     ``"auto"``: chosen from the data (:func:`select_integrator`).  ``scheme``: how accelerations
     are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
     (second order for any integrator; the default for rk4), :mod:`identified.samples`.
+    ``hold_inertia``: (rod, body axis) moments of inertia the data cannot see (a rod whose markers
+    lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable.
+    ``contact_margin``: steps before and after a residual-stage effect's rows that the joint fit
+    leaves out too (states smoothed from sampled markers smear an impact over a few frames).
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
@@ -167,7 +173,8 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies, effects, _classified)
+                         chunk_steps, progress, device, noise_copies, effects, hold_inertia, contact_margin,
+                         _classified)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -177,7 +184,8 @@ def identify(
     if iterative and not _classified:
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
-                            bar, device, noise_copies, effects, _classified=True, _residual_stage=residual_stage)
+                            bar, device, noise_copies, effects, hold_inertia, contact_margin, _classified=True,
+                            _residual_stage=residual_stage)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
@@ -194,6 +202,7 @@ def identify(
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
+    fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     columns = RodColumns.build(topology, layout)
@@ -205,7 +214,8 @@ def identify(
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
-                keep = ~_affected(late, topology, ch)
+                hit = _affected(late, topology, ch)
+                keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
             A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint, dt=dataset.dt)
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
@@ -252,6 +262,8 @@ def identify(
     elapsed = time.perf_counter() - t0
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
     model.integrator = integrator
+    if hold_inertia:  # before the residual stage: its engine divides by every moment
+        _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
         model.metrics["residual_stage"] = fit_residual_effects(model, dataset, late, scheme, device)
     apply_checks(model, sol, not_estimable, held, notes, weak)
@@ -263,6 +275,19 @@ def identify(
     return model
 
 
+def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
+    """Held moments of inertia: a placeholder the twin can step with (1e-3 of the rod's largest
+    identified moment), no standard error, and the list in ``metrics.not_identifiable``."""
+    names = model.metrics.setdefault("not_identifiable", [])
+    for i, a in held:
+        others = [model.inertia[i, b] for b in range(3) if (i, b) not in held]
+        model.inertia[i, a] = 1e-3 * max(max(others, default=1.0), 1e-12)
+        if "inertia" in model.stderr:
+            model.stderr["inertia"][i, a] = np.nan
+        names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
+                     "(its spin is not observable)")
+
+
 def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:
     """The effects' held parameters (:meth:`Effect.pinned`) as fixed values by layout index."""
     out = {}
@@ -270,6 +295,14 @@ def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float
         held = e.pinned_values()
         out.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(e.pinned())})
     return out
+
+
+def _dilate(mask: torch.Tensor, n_episodes: int, margin: int) -> torch.Tensor:
+    """(N, R) bool over (episode, time) rows: true also within ``margin`` steps of a true row."""
+    N, R = mask.shape
+    x = mask.reshape(n_episodes, N // n_episodes, R).permute(0, 2, 1).reshape(-1, 1, N // n_episodes)
+    y = torch.nn.functional.max_pool1d(x.to(torch.float32), 2 * margin + 1, stride=1, padding=margin) > 0.5
+    return y.reshape(n_episodes, R, -1).permute(0, 2, 1).reshape(N, R)
 
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:

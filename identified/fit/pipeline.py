@@ -115,6 +115,8 @@ def fit_model(
     horizon_s: float = 1.0,
     min_gain: float = 2.0,
     jobs: int | str | None = "auto",
+    hold_inertia: Sequence[tuple[int, int]] = (),
+    contact_margin: int = 0,
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -141,7 +143,8 @@ def fit_model(
     else:
         selection = None
     kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
-          "integrator": integ, "scheme": scheme}
+          "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia),
+          "contact_margin": contact_margin}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}
@@ -163,11 +166,12 @@ def fit_model(
         from identified.fit.refine import refine as refine_model
 
         model = refine_model(model, data, progress=progress)
-    from identified.fit.checks import refresh_physics
+    from identified.fit.checks import refresh_physics, residual_check
     from identified.predict import attach_metrics
 
     refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     attach_metrics(model, data)
+    residual_check(model, data)  # a fit that does not describe its own data says so
     return model
 
 

@@ -1,0 +1,263 @@
+"""Rod states from a recording: markers at a lab's rate turned into the fit's equations at the
+engine's step.
+
+A recording holds markers at 30-120 Hz with noise and gaps, not rod states at every engine step.
+The path here:
+
+1. each rod's pose in every frame from its visible markers (:mod:`identified.recording.poses`:
+   a rigid fit; for a rod whose markers lie on its axis, the axis and its position only);
+2. a smoothing spline through each pose coordinate over the frames where it was fitted
+   (``scipy.interpolate.make_smoothing_spline``, its smoothing chosen by generalised cross
+   validation), which also bridges the gaps;
+3. the smooth poses sampled at the engine's step ``dt``; velocities as the backward differences of
+   those samples, angular velocities as the rotation between consecutive samples over ``dt`` --
+   so the recorded states step exactly as the engine's semi-implicit Euler steps them
+   (``x[n+1] = x[n] + dt v[n+1]``), and the fit's forward-difference equations
+   (:mod:`identified.samples`) are the engine's own discretisation of the reconstructed motion;
+4. a rod whose markers lie on its axis has no observable spin about that axis: its frame is
+   carried along the axis without axial rotation (parallel transport, ``ω·a = 0``), its axial
+   moment of inertia is held (not identifiable) and reported as such.
+
+The equations are then summed over windows (the weak form, :mod:`identified.fit.derivatives`),
+which removes what the splines leave of the noise at high frequency.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import make_smoothing_spline
+
+from identified.dataset import Dataset, DatasetError
+from identified.recording import Recording, RecordingError, check_recording
+from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geometries
+from identified.rotation import matrix_to_quat, quat_multiply, quat_to_matrix
+from identified.topology import Topology
+
+__all__ = ["MarkerStates", "states_from_recording"]
+
+GRAVITY = (0.0, 0.0, -9.81)
+#: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
+#: through sampled markers spreads an impact over about this many frames)
+CONTACT_FRAMES = 3
+
+
+@dataclass
+class MarkerStates:
+    """The dataset reconstructed from a recording and what the markers could not tell.
+
+    ``unobservable``: (rod index, body axis) pairs whose rotation the markers cannot see;
+    ``notes``: sentences for the model's metrics.
+    """
+
+    data: Dataset
+    unobservable: list[tuple[int, int]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    geometries: list[RodGeometry] = field(default_factory=list)
+    frames_used: int = 0
+
+
+def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
+                          gravity: tuple[float, float, float] = GRAVITY, lam: float | None = None) -> MarkerStates:
+    """Rod states at every ``dt`` from a labelled, checked recording (the module docstring).
+
+    ``lam``: the splines' smoothing (``None``: generalised cross validation per coordinate)."""
+    check_recording(rec, topology)
+    missing = [s for s in topology.spring_names if s not in rec.rest_names]
+    if missing:
+        raise RecordingError(f"'{rec.source}', line 1: no '{missing[0]}.rest' column: the fit needs every cable's "
+                             f"rest length (encoder), {len(missing)} tendon(s) have none")
+    geos = rod_geometries(topology, tuple(rec.marker_names))
+    col = {n: k for k, n in enumerate(rec.marker_names)}
+    unobs, notes = [], []
+    for i, g in enumerate(geos):
+        if g.collinear:
+            if np.linalg.norm(g.origin) > 1e-9:
+                raise RecordingError(f"'{rec.source}': rod '{g.name}': its markers lie on a line that misses the "
+                                     "rod's origin, so the origin's position is not observable from them")
+            ax = int(np.argmax(np.abs(g.axis)))
+            if abs(abs(g.axis[ax]) - 1.0) > 1e-9:
+                raise RecordingError(f"'{rec.source}': rod '{g.name}': its markers lie on a line that is not a "
+                                     "body axis; the axial inertia would not be a principal moment")
+            unobs.append((i, ax))
+            notes.append(f"{g.name}: spin about the rod's axis is not observable (its markers lie on the axis): "
+                         "axial moment of inertia not identifiable")
+    pieces = []
+    for rows in rec.episodes():
+        t = rec.time[rows]
+        n = int(np.floor((t[-1] - t[0]) / dt + 1e-9))
+        if n < 3:
+            raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: a take of {t[-1] - t[0]:.3g} s is "
+                                 "shorter than three engine steps")
+        grid = t[0] + dt * np.arange(n + 1)  # one sample before the first state (velocities)
+        pos, quat = _poses(rec, rows, geos, col, grid, lam)
+        vel = np.diff(pos, axis=0) / dt
+        ang = _angvel(quat, dt)
+        rest = np.stack([np.interp(grid[1:], t, _filled(rec.rest[rows, rec.rest_names.index(s)], t))
+                         for s in topology.spring_names], axis=-1)
+        pieces.append((pos[1:], quat[1:], vel, ang, rest))
+    T = min(p[0].shape[0] for p in pieces) - 1
+    if T < 1:
+        raise RecordingError(f"'{rec.source}': every take is too short to fit")
+    cut = lambda k, s: np.stack([p[k][:s] for p in pieces])
+    R = topology.n_rods
+    E = len(pieces)
+    act = tuple(s.name for s in topology.springs if s.actuated)
+    rest = cut(4, T)
+    data = Dataset(dt=float(dt), gravity=np.asarray(gravity, dtype=float), rod_names=topology.rod_names,
+                   tendon_names=topology.spring_names, actuated_names=act,
+                   pos=cut(0, T + 1), quat=cut(1, T + 1), vel=cut(2, T + 1), angvel=cut(3, T + 1),
+                   command=rest[..., [topology.spring_names.index(a) for a in act]], rest_length=rest,
+                   push_force=np.zeros((E, T, R, 3)), push_point=np.zeros((E, T, R, 3)))
+    try:
+        data.validate()
+    except DatasetError as exc:
+        raise RecordingError(f"'{rec.source}': the reconstructed states are not usable: {exc}") from None
+    return MarkerStates(data, unobs, notes, geos, rec.n_frames)
+
+
+def _filled(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(x)
+    if not ok.any():
+        raise RecordingError("an encoder column is empty in a whole take")
+    return np.interp(t, t[ok], x[ok])
+
+
+def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray, lam: float | None) -> np.ndarray:
+    """(F, k) values with NaN rows -> (G, k) on ``grid``: a smoothing spline per column."""
+    ok = np.isfinite(y).all(-1)
+    if ok.sum() < 5:
+        raise RecordingError("fewer than 5 frames place a rod in a take")
+    out = np.empty((grid.size, y.shape[1]))
+    for k in range(y.shape[1]):
+        out[:, k] = make_smoothing_spline(t[ok], y[ok, k], lam=lam)(grid)
+    return out
+
+
+def _poses(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[str, int], grid: np.ndarray,
+           lam: float | None) -> tuple[np.ndarray, np.ndarray]:
+    t = rec.time[rows]
+    R = len(geos)
+    pos = np.empty((grid.size, R, 3))
+    quat = np.empty((grid.size, R, 4))
+    for i, g in enumerate(geos):
+        pts = rec.markers[np.ix_(rows, [col[s] for s in g.sites])]
+        w = np.ones(len(g.sites))
+        try:
+            if g.collinear:
+                point, direction = fit_axis(pts, g.along, w)
+                p = _smooth(t, point, grid, lam)
+                a = _smooth(t, direction, grid, lam)
+                a /= np.linalg.norm(a, axis=-1, keepdims=True)
+                pos[:, i] = p
+                quat[:, i] = _transport(a, g.axis)
+            else:
+                c, rot = fit_rigid(pts, g.offsets, w)
+                q = matrix_to_quat(np.nan_to_num(rot))
+                q[~np.isfinite(c[:, 0])] = np.nan
+                q = _continuous(q)
+                pos[:, i] = _smooth(t, c, grid, lam)
+                qs = _smooth(t, q, grid, lam)
+                quat[:, i] = qs / np.linalg.norm(qs, axis=-1, keepdims=True)
+        except RecordingError as exc:
+            raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: rod '{g.name}': {exc}") from None
+    return pos, quat
+
+
+def _continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternion signs made continuous over the fitted frames (q and -q are the same rotation)."""
+    q = q.copy()
+    prev = None
+    for f in range(q.shape[0]):
+        if not np.isfinite(q[f, 0]):
+            continue
+        if prev is not None and q[f] @ prev < 0:
+            q[f] = -q[f]
+        prev = q[f]
+    return q
+
+
+def _arc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Shortest-arc unit quaternions (..., 4) turning unit vectors ``a`` into ``b`` (..., 3)."""
+    d = np.einsum("...i,...i->...", a, b)
+    q = np.concatenate([(1.0 + d)[..., None], np.cross(a, b)], axis=-1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def _transport(a: np.ndarray, body_axis: np.ndarray) -> np.ndarray:
+    """(G, 4) frames whose ``body_axis`` follows the world directions ``a`` (G, 3) without spin about it."""
+    q = np.empty((a.shape[0], 4))
+    q[0] = _arc(body_axis, a[0])
+    steps = _arc(a[:-1], a[1:])
+    for k in range(1, a.shape[0]):
+        nq = quat_multiply(steps[k - 1], q[k - 1])
+        q[k] = nq / np.linalg.norm(nq)
+    return q
+
+
+def _angvel(quat: np.ndarray, dt: float) -> np.ndarray:
+    """World angular velocities (G-1, R, 3) taking ``quat[n-1]`` to ``quat[n]`` in ``dt`` (the
+    rotation over the step, as the engine's quaternion update makes it)."""
+    conj = quat[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
+    d = quat_multiply(conj, quat[1:])  # body-frame increment
+    d = np.where(d[..., :1] < 0, -d, d)
+    s = np.linalg.norm(d[..., 1:], axis=-1)
+    angle = 2.0 * np.arctan2(s, d[..., 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        axis = np.where(s[..., None] > 1e-15, d[..., 1:] / s[..., None], 0.0)
+    w_body = axis * (angle / dt)[..., None]
+    return np.einsum("...ij,...j->...i", quat_to_matrix(quat[1:]), w_body)
+
+
+def labelled(rec: Recording, topology: Topology, mjcf: str) -> Recording:
+    """``rec`` with site-named marker columns: as it is, or labelled against the model's nominal
+    pose when its markers are anonymous (:mod:`identified.recording.labelling`)."""
+    if not rec.unlabelled:
+        return rec
+    from identified.mjcf import nominal_pose, read_mjcf_text
+    from identified.recording import site_world_positions
+    from identified.recording.labelling import label_markers
+
+    sites = tuple(s for r in topology.rods for s in r.sites)
+    pose = nominal_pose(read_mjcf_text(mjcf), topology.rod_names)
+    ref = site_world_positions(topology, pose.pos, pose.quat, sites)
+    return label_markers(rec, topology, ref, sites)
+
+
+def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[float, float, float] = GRAVITY,
+                  weak_window: int | None = None, **fit_kwargs):
+    """Identify a model from a recording: labelled if need be, rod states reconstructed
+    (:func:`states_from_recording`), then :func:`identified.fit.pipeline.fit_model` with the weak
+    form and the unobservable moments held.  ``fit_kwargs`` go to ``fit_model``."""
+    from identified.fit.derivatives import default_window
+    from identified.fit.pipeline import fit_model
+
+    topo = Topology.from_mjcf(mjcf)
+    rec = labelled(rec, topo, mjcf)
+    ms = states_from_recording(rec, topo, dt, gravity)
+    window = weak_window or default_window(dt)
+    if ms.data.n_steps < 2 * window:
+        raise RecordingError(f"'{rec.source}': takes of {ms.data.n_steps * dt:.3g} s are too short: the fit sums "
+                             f"its equations over {window * dt:.2g} s windows and needs takes of at least "
+                             f"{2 * window * dt:.2g} s")
+    margin = int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))
+    model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, contact_margin=margin,
+                      **fit_kwargs)
+    model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
+                                  "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
+                                  "labelled_automatically": rec.unlabelled, "notes": ms.notes}
+    return model
+
+
+def recording_dataset(path: str, model) -> Dataset:
+    """The rod states of the recording at ``path`` at the step of an identified ``model`` (whose
+    topology names the sites), for prediction and diagnosis on a recording."""
+    from identified.recording import load_recording
+
+    rec = load_recording(path)
+    if rec.unlabelled:
+        if not model.source_model:
+            raise RecordingError(f"'{path}': unlabelled markers need the model's MJCF to be labelled")
+        rec = labelled(rec, model.topology, model.source_model)
+    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity)).data

@@ -1,0 +1,53 @@
+"""Recordings: what a lab measures (markers at sites, encoder rest lengths, commands), read, checked
+against a model, labelled and turned into rod poses.
+
+:mod:`.format` the recording CSV (reader, checks, atomic writer); :mod:`.mocap` C3D and Motive CSV
+exports; :mod:`.labelling` anonymous markers labelled against the model; :mod:`.poses` rigid fits
+of each rod's markers.  Numpy and scipy only: no engine, no fit.
+"""
+
+from identified.recording.format import (
+    Recording,
+    RecordingError,
+    check_recording,
+    parse_recording,
+    read_recording,
+    save_recording,
+    site_world_positions,
+)
+
+__all__ = [
+    "Recording",
+    "RecordingError",
+    "check_recording",
+    "load_recording",
+    "parse_recording",
+    "read_recording",
+    "save_recording",
+    "site_world_positions",
+]
+
+
+def load_recording(path, up: str | None = None) -> Recording:
+    """A recording from ``path`` by its extension: ``.csv`` (the recording CSV, or a Motive export,
+    recognised by its first cell), ``.c3d``."""
+    import os
+
+    p = os.fspath(path)
+    ext = os.path.splitext(p)[1].lower()
+    if ext == ".c3d":
+        from identified.recording.mocap import read_c3d
+
+        return read_c3d(p, up=up or "z")
+    if ext == ".csv":
+        try:
+            with open(p, encoding="utf-8-sig") as fh:
+                first = fh.readline()
+        except OSError:
+            first = ""
+        if first.startswith("Format Version"):
+            from identified.recording.mocap import read_motive_csv
+
+            return read_motive_csv(p, up=up or "y")
+        return read_recording(p)
+    raise RecordingError(f"'{p}': a recording is a .csv or .c3d file")

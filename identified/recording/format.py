@@ -1,0 +1,375 @@
+"""The recording CSV: what a lab measures, as one table (header row, SI units, world frame, z up).
+
+Columns (any order; names are the MJCF's):
+
+=========================  ================================================================
+column                     meaning
+=========================  ================================================================
+``time``                   s, increasing within a take
+``episode`` (optional)     a new take where the value changes (any integer)
+``<site>.x/.y/.z``         a marker at an MJCF site, m; an empty cell is a missing sample
+``marker<N>.x/.y/.z``      an unlabelled marker (identity unknown, may change between frames)
+``<tendon>.rest``          an actuated cable's rest length as its spool encoder reports it, m
+``<actuator>.ctrl``        the command sent to a MuJoCo actuator, held until the next row
+``<tendon>.length``        (optional) a measured cable length, m
+=========================  ================================================================
+
+:func:`read_recording` parses and checks the table on its own (numbers, time order, columns it
+knows); :func:`check_recording` checks it against a model's topology (site and tendon names,
+a rod that cannot be placed, values in millimetres).  Every error is one line naming the file,
+the line (the header is line 1) and the column.  :func:`save_recording` writes atomically.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from identified.dataset import atomic_write
+from identified.topology import Topology
+
+__all__ = [
+    "Recording",
+    "RecordingError",
+    "check_recording",
+    "read_recording",
+    "save_recording",
+    "site_world_positions",
+]
+
+UNLABELLED = re.compile(r"^marker\d+$")
+_AXES = ("x", "y", "z")
+#: a marker further than this from the world origin is not in metres (m)
+FAR = 100.0
+
+
+class RecordingError(ValueError):
+    """The recording is unreadable, inconsistent or does not belong to the model."""
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording as arrays; ``N`` rows (frames), ``M`` markers.
+
+    ``markers`` (N, M, 3): NaN where a sample is missing.  ``rest``, ``ctrl``, ``length``: (N, ·)
+    columns named by ``rest_names``, ``ctrl_names``, ``length_names`` (NaN where empty).
+    ``episode`` (N,) int: the take of each row, renumbered 0, 1, ... in order of appearance.
+    ``lines`` (N,) int: the file line of each row (for messages). ``noise_pos``: the marker noise
+    std (m) when the recording states it (a ``# noise_pos=...`` comment line), else ``None``.
+    """
+
+    time: np.ndarray
+    episode: np.ndarray
+    marker_names: tuple[str, ...]
+    markers: np.ndarray
+    rest_names: tuple[str, ...] = ()
+    rest: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    ctrl_names: tuple[str, ...] = ()
+    ctrl: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    length_names: tuple[str, ...] = ()
+    length: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    source: str = "<recording>"
+    lines: np.ndarray | None = None
+    noise_pos: float | None = None
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.time.shape[0])
+
+    @property
+    def n_episodes(self) -> int:
+        return int(self.episode.max()) + 1 if self.n_frames else 0
+
+    @property
+    def unlabelled(self) -> bool:
+        """True when the marker columns carry no site names (``marker<N>``)."""
+        return bool(self.marker_names) and all(UNLABELLED.match(n) for n in self.marker_names)
+
+    def line(self, row: int) -> int:
+        """The file line of row ``row`` (the header is line 1)."""
+        return int(self.lines[row]) if self.lines is not None else row + 2
+
+    def episodes(self) -> list[np.ndarray]:
+        """Row indices of each take, in order."""
+        return [np.flatnonzero(self.episode == e) for e in range(self.n_episodes)]
+
+    def rate_hz(self) -> float:
+        """Median sampling rate over all takes, Hz."""
+        d = np.concatenate([np.diff(self.time[i]) for i in self.episodes()] or [np.zeros(0)])
+        return float(1.0 / np.median(d)) if d.size else float("nan")
+
+    def missing_fraction(self) -> float:
+        """Share of marker samples that are missing."""
+        return float(np.isnan(self.markers[..., 0]).mean()) if self.markers.size else 0.0
+
+    def with_markers(self, names: tuple[str, ...], markers: np.ndarray) -> Recording:
+        """The same recording with other marker columns (after labelling)."""
+        return replace(self, marker_names=tuple(names), markers=np.asarray(markers, dtype=float))
+
+
+# ---------------------------------------------------------------------- reading
+def read_recording(path: str | os.PathLike) -> Recording:
+    """Parse a recording CSV (the module docstring) and check what needs no model.
+
+    Raises :class:`RecordingError` with one line naming the file, line and column."""
+    p = os.fspath(path)
+    try:
+        with open(p, encoding="utf-8-sig", newline="") as fh:
+            text = fh.read()
+    except FileNotFoundError:
+        raise RecordingError(f"recording '{p}' does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"cannot read recording '{p}': {getattr(exc, 'strerror', None) or exc}") from None
+    return parse_recording(text, p)
+
+
+def parse_recording(text: str, source: str = "<recording>") -> Recording:
+    """:func:`read_recording` on the text of a file (``source`` names it in messages)."""
+    noise = None
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    header: list[str] | None = None
+    for lineno, row in _numbered_rows(text):
+        if row and row[0].lstrip().startswith("#"):
+            m = re.search(r"noise_pos\s*=\s*([0-9.eE+-]+)", ",".join(row))
+            if m:
+                noise = _number(m.group(1), source, lineno, "# noise_pos")
+            continue
+        if not any(c.strip() for c in row):
+            continue
+        if header is None:
+            header = [c.strip() for c in row]
+            header_line = lineno
+            continue
+        rows.append(row)
+        lines.append(lineno)
+    if header is None:
+        raise RecordingError(f"'{source}' is empty: a recording needs a header row and data rows")
+    cols = _columns(header, source, header_line)
+    if not rows:
+        raise RecordingError(f"'{source}' has a header but no data rows")
+    width = len(header)
+    for row, lineno in zip(rows, lines):
+        if len(row) != width:
+            raise RecordingError(f"'{source}', line {lineno}: {len(row)} cells, the header has {width}")
+    table = np.full((len(rows), width), np.nan)
+    for r, (row, lineno) in enumerate(zip(rows, lines)):
+        for c, cell in enumerate(row):
+            s = cell.strip()
+            if s:
+                table[r, c] = _number(s, source, lineno, header[c])
+    lines_a = np.array(lines, dtype=np.int64)
+    time = table[:, cols["time"]]
+    for r in np.flatnonzero(~np.isfinite(time)):
+        raise RecordingError(f"'{source}', line {lines_a[r]}, column 'time': the time is empty or not finite")
+    if "episode" in cols:
+        raw = table[:, cols["episode"]]
+        for r in np.flatnonzero(~np.isfinite(raw) | (raw != np.round(raw))):
+            raise RecordingError(f"'{source}', line {lines_a[r]}, column 'episode': not a whole number")
+        episode = np.cumsum(np.r_[0, raw[1:] != raw[:-1]]).astype(np.int64)
+        seen: set[float] = set()
+        for r in np.flatnonzero(np.r_[True, raw[1:] != raw[:-1]]):
+            if raw[r] in seen:
+                raise RecordingError(f"'{source}', line {lines_a[r]}, column 'episode': take {raw[r]:g} "
+                                     "appears again after another take; keep each take's rows together")
+            seen.add(raw[r])
+    else:
+        episode = np.zeros(len(rows), dtype=np.int64)
+    same = episode[1:] == episode[:-1]
+    bad = np.flatnonzero(same & ~(time[1:] > time[:-1]))
+    if bad.size:
+        r = int(bad[0]) + 1
+        raise RecordingError(f"'{source}', line {lines_a[r]}, column 'time': {time[r]:g} s is not after the "
+                             f"previous row's {time[r - 1]:g} s in the same take (time must increase)")
+    names = tuple(cols["markers"])
+    markers = np.stack([table[:, [cols["markers"][n][a] for a in range(3)]] for n in names], axis=1) \
+        if names else np.zeros((len(rows), 0, 3))
+    part = np.isnan(markers).any(-1) & ~np.isnan(markers).all(-1)
+    if part.any():
+        r, m = (int(i) for i in np.argwhere(part)[0])
+        a = int(np.flatnonzero(np.isnan(markers[r, m]))[0])
+        raise RecordingError(f"'{source}', line {lines_a[r]}, column '{names[m]}.{_AXES[a]}': empty while the "
+                             "marker's other coordinates are given (a missing sample leaves all three empty)")
+    rec = Recording(
+        time=time, episode=episode, marker_names=names, markers=markers,
+        rest_names=tuple(cols["rest"]), rest=table[:, list(cols["rest"].values())],
+        ctrl_names=tuple(cols["ctrl"]), ctrl=table[:, list(cols["ctrl"].values())],
+        length_names=tuple(cols["length"]), length=table[:, list(cols["length"].values())],
+        source=source, lines=lines_a, noise_pos=noise,
+    )
+    _check_values(rec, header)
+    return rec
+
+
+def _numbered_rows(text: str):
+    reader = csv.reader(io.StringIO(text))
+    for row in reader:
+        yield reader.line_num, row
+
+
+def _number(s: str, source: str, line: int, column: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise RecordingError(f"'{source}', line {line}, column '{column}': '{s}' is not a number") from None
+    if not np.isfinite(v):
+        raise RecordingError(f"'{source}', line {line}, column '{column}': '{s}' is not a finite number")
+    return v
+
+
+def _columns(header: list[str], source: str, line: int) -> dict:
+    cols: dict = {"markers": {}, "rest": {}, "ctrl": {}, "length": {}}
+    seen: dict[str, int] = {}
+    for c, name in enumerate(header):
+        if not name:
+            raise RecordingError(f"'{source}', line {line}, column {c + 1}: the header cell is empty")
+        if name in seen:
+            raise RecordingError(f"'{source}', line {line}, column '{name}': named twice")
+        seen[name] = c
+        if name in ("time", "episode"):
+            cols[name] = c
+            continue
+        base, dot, kind = name.rpartition(".")
+        if not dot or not base:
+            raise RecordingError(f"'{source}', line {line}, column '{name}': not a recording column (time, "
+                                 "episode, <site>.x/.y/.z, <tendon>.rest, <actuator>.ctrl, <tendon>.length)")
+        if kind in _AXES:
+            cols["markers"].setdefault(base, [None, None, None])[_AXES.index(kind)] = c
+        elif kind in ("rest", "ctrl", "length"):
+            cols[kind][base] = c
+        else:
+            raise RecordingError(f"'{source}', line {line}, column '{name}': unknown suffix '.{kind}' (expected "
+                                 ".x/.y/.z, .rest, .ctrl or .length)")
+    if "time" not in cols:
+        raise RecordingError(f"'{source}', line {line}: no 'time' column")
+    for base, idx in cols["markers"].items():
+        if None in idx:
+            missing = _AXES[idx.index(None)]
+            raise RecordingError(f"'{source}', line {line}, column '{base}.{missing}' is missing: a marker needs "
+                                 ".x, .y and .z")
+    return cols
+
+
+def _check_values(rec: Recording, header: list[str]) -> None:
+    for kind, names, arr in (("rest", rec.rest_names, rec.rest), ("length", rec.length_names, rec.length)):
+        neg = np.argwhere(arr < 0)
+        if neg.size:
+            r, j = (int(i) for i in neg[0])
+            raise RecordingError(f"'{rec.source}', line {rec.line(r)}, column '{names[j]}.{kind}': a length "
+                                 f"cannot be negative ({arr[r, j]:g})")
+    far = np.abs(rec.markers) > FAR
+    if far.any():
+        r, m, a = (int(i) for i in np.argwhere(far)[0])
+        raise RecordingError(f"'{rec.source}', line {rec.line(r)}, column '{rec.marker_names[m]}.{_AXES[a]}': "
+                             f"{rec.markers[r, m, a]:g} is {FAR:g} m or more from the origin: the recording "
+                             "must be in metres (divide millimetres by 1000)")
+
+
+# ---------------------------------------------------------------------- against the model
+def check_recording(rec: Recording, topology: Topology, actuators: tuple[str, ...] = ()) -> None:
+    """Check ``rec`` against the model: names, placeable rods, units (RecordingError, one line).
+
+    ``actuators``: the model's MuJoCo actuator names (the ``.ctrl`` columns may name them).
+    """
+    src = rec.source
+    sites = {s: i for i, r in enumerate(topology.rods) for s in r.sites}
+    springs = set(topology.spring_names)
+    if not rec.unlabelled:
+        for n in rec.marker_names:
+            if n not in sites and not UNLABELLED.match(n):
+                raise RecordingError(f"'{src}', line 1, column '{n}.x': the model has no site '{n}' on a rod "
+                                     f"(sites: {', '.join(list(sites)[:6])}, ...)")
+    for kind, names in (("rest", rec.rest_names), ("length", rec.length_names)):
+        for n in names:
+            if n not in springs:
+                raise RecordingError(f"'{src}', line 1, column '{n}.{kind}': the model has no tendon '{n}'")
+    for n in rec.ctrl_names:
+        if n not in actuators:
+            raise RecordingError(f"'{src}', line 1, column '{n}.ctrl': the model has no actuator '{n}'"
+                                 + (f" (actuators: {', '.join(actuators[:6])})" if actuators else ""))
+    if rec.unlabelled:
+        return
+    _check_units(rec, topology, sites)
+    for i, rod in enumerate(topology.rods):
+        cols = [m for m, n in enumerate(rec.marker_names) if sites.get(n) == i]
+        if len(cols) < 2:
+            have = ", ".join(rec.marker_names[m] for m in cols) or "none"
+            raise RecordingError(f"'{src}', line 1: rod '{rod.name}' has {len(cols)} marker column(s) ({have}); "
+                                 f"at least 2 of its sites ({', '.join(rod.sites)}) are needed to place it")
+        seen = (~np.isnan(rec.markers[:, cols, 0])).sum(axis=1)
+        for ep in rec.episodes():
+            ok = seen[ep] >= 2
+            if ok.mean() < 0.5:
+                r = int(ep[np.flatnonzero(~ok)[0]])
+                raise RecordingError(f"'{src}', line {rec.line(r)}, column '{rec.marker_names[cols[0]]}.x': rod "
+                                     f"'{rod.name}' has fewer than 2 visible markers in {100 * (1 - ok.mean()):.0f} % "
+                                     "of this take's frames: too few to place it")
+
+
+def _check_units(rec: Recording, topology: Topology, sites: dict[str, int]) -> None:
+    """Distances between markers of one rod against the model's: 1000x means millimetres."""
+    for i, rod in enumerate(topology.rods):
+        cols = [m for m, n in enumerate(rec.marker_names) if sites.get(n) == i]
+        for a in range(len(cols)):
+            for b in range(a + 1, len(cols)):
+                oa = rod.site_offsets[rod.sites.index(rec.marker_names[cols[a]])]
+                ob = rod.site_offsets[rod.sites.index(rec.marker_names[cols[b]])]
+                ref = float(np.linalg.norm(oa - ob))
+                d = np.linalg.norm(rec.markers[:, cols[a]] - rec.markers[:, cols[b]], axis=-1)
+                if ref <= 0 or not np.isfinite(d).any():
+                    continue
+                ratio = np.nanmedian(d) / ref
+                if ratio > 30 or ratio < 1 / 30:
+                    r = int(np.flatnonzero(np.isfinite(d))[0])
+                    unit = "millimetres (divide by 1000)" if 300 < ratio < 3000 else "another unit than metres"
+                    raise RecordingError(
+                        f"'{rec.source}', line {rec.line(r)}, column '{rec.marker_names[cols[b]]}.x': markers "
+                        f"{rec.marker_names[cols[a]]} and {rec.marker_names[cols[b]]} are {np.nanmedian(d):.4g} "
+                        f"apart, the model's sites {ref:.4g} m: the recording looks like {unit}")
+
+
+# ---------------------------------------------------------------------- writing
+def save_recording(path: str | os.PathLike, rec: Recording, precision: int = 7) -> None:
+    """Write ``rec`` as a recording CSV, atomically (a temporary file renamed into place)."""
+    header = ["time", "episode"]
+    blocks = [rec.time[:, None], rec.episode[:, None].astype(float)]
+    for m, n in enumerate(rec.marker_names):
+        header += [f"{n}.{a}" for a in _AXES]
+        blocks.append(rec.markers[:, m])
+    for kind, names, arr in (("rest", rec.rest_names, rec.rest), ("ctrl", rec.ctrl_names, rec.ctrl),
+                             ("length", rec.length_names, rec.length)):
+        header += [f"{n}.{kind}" for n in names]
+        if names:
+            blocks.append(arr)
+    table = np.concatenate(blocks, axis=1)
+    digits = [9, 0] + [precision] * (table.shape[1] - 2)
+
+    def write(fh) -> None:
+        if rec.noise_pos is not None:
+            fh.write(f"# noise_pos={rec.noise_pos:.6g}\n")
+        fh.write(",".join(header) + "\n")
+        for row in table:
+            fh.write(",".join("" if not np.isfinite(v) else (f"{v:.{d}f}" if d else str(int(v)))
+                              for v, d in zip(row, digits)) + "\n")
+
+    atomic_write(path, write)
+
+
+def site_world_positions(topology: Topology, pos: np.ndarray, quat: np.ndarray,
+                         names: tuple[str, ...]) -> np.ndarray:
+    """World positions (..., len(names), 3) of rod sites from rod states ``pos`` (..., R, 3) and
+    ``quat`` (..., R, 4)."""
+    from identified.rotation import quat_to_matrix
+
+    where = {s: (i, r.site_offsets[k]) for i, r in enumerate(topology.rods) for k, s in enumerate(r.sites)}
+    rot = quat_to_matrix(quat)
+    out = []
+    for n in names:
+        i, off = where[n]
+        out.append(pos[..., i, :] + np.einsum("...ij,j->...i", rot[..., i, :, :], off))
+    return np.stack(out, axis=-2)

@@ -1,0 +1,77 @@
+"""Rod states reconstructed from a recording's markers, and the fit on them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from identified.fit.markers import states_from_recording
+from identified.recording import RecordingError
+from identified.rotation import quat_to_matrix
+from identified.topology import Topology
+from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
+from tensegrity_gym.models import write_model
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("recfit") / "robot.xml")
+    write_model(path, "ico", preset="robot")
+    data = collect(path, CollectConfig(episodes=2, steps=2000, seed=6))
+    return path, Topology.from_mjcf(path), data
+
+
+def test_states_from_clean_markers(robot):
+    """From clean 100 Hz markers with gaps: positions, axes and transverse spin of the plant's rods;
+    no spin about an axis the markers cannot see."""
+    path, topo, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=100, dropout=0.02), seed=1)
+    ms = states_from_recording(rec, topo, dt=data.dt, lam=1e-12)  # clean: the splines interpolate
+    rd = ms.data
+    n = rd.n_steps
+    truth = data.select(steps=n + 1)
+    pos_err = np.linalg.norm(rd.pos - truth.pos[:, 1:], axis=-1)
+    assert np.median(pos_err) < 5e-6
+    ax_true = quat_to_matrix(truth.quat[:, 1:])[..., :, 2]
+    ax = quat_to_matrix(rd.quat)[..., :, 2]
+    assert np.median(np.linalg.norm(ax - ax_true, axis=-1)) < 1e-5
+    w = truth.angvel[:, 1:]
+    perp = w - np.sum(w * ax_true, -1, keepdims=True) * ax_true
+    assert np.median(np.linalg.norm(rd.angvel - perp, axis=-1)) < 0.02 * np.median(np.linalg.norm(perp, axis=-1))
+    assert np.abs(np.sum(rd.angvel * ax, -1)).max() < 1e-8  # parallel transport: no axial spin
+    assert ms.unobservable == [(i, 2) for i in range(6)]
+    # the states step as the engine's Euler does: x[n+1] = x[n] + dt v[n+1]
+    np.testing.assert_allclose(rd.pos[:, 1:], rd.pos[:, :-1] + data.dt * rd.vel[:, 1:], atol=1e-12)
+    # rest lengths from the encoders, interpolated between frames
+    assert np.abs(rd.rest_length - truth.rest_length[:, 1:]).max() < 2e-3
+
+
+def test_missing_encoder_is_refused(robot):
+    path, topo, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=50), seed=1)
+    from dataclasses import replace
+
+    short = replace(rec, rest_names=rec.rest_names[1:], rest=rec.rest[:, 1:])
+    with pytest.raises(RecordingError, match="no 'cable0.rest' column"):
+        states_from_recording(short, topo)
+
+
+def test_axial_inertia_is_not_identifiable(robot):
+    """A fit from end-cap markers holds every axial moment: null error bar, named in the metrics."""
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.markers import fit_recording
+
+    path, _, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=100), seed=2)
+    m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
+    assert len(m.metrics["not_identifiable"]) == 6
+    assert np.isnan(m.stderr["inertia"][:, 2]).all() and np.isfinite(m.stderr["inertia"][:, :2]).all()
+
+
+def test_noisy_markers_are_smoothed(robot):
+    """1 mm of marker noise: the smoothing splines (GCV) place the rods better than one marker is placed."""
+    path, topo, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=3)
+    rd = states_from_recording(rec, topo, dt=data.dt).data
+    err = np.linalg.norm(rd.pos - data.pos[:, 1:rd.n_steps + 2], axis=-1)
+    assert np.median(err) < 0.7e-3  # one marker's error: median ~1.5 mm (3D)

@@ -238,8 +238,8 @@ MUTANTS = [
     ("vector", "tensegrity_gym/envs/vector.py", "            self._com[good] = com[ok]", "            pass",
      "centre of mass never updated"),
     ("vector", "tensegrity_gym/envs/vector.py",
-     "        ph.step(e.frame_skip)\n        pos, quat, vel, angvel = ph.states_numpy()\n        quat = quat / np.sqrt(",
-     "        ph.step(e.frame_skip)\n        pos, quat, vel, angvel = ph.states_numpy()\n        quat = quat * 1.01 / np.sqrt(",
+     "        pos, quat, vel, angvel = ph.states_numpy()\n        quat = quat / np.sqrt(",
+     "        pos, quat, vel, angvel = ph.states_numpy()\n        quat = quat * 1.01 / np.sqrt(",
      "stepped quaternions not normalised"),
     # ------------------------------------------------------------------ the env's arguments
     ("env-args", "tensegrity_gym/envs/tensegrity_ico_v0.py",

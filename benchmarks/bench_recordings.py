@@ -81,6 +81,8 @@ def main() -> None:
     ap.add_argument("--dropout", type=float, default=0.02)
     ap.add_argument("--effects", default="ground_contact")
     ap.add_argument("--varied", action="store_true", help="robots with other parameter values (one per dataset)")
+    ap.add_argument("--unlabelled", action="store_true",
+                    help="anonymous markers, identities shuffled every 0.5 s, one ghost per frame (labelled by the fit)")
     ap.add_argument("--quick", action="store_true", help="skip the fit on full states")
     args = ap.parse_args()
     effects = args.effects if args.effects in ("auto", "none") else args.effects.split(",")
@@ -91,7 +93,8 @@ def main() -> None:
             path = os.path.join(tmp, f"robot{k}.xml")
             truth = varied_robot(path, 100 + k if args.varied else None)
             data = collect(path, CollectConfig(episodes=args.episodes, steps=steps, seed=k))
-            rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=args.dropout),
+            rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=args.dropout,
+                                                              unlabelled=args.unlabelled, ghosts=int(args.unlabelled)),
                                  seed=k)
             scale = ScaleSpec(total_mass=float(truth[2].sum()))
             t0 = time.perf_counter()
@@ -114,7 +117,8 @@ def main() -> None:
                   f"{full:.4g} m, fit {secs:.1f} s; effects {[e['name'] for e in m.effects]}", flush=True)
     print()
     print(f"{args.datasets} datasets of {args.episodes} x {args.seconds:g} s, markers at {args.rate:g} Hz, "
-          f"{args.noise * 1e3:g} mm noise, {100 * args.dropout:g} % missing; {'varied robots' if args.varied else 'robot preset'}")
+          f"{args.noise * 1e3:g} mm noise, {100 * args.dropout:g} % missing{', unlabelled' if args.unlabelled else ''}; "
+          f"{'varied robots' if args.varied else 'robot preset'}")
     print("| | K max rel | c max rel | M max rel | RMS z | max abs z |")
     print("| --- | --- | --- | --- | --- | --- |")
     r = np.array([x[1:6] for x in rows])

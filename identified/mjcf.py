@@ -188,6 +188,10 @@ class RodInfo:
     site_pos: np.ndarray = field(repr=False)  # (n, 3)
     attachments: tuple[str, ...]
     radius: float  # largest capsule/cylinder radius of its geoms, m (0 if none): geometry only
+    #: the capsule its collision geoms span (rod frame, m): the two geom points farthest apart
+    #: (capsule and cylinder ends, sphere centres) and the larger radius there; None without one
+    contact_segment: np.ndarray | None = field(default=None, repr=False)  # (2, 3)
+    contact_radius: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -238,6 +242,8 @@ class SystemDescription:
     site_rod: dict[str, int]
     site_pos: dict[str, np.ndarray]
     ground: float | None  # height of a ground plane (a plane geom fixed to the world), m
+    #: the first plane geom fixed to the world: its unit normal and its offset along it, m
+    plane: tuple[np.ndarray, float] | None = None
 
 
 _DYN = {"mjDYN_NONE": "none", "mjDYN_FILTER": "filter", "mjDYN_FILTEREXACT": "filterexact",
@@ -364,10 +370,31 @@ def read_system(source: str | os.PathLike | Any, error: type[Exception] = MjcfEr
         bodies = [bb for bb in range(m.nbody) if rod_of_body[bb] == r]
         sites = [s for i, s in enumerate(site_names) if rod_of_body[m.site_bodyid[i]] == r]
         radius = 0.0
+        rot_r, pos_r = d.xmat[b].reshape(3, 3), d.xpos[b]
+        points: list[tuple[np.ndarray, float]] = []  # collision geom points in the rod frame, radius
         for g in range(m.ngeom):
-            if rod_of_body[m.geom_bodyid[g]] == r and int(m.geom_type[g]) in (
-                    int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+            if rod_of_body[m.geom_bodyid[g]] != r:
+                continue
+            kind = int(m.geom_type[g])
+            if kind in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
                 radius = max(radius, float(m.geom_size[g, 0]))
+            if not (m.geom_contype[g] or m.geom_conaffinity[g]):
+                continue
+            centre = rot_r.T @ (d.geom_xpos[g] - pos_r)
+            if kind in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+                axis = rot_r.T @ d.geom_xmat[g].reshape(3, 3)[:, 2]
+                half = float(m.geom_size[g, 1])
+                # in fromto's order: MuJoCo's compiled z axis points from the second point to the first
+                points += [(centre + half * axis, float(m.geom_size[g, 0])),
+                           (centre - half * axis, float(m.geom_size[g, 0]))]
+            elif kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+                points.append((centre, float(m.geom_size[g, 0])))
+        segment, seg_radius = None, 0.0
+        if points:
+            pts = np.array([p for p, _ in points])
+            dist = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
+            i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
+            segment, seg_radius = pts[[i, j]], max(points[i][1], points[j][1])
         if not used[r]:
             raise error(f"rod '{rname}' is not attached by any cable: the model falls apart")
         if len(used[r]) < 2:
@@ -375,17 +402,19 @@ def read_system(source: str | os.PathLike | Any, error: type[Exception] = MjcfEr
                         "or more sites")
         rods.append(RodInfo(rname, b, tuple(name(obj.mjOBJ_BODY, bb, "body") for bb in bodies), tuple(sites),
                             np.array([site_pos[s] for s in sites]).reshape(-1, 3), tuple(used[r]),
-                            radius))
+                            radius, segment, seg_radius))
     _check_connected(rods, tendons, site_rod, error)
 
     actuators = _read_actuators(m, [t.name for t in tendons], error)
-    ground = None
+    ground, plane = None, None
     for g in range(m.ngeom):
         if int(m.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE) and rod_of_body[m.geom_bodyid[g]] == -1:
-            normal = d.geom_xmat[g].reshape(3, 3)[:, 2]
+            normal = d.geom_xmat[g].reshape(3, 3)[:, 2].copy()
+            if plane is None:
+                plane = (normal, float(normal @ d.geom_xpos[g]))
             if normal[2] > 1 - 1e-9:
                 ground = float(d.geom_xpos[g, 2]) if ground is None else max(ground, float(d.geom_xpos[g, 2]))
-    return SystemDescription(tuple(rods), tuple(tendons), tuple(actuators), site_rod, site_pos, ground)
+    return SystemDescription(tuple(rods), tuple(tendons), tuple(actuators), site_rod, site_pos, ground, plane)
 
 
 def _check_connected(rods: list[RodInfo], tendons: list[TendonInfo], site_rod: dict[str, int],

@@ -26,6 +26,10 @@ DOC = ROOT / "docs" / "ARCHITECTURE.md"
 DATA_PATH = (
     ("MJCF", "the system's structure and geometry, as MuJoCo compiles it", "identified.mjcf", "identified.topology"),
     ("recording", "rod states, commands and pushes of the plant", "tensegrity_gym.collect", None),
+    ("lab recording", "markers, encoder rest lengths (CSV, C3D, Motive): read, checked, labelled",
+     "identified.recording", None),
+    ("rod states from markers", "rigid fits, smoothing splines, states at the engine step", "identified.fit.markers",
+     None),
     ("dataset", "the `.npz` format, validating loader, atomic writer", "identified.dataset", None),
     ("samples", "accelerations from the recorded states", "identified.samples", None),
     ("regression", "the equations linear in the parameters, solved by streamed QR", "identified.fit.features",

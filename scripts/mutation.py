@@ -38,7 +38,7 @@ TESTS = {
     "gap": ["tests/test_gap_metrics.py"],
 }
 
-#: (group, file, original text, mutated text, what the bug would be)
+#: (group, file, original text, mutated text, what the bug would be[, its tests: default the group's])
 MUTANTS = [
     # ------------------------------------------------------------------ bad input (guards)
     ("bad-input", "identified/fit/checks.py", "    if dof <= 0 or (sol.cov is None",
@@ -85,44 +85,61 @@ MUTANTS = [
      "            if False:", "NaN reward weight accepted"),
     # ------------------------------------------------------------------ diagnose
     ("diagnose", "identified/diagnose/__init__.py", 'mean = fr["pos_mean_after_start"]', 'mean = fr["pos_mean"]',
-     "free-run error averaged over steps 0..H (the recorded start counted)"),
+     "free-run error averaged over steps 0..H (the recorded start counted)",
+     ["tests/test_diagnose.py", "-k", "free_run_error or clean_plant"]),
     ("diagnose", "identified/effects/ground_contact.py", "        return (depth > -margin).any(-1)",
-     "        return (depth > -margin).all(-1)", "near-ground rods: both ends instead of either"),
+     "        return (depth > -margin).all(-1)", "near-ground rods: both ends instead of either",
+     ["tests/test_diagnose.py", "-k", "contact_rods"]),
     ("diagnose", "identified/effects/ground_contact.py", "def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01)",
-     "def rows_affected(self, state: Any, ctx: Any, margin: float = 0.02)", "near-ground margin 2 cm"),
+     "def rows_affected(self, state: Any, ctx: Any, margin: float = 0.02)", "near-ground margin 2 cm",
+     ["tests/test_diagnose.py", "-k", "contact_rods"]),
     ("diagnose", "identified/diagnose/residual.py", "            self.masks[k][blk] = rows.reshape(E_, n_t, R).numpy()",
-     "            self.masks[k][blk] = ~rows.reshape(E_, n_t, R).numpy()", "region mask inverted"),
+     "            self.masks[k][blk] = ~rows.reshape(E_, n_t, R).numpy()", "region mask inverted",
+     ["tests/test_diagnose.py", "-k", "contact_rods or regions"]),
     ("diagnose", "identified/diagnose/__init__.py", "if r_in is None or r_in < PARTIAL_LEVEL:",
-     "if r_in is None or r_in <= PARTIAL_LEVEL:", "partial: level threshold exclusive"),
+     "if r_in is None or r_in <= PARTIAL_LEVEL:", "partial: level threshold exclusive",
+     ["tests/test_diagnose.py", "-k", "verdict"]),
     ("diagnose", "identified/diagnose/__init__.py", "if r_out is not None and r_in < PARTIAL_RATIO * r_out:",
-     "if r_out is not None and r_in < r_out:", "partial: no ratio to the other rods"),
+     "if r_out is not None and r_in < r_out:", "partial: no ratio to the other rods",
+     ["tests/test_diagnose.py", "-k", "verdict"]),
     ("diagnose", "identified/diagnose/__init__.py", "if pairs and all(i >= PARTIAL_RATIO * o for i, o in pairs):",
-     "if pairs and any(i >= PARTIAL_RATIO * o for i, o in pairs):", "partial: one episode enough"),
+     "if pairs and any(i >= PARTIAL_RATIO * o for i, o in pairs):", "partial: one episode enough",
+     ["tests/test_diagnose.py", "-k", "verdict"]),
     ("diagnose", "identified/diagnose/__init__.py", '        return False, reasons, []',
-     '        return bool(effect_rows), reasons, []', "not explained called explained when an effect has rows"),
+     '        return bool(effect_rows), reasons, []', "not explained called explained when an effect has rows",
+     ["tests/test_diagnose.py", "-k", "verdict"]),
     ("diagnose", "identified/diagnose/__init__.py", "eb > 0 and ea <= EXPLAINED_GAIN * eb))",
-     "eb > 0 and ea < eb))", "improved: any gain instead of 5x"),
-    ("diagnose", "identified/diagnose/__init__.py", "rounding = all(v is not None and v < ROUNDING_LEVEL",
-     "rounding = any(v is not None and v < ROUNDING_LEVEL", "rounding: force or torque instead of both"),
+     "eb > 0 and ea < eb))", "improved: any gain instead of 5x", ["tests/test_diagnose.py", "-k", "rules"]),
+    ("diagnose", "identified/diagnose/__init__.py", "    return all(v is not None and v < ROUNDING_LEVEL",
+     "    return any(v is not None and v < ROUNDING_LEVEL", "rounding: force or torque instead of both",
+     ["tests/test_diagnose.py", "-k", "rules or clean_plant"]),
     ("diagnose", "identified/diagnose/stats.py", "white = bool(m > 0 and min(pvals) > ALPHA / m)",
-     "white = bool(m > 0 and min(pvals) > ALPHA / m ** 0)", "whiteness without Bonferroni"),
+     "white = bool(m > 0 and min(pvals) > ALPHA / m ** 0)", "whiteness without Bonferroni",
+     ["tests/test_diagnose.py", "-k", "whiteness"]),
     ("diagnose", "identified/diagnose/stats.py", "        q += rho * rho / (n - k)", "        q += rho * rho / n",
-     "Ljung-Box weights"),
+     "Ljung-Box weights",
+     ["tests/test_diagnose.py", "-k", "ljung_box or whiteness"]),
     ("diagnose", "identified/diagnose/stats.py", "yc, xc = (y - y.mean(0)) * yv, (x - x.mean(0)) * xv",
-     "yc, xc = (y - y.mean(0)) * yv, x * xv", "correlation of an uncentred input"),
+     "yc, xc = (y - y.mean(0)) * yv, x * xv", "correlation of an uncentred input",
+     ["tests/test_diagnose.py", "-k", "corr_matrix or input_correlation"]),
     ("diagnose", "identified/diagnose/stats.py", "if best is None or abs(c[a, b]) > abs(best[\"corr\"]):",
-     "if best is None or c[a, b] > best[\"corr\"]:", "largest correlation by sign"),
+     "if best is None or c[a, b] > best[\"corr\"]:", "largest correlation by sign",
+     ["tests/test_diagnose.py", "-k", "input_correlation"]),
     ("diagnose", "identified/diagnose/residual.py",
      'rel = {"force": _ratio(np.sqrt((force_rms ** 2).mean()), _rms(rf_[..., :3], (0, 1, 2))),',
-     'rel = {"force": _ratio(force_rms.max(), _rms(rf_[..., :3], (0, 1, 2))),', "relative force: worst axis"),
+     'rel = {"force": _ratio(force_rms.max(), _rms(rf_[..., :3], (0, 1, 2))),', "relative force: worst axis",
+     ["tests/test_diagnose.py", "-k", "by_hand"]),
     ("diagnose", "identified/diagnose/residual.py", "    Z[m_idx[-1], [keep.index(k) for k in m_idx[:-1]]] = -1.0",
      "    Z[m_idx[-1], [keep.index(k) for k in m_idx[:-1]]] = 0.0", "scores without the total mass held"),
     ("diagnose", "identified/diagnose/residual.py", "FAST_QUANTILE = 0.9", "FAST_QUANTILE = 0.8",
-     "fast region: top 20 %"),
+     "fast region: top 20 %",
+     ["tests/test_diagnose.py", "-k", "by_hand or regions"]),
     ("diagnose", "identified/diagnose/residual.py", "            outside = ~self.masks[region] & valid",
-     "            outside = valid", "effect rows: the others include its own"),
+     "            outside = valid", "effect rows: the others include its own",
+     ["tests/test_diagnose.py", "-k", "contact_rods"]),
     ("diagnose", "identified/diagnose/residual.py", '"force": _ratio(_rms(res[:, :3], None), _rms(ref[:, :3], None)),',
-     '"force": _ratio(_rms(res[:, :3], None), _rms(ref, None)),', "effect rows: relative to the whole wrench"),
+     '"force": _ratio(_rms(res[:, :3], None), _rms(ref, None)),', "effect rows: relative to the whole wrench",
+     ["tests/test_diagnose.py", "-k", "contact_rods"]),
     ("diagnose", "identified/diagnose/residual.py", "                score = 1.0 - unexplained",
      "                score = 1.0 - rss / syy", "score against the residual, not the base refit"),
     # ------------------------------------------------------------------ evaluation
@@ -275,12 +292,12 @@ def main() -> int:
     chosen = [(k, m) for k, m in enumerate(MUTANTS)
               if (args.group is None or m[0] in args.group) and (args.only is None or k in args.only)]
     if args.list:
-        for k, (group, rel, _, _, what) in chosen:
+        for k, (group, rel, _, _, what, *_) in chosen:
             print(f"{k:3d} {group:<10} {rel}: {what}")
         return 0
     table: dict[str, list[int]] = {}
     env = dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1"))
-    for k, (group, rel, old, new, what) in chosen:
+    for k, (group, rel, old, new, what, *tests) in chosen:
         path = ROOT / rel
         text = path.read_text()
         if text.count(old) != 1:
@@ -291,7 +308,7 @@ def main() -> int:
         try:
             path.write_text(text.replace(old, new))
             r = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
-                                *TESTS[group]], check=False, cwd=ROOT, capture_output=True, text=True, env=env)
+                                *(tests[0] if tests else TESTS[group])], check=False, cwd=ROOT, capture_output=True, text=True, env=env)
         finally:
             path.write_text(text)
         dead = r.returncode != 0

@@ -174,6 +174,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
           f"integrator {model.integrator}, effects: {added})")
+    _strict(args, model)
+
+
+def _strict(args: argparse.Namespace, model) -> None:
+    """``fit --strict``: an error when the fitted equations do not describe their own data."""
     res = model.metrics.get("residual") or {}
     if args.strict and res.get("large"):
         raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
@@ -209,6 +214,7 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
           f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")
+    _strict(args, model)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -224,7 +230,12 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise CommandError(f"--out '{args.out}' exists and is not a folder")
     model = load_model(args.identified)
-    data = load_dataset(args.data)
+    if _is_recording(args.data):  # rod states reconstructed from the markers (identified.fit.markers)
+        from identified.fit.markers import recording_dataset
+
+        data = recording_dataset(args.data, model)
+    else:
+        data = load_dataset(args.data)
     check_compatible(data, model.topology)
     if args.horizon <= 0:
         raise CommandError(f"--horizon {args.horizon}: must be a positive number of seconds")
@@ -245,7 +256,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
           f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
     print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
     for e in result["one_step"].get("effect_rows") or []:
-        pct = lambda v: "n/a" if v is None else f"{v:.1%}"
+        pct = lambda v: "n/a" if v is None else (f"{v:.1%}" if v >= 1e-3 else f"{v:.2g}")
         print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "
               f"{pct(e['inside']['force'])}, torque {pct(e['inside']['torque'])} of the recorded; other rods "
               f"{pct(e['outside']['force'])}, {pct(e['outside']['torque'])}")
@@ -584,7 +595,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "data it was not fitted on), by rod, axis and region of state; residual whiteness "
                         "(Ljung-Box); each effect of the library scored by the share of the residual it would "
                         "remove; the error without and with the model's own effects.")
-    dg.add_argument("data", help="dataset .npz")
+    dg.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its markers)")
     dg.add_argument("--identified", required=True, help="identified-model .json")
     dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
     dg.add_argument("--horizon", type=finite_float(0.0, 1e6, "s", True), default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")

@@ -263,8 +263,8 @@ class RecordConfig:
 
 def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, seed: int = 0):
     """The recording a lab would make of ``data`` (clean states of the plant): markers at every rod
-    site sampled at ``rec.rate``, noisy, with gaps in runs; the encoders' rest lengths of the
-    actuated cables.  Returns an :class:`identified.recording.Recording`."""
+    site sampled at ``rec.rate``, noisy, with gaps in runs; every tendon's rest length (the
+    actuated cables' from their encoders, a passive spring's as measured once).  Returns an :class:`identified.recording.Recording`."""
     from identified.recording import Recording, site_world_positions
     from identified.topology import Topology
 
@@ -276,7 +276,6 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     idx = np.unique(np.round(np.arange(0, T * data.dt + 1e-12, 1.0 / rec.rate) / data.dt).astype(int))
     idx = idx[idx < T]  # the rest length of step t is that read at instant t
     times, episodes, marks, rests = [], [], [], []
-    act = [data.tendon_names.index(a) for a in data.actuated_names]
     for e in range(data.n_episodes):
         m = site_world_positions(topo, data.pos[e, idx], data.quat[e, idx], sites)
         m = m + rng.normal(0.0, rec.noise_pos, m.shape) if rec.noise_pos else m
@@ -284,13 +283,13 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
         times.append(idx * data.dt)
         episodes.append(np.full(idx.size, e))
         marks.append(m)
-        rests.append(data.rest_length[e][idx][:, act])
+        rests.append(data.rest_length[e][idx])
     markers = np.concatenate(marks)
     names = sites
     if rec.unlabelled:
         names, markers = _anonymise(rng, np.concatenate(times), np.concatenate(episodes), markers, rec)
     return Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
-                     markers=markers, rest_names=tuple(data.actuated_names), rest=np.concatenate(rests),
+                     markers=markers, rest_names=tuple(data.tendon_names), rest=np.concatenate(rests),
                      noise_pos=rec.noise_pos)
 
 

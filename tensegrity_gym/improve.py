@@ -141,13 +141,13 @@ def concat_episodes(base: Dataset, new: Dataset) -> Dataset:
 def twin_errors(model: Any, data: Dataset, horizon_steps: int = 1000) -> dict[str, float]:
     """The twin's errors on recorded states: one-step RMS of position (m), velocity (m/s),
     angular velocity (rad/s) over every rod and physics step, and the mean free-run position error
-    (m) of ``horizon_steps``-step runs from recorded states (:func:`identified.fit.pipeline.window_error`)."""
+    (m) of ``horizon_steps``-step runs from recorded states (:func:`identified.evaluate.window_error`)."""
     import torch
 
-    from identified.engine import SpringRodEngine
-    from identified.fit.pipeline import window_error
+    from identified.evaluate import window_error
+    from identified.twin import engine_from_model
 
-    eng = SpringRodEngine.from_model(model, dtype=torch.float64)
+    eng = engine_from_model(model, dtype=torch.float64)
     E, T = data.n_episodes, data.n_steps
     flat = lambda a, sl: torch.as_tensor(a[:, sl].reshape((E * T,) + a.shape[2:]))
     now = eng.state(*(flat(getattr(data, k), slice(0, T)) for k in ("pos", "quat", "vel", "angvel")))

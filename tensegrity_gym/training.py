@@ -16,6 +16,17 @@ algorithm, the env id and its keyword arguments, the observation and action shap
 normalisation statistics, where it was trained and with what. SB3's ``PPO.load`` reads the file as
 usual (it ignores the extra entry).
 
+Domain randomization and budget
+-------------------------------
+By default the twin is randomized (``randomize="auto"``, :mod:`tensegrity_gym.randomize`: every
+env draws its own contact, spring, rod, motor parameters, latency and sensor noise at each reset,
+widths from the identified model's own uncertainty and unexplained residual), and ``tensegrity
+train`` runs :data:`DEFAULT_TIMESTEPS` steps. Why: the policy's search finds where the nominal twin
+is wrong (contact while rolling over an edge) and rolls further on the twin than on the plant;
+a policy that must roll on every draw relies less on the twin's own contact (measured per seed in
+README, "Randomized twins, defaults that transfer"). The randomization is recorded in the policy's
+metadata (``randomization``).
+
 Hyperparameters (:data:`PPO_HYPERPARAMETERS`, :data:`SAC_HYPERPARAMETERS`) and why
 -----------------------------------------------------------------------------------
 PPO is the default. Its settings are SB3's defaults (learning rate 3e-4, 10 epochs, clip 0.2,

@@ -294,3 +294,18 @@ def test_tensegrity_v0_on_the_twin(tmp_path) -> None:
     save_model(prism, fit_model(data, LAB["prism3"]))
     with pytest.raises(ValueError, match=r"has MuJoCo actuators \['motor1', 'motor2', 'motor3'\]"):
         gym.make("Tensegrity-v0", xml_file=LAB["prism3"], backend="identified", model=str(prism))
+
+
+def test_env_with_motors_and_actuators_together() -> None:
+    """Rest-length motors first, then MuJoCo actuators: one action vector, each part on its own range."""
+    xml = _read(LAB["six_bar_composite"]).replace(
+        "</tendon>", '</tendon><actuator><motor name="pull" tendon="c1" gear="-1" ctrlrange="0 20"/></actuator>')
+    env = gym.make("Tensegrity-v0", xml_file=xml).unwrapped
+    assert env.action_space.shape == (7,) and env.observation_space.shape == (1 + 18 * 6 + 7,)
+    env.reset(seed=1)
+    a = np.zeros(7, dtype=np.float32)
+    a[:6], a[6] = -1.0, 0.5
+    env.step(a)
+    plant = env.backend.plant
+    np.testing.assert_allclose(plant.targets, plant.motor.rest_min)
+    np.testing.assert_allclose(plant.ctrl, [15.0])

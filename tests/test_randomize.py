@@ -17,8 +17,8 @@ import pytest
 import torch
 
 import tensegrity_gym  # noqa: F401  (registers the env)
-from identified.engine import SpringRodEngine
 from identified.model import load_model
+from identified.twin import engine_from_model
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend, default_model_path
 from tensegrity_gym.backends.twin_physics import TwinPhysics, compiler_available
 from tensegrity_gym.cli import main
@@ -77,7 +77,7 @@ def test_each_env_steps_as_a_single_twin_with_its_parameters(backend):
     """Env i of the per-env batch equals an unbatched twin built from a model holding env i's
     spring, rod, contact and motor parameters, to float64 rounding."""
     b = backend
-    ph = TwinPhysics(SpringRodEngine.from_model(b.model), b.motor, b.actuated_index, batch=N, compile=False,
+    ph = TwinPhysics(engine_from_model(b.model), b.motor, b.actuated_index, batch=N, compile=False,
                      per_env=True)
     states, rest = _starts(b, N)
     ph.reset(*states, rest)
@@ -92,7 +92,7 @@ def test_each_env_steps_as_a_single_twin_with_its_parameters(backend):
         gc = next(e for e in m.effects if e["name"] == "ground_contact")
         gc["parameters"] = dict(zip(CONTACT_PARAMETERS, map(float, d["effects"]["ground_contact"][i]), strict=True))
         motor = dataclasses.replace(b.motor, speed=float(d["motor_speed"][i]))
-        single = TwinPhysics(SpringRodEngine.from_model(m), motor, b.actuated_index, batch=None, compile=False)
+        single = TwinPhysics(engine_from_model(m), motor, b.actuated_index, batch=None, compile=False)
         single.reset(*(x[i] for x in states), rest[i])
         alone = _roll(single, targets[:, i])
         np.testing.assert_allclose(batched[:, i], alone, rtol=0, atol=1e-12)
@@ -103,7 +103,7 @@ def test_rest_offset_is_a_shifted_rest_length(backend):
     (commands, bounds and start shifted by o)."""
     b = backend
     off = np.random.default_rng(2).uniform(-0.01, 0.01, len(b.tendon_names))
-    ph = TwinPhysics(SpringRodEngine.from_model(b.model), b.motor, b.actuated_index, batch=1, compile=False,
+    ph = TwinPhysics(engine_from_model(b.model), b.motor, b.actuated_index, batch=1, compile=False,
                      per_env=True)
     states, rest = _starts(b, 1)
     ph.reset(*states, rest)
@@ -112,7 +112,7 @@ def test_rest_offset_is_a_shifted_rest_length(backend):
     got = _roll(ph, targets)
     a = b.actuated_index
     motor = dataclasses.replace(b.motor, rest_min=b.motor.rest_min + off[a], rest_max=b.motor.rest_max + off[a])
-    shifted = TwinPhysics(SpringRodEngine.from_model(b.model), motor, a, batch=1, compile=False)
+    shifted = TwinPhysics(engine_from_model(b.model), motor, a, batch=1, compile=False)
     shifted.reset(*states, rest + off)
     want = _roll(shifted, targets + off[a])
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
@@ -120,7 +120,7 @@ def test_rest_offset_is_a_shifted_rest_length(backend):
 
 
 def _plain(b: IdentifiedBackend, states: list, rest: np.ndarray, per_env: bool = False) -> TwinPhysics:
-    ph = TwinPhysics(SpringRodEngine.from_model(b.model), b.motor, b.actuated_index, batch=len(rest),
+    ph = TwinPhysics(engine_from_model(b.model), b.motor, b.actuated_index, batch=len(rest),
                      compile=False, per_env=per_env)
     ph.reset(*states, rest)
     return ph
@@ -141,7 +141,7 @@ def test_compiled_per_env_twin_reads_new_parameters(backend):
     targets = _targets(b, N, 10)
     runs = []
     for compile in (True, False):
-        ph = TwinPhysics(SpringRodEngine.from_model(b.model), b.motor, b.actuated_index, batch=N, compile=compile,
+        ph = TwinPhysics(engine_from_model(b.model), b.motor, b.actuated_index, batch=N, compile=compile,
                          per_env=True)
         ph.reset(*states, rest)
         ph.step(20)  # compiled here, at the identified values

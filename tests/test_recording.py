@@ -59,7 +59,7 @@ def test_round_trip_and_dropout(robot, tmp_path):
     out = tmp_path / "r.csv"
     save_recording(out, rec)
     back = read_recording(out)
-    assert back.marker_names == rec.marker_names and back.rest_names == data.actuated_names
+    assert back.marker_names == rec.marker_names and back.rest_names == data.tendon_names
     assert back.n_episodes == 2 and back.n_frames == rec.n_frames
     np.testing.assert_array_equal(np.isnan(back.markers), np.isnan(rec.markers))
     np.testing.assert_allclose(back.markers, rec.markers, atol=6e-8, equal_nan=True)
@@ -255,3 +255,24 @@ def test_parse_needs_time_and_rows():
         parse_recording("time,a.x,a.y,a.z\n", "x.csv")
     with pytest.raises(RecordingError, match="'a.z' is missing"):
         parse_recording("time,a.x,a.y\n0,1,2\n", "x.csv")
+
+
+def test_cli_fit_and_summary_on_a_recording_too_short(tmp_path):
+    """summary reads a recording; fit refuses one too short for its windows in one line, writing nothing."""
+    model = tmp_path / "robot.xml"
+    write_model(str(model), "ico", preset="robot")
+    rec = tmp_path / "short.csv"
+    run = lambda *a: subprocess.run([sys.executable, "-m", "tensegrity_gym.cli", *a], check=False, capture_output=True,
+                                    text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert run("collect", "--model", str(model), "--episodes", "1", "--steps", "400", "--record", "markers",
+               "--out", str(rec), "--quiet").returncode == 0
+    s = run("summary", str(rec), "--model", str(model), "--json")
+    assert s.returncode == 0, s.stderr
+    import json
+
+    info = json.loads(s.stdout)
+    assert info["takes"] == 1 and info["frames"] == 40 and abs(info["rate_hz"] - 100) < 1e-6
+    out = tmp_path / "F.json"
+    f = run("fit", str(rec), "--model", str(model), "--total-mass", "21", "--out", str(out), "--quiet")
+    assert f.returncode == 2 and f.stderr.count("\n") == 1 and str(rec) in f.stderr and "too short" in f.stderr
+    assert not out.exists()

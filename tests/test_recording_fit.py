@@ -61,7 +61,7 @@ def test_axial_inertia_is_not_identifiable(robot):
     from identified.fit.identify import ScaleSpec
     from identified.fit.markers import fit_recording
 
-    path, _topo, data = robot
+    path, _, data = robot
     rec = record_markers(data, path, RecordConfig(rate=100), seed=2)
     m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
     assert len(m.metrics["not_identifiable"]) == 6

@@ -144,6 +144,7 @@ def identify(
     noise_copies: int = 1,
     effects: Sequence[Effect] = (),
     hold_inertia: Sequence[tuple[int, int]] = (),
+    contact_margin: int = 0,
     _classified: bool = False,
     _residual_stage: bool = True,
 ) -> IdentifiedModel:
@@ -163,6 +164,8 @@ def identify(
     (second order for any integrator; the default for rk4), :mod:`identified.samples`.
     ``hold_inertia``: (rod, body axis) moments of inertia the data cannot see (a rod whose markers
     lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable.
+    ``contact_margin``: steps before and after a residual-stage effect's rows that the joint fit
+    leaves out too (states smoothed from sampled markers smear an impact over a few frames).
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
@@ -170,7 +173,8 @@ def identify(
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
-                         chunk_steps, progress, device, noise_copies, effects, hold_inertia, _classified)
+                         chunk_steps, progress, device, noise_copies, effects, hold_inertia, contact_margin,
+                         _classified)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -180,7 +184,7 @@ def identify(
     if iterative and not _classified:
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
-                            bar, device, noise_copies, effects, hold_inertia, _classified=True,
+                            bar, device, noise_copies, effects, hold_inertia, contact_margin, _classified=True,
                             _residual_stage=residual_stage)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
@@ -210,7 +214,8 @@ def identify(
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
-                keep = ~_affected(late, topology, ch)
+                hit = _affected(late, topology, ch)
+                keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
             A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint, dt=dataset.dt)
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
@@ -290,6 +295,14 @@ def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float
         held = e.pinned_values()
         out.update({layout.effect_offset(k) + int(p): float(held[p]) for p in np.flatnonzero(e.pinned())})
     return out
+
+
+def _dilate(mask: torch.Tensor, n_episodes: int, margin: int) -> torch.Tensor:
+    """(N, R) bool over (episode, time) rows: true also within ``margin`` steps of a true row."""
+    N, R = mask.shape
+    x = mask.reshape(n_episodes, N // n_episodes, R).permute(0, 2, 1).reshape(-1, 1, N // n_episodes)
+    y = torch.nn.functional.max_pool1d(x.to(torch.float32), 2 * margin + 1, stride=1, padding=margin) > 0.5
+    return y.reshape(n_episodes, R, -1).permute(0, 2, 1).reshape(N, R)
 
 
 def _affected(late: Sequence[Effect], topology: Topology, ch: Any) -> torch.Tensor:

@@ -38,6 +38,9 @@ from identified.topology import Topology
 __all__ = ["MarkerStates", "states_from_recording"]
 
 GRAVITY = (0.0, 0.0, -9.81)
+#: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
+#: through sampled markers spreads an impact over about this many frames)
+CONTACT_FRAMES = 3
 
 
 @dataclass
@@ -238,7 +241,9 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
         raise RecordingError(f"'{rec.source}': takes of {ms.data.n_steps * dt:.3g} s are too short: the fit sums "
                              f"its equations over {window * dt:.2g} s windows and needs takes of at least "
                              f"{2 * window * dt:.2g} s")
-    model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, **fit_kwargs)
+    margin = int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))
+    model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, contact_margin=margin,
+                      **fit_kwargs)
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes}

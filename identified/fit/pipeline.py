@@ -116,6 +116,7 @@ def fit_model(
     min_gain: float = 2.0,
     jobs: int | str | None = "auto",
     hold_inertia: Sequence[tuple[int, int]] = (),
+    contact_margin: int = 0,
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -142,7 +143,8 @@ def fit_model(
     else:
         selection = None
     kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
-          "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia)}
+          "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia),
+          "contact_margin": contact_margin}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}

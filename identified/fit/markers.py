@@ -57,6 +57,7 @@ class MarkerStates:
     notes: list[str] = field(default_factory=list)
     geometries: list[RodGeometry] = field(default_factory=list)
     frames_used: int = 0
+    starts: list[float] = field(default_factory=list)  # time (s, the recording's) of each take's first state
 
 
 def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
@@ -84,7 +85,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
             unobs.append((i, ax))
             notes.append(f"{g.name}: spin about the rod's axis is not observable (its markers lie on the axis): "
                          "axial moment of inertia not identifiable")
-    pieces = []
+    pieces, starts = [], []
     for rows in rec.episodes():
         rows = _placed_span(rec, rows, geos, col)
         t = rec.time[rows]
@@ -99,6 +100,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         rest = np.stack([np.interp(grid[1:], t, _filled(rec.rest[rows, rec.rest_names.index(s)], t))
                          for s in topology.spring_names], axis=-1)
         pieces.append((pos[1:], quat[1:], vel, ang, rest))
+        starts.append(float(grid[1]))
     T = min(p[0].shape[0] for p in pieces) - 1
     if T < 1:
         raise RecordingError(f"'{rec.source}': every take is too short to fit")
@@ -116,7 +118,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         data.validate()
     except DatasetError as exc:
         raise RecordingError(f"'{rec.source}': the reconstructed states are not usable: {exc}") from None
-    return MarkerStates(data, unobs, notes, geos, rec.n_frames)
+    return MarkerStates(data, unobs, notes, geos, rec.n_frames, starts)
 
 
 def _placed_span(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[str, int]) -> np.ndarray:

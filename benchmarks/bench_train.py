@@ -1,29 +1,40 @@
-"""Training on the twin against training on the plant: wall clock, and the plant steps each needs.
+"""Training on the twin against training on the plant: wall clock side by side, where the time goes,
+and the plant steps each needs.
 
     python benchmarks/bench_train.py [--identified identified/data/robot.json] [--timesteps 100000]
-                                     [--seed 0] [--episodes 10] [--target 0.5] [--points 8]
-                                     [--threads 1] [--no-curve] [--out runs/bench_train]
+                                     [--seed 0] [--busy both|none|only] [--twin-envs 64] [--plant-envs 8]
+                                     [--batch-size B] [--n-epochs E] [--rollout R] [--fused-adam]
+                                     [--curve] [--episodes 10] [--target 0.5] [--points 8]
+                                     [--threads 1] [--out runs/bench_train]
 
-One run, one machine, the same algorithm with the same settings (``tensegrity train``'s PPO,
-:data:`tensegrity_gym.training.PPO_HYPERPARAMETERS`, one torch thread), one after the other:
+One run, one machine, the same algorithm with the same settings on both sides (``tensegrity
+train``'s PPO, :data:`tensegrity_gym.training.PPO_HYPERPARAMETERS` with the overrides given here,
+one torch thread), one after the other, first on the machine as it is (``quiet``), then with one
+more process busy on one core (a Python busy loop this script starts and stops: ``busy``):
 
-1. ``twin``: ``--timesteps`` steps on the batched identified twin (64 envs, one engine call for all;
-   MuJoCo never steps), then the policy on the plant (``tensegrity gap``'s evaluation,
-   ``--episodes`` episodes from reset seeds 0..);
-2. ``plant``: the same steps on the MuJoCo plant (8 envs, SubprocVecEnv), keeping the policy after
-   every update (``snapshots=True``), and ``--points`` of the snapshots (evenly spaced) and the final
-   policy evaluated on the plant from the same reset seeds: the plant-trained policy's progress
-   versus the plant steps it was trained on.
+* ``twin``: ``--timesteps`` steps on the batched identified twin (``--twin-envs`` envs in this one
+  process, one engine call for all; MuJoCo never steps);
+* ``plant``: the same steps on the MuJoCo plant (``--plant-envs`` envs, SubprocVecEnv: one process
+  each).
 
-It prints the wall clock and CPU time (this process and the plant's SubprocVecEnv workers) of
-each training and their ratio (on a machine shared with other jobs the plant's 8 worker processes
-take a larger share of the cores than the twin's one process: read the CPU time there), the learning curve of direct training on the plant, the first
-plant step count at which that curve reaches the twin policy's plant progress (and ``--target``),
-and the plant data the twin pipeline used: the collection of ``scripts/make_shipped_model.sh``
-(10 episodes x 3000 physics steps of 1 ms = 30 s of robot time = 1,500 control steps), against
-control steps of 20 ms on the plant for direct training. Results also go to ``OUT/bench_train.json``.
+Only the number of envs differs (the same transitions per update, ``--rollout``, over all envs).
+Each training's wall clock is split into: the twin's compilation (``torch.compile`` of its substep,
+first step), the env's steps (the twin's engine and the env around it / waiting for the plant's
+worker processes), SB3's own work while collecting (policy forward pass, action sampling, rollout
+buffer, VecNormalize, VecMonitor, callbacks: the rest of ``collect_rollouts``) and PPO's updates
+(``PPO.train``: the gradient epochs). CPU time counts this process, its children and the
+SubprocVecEnv workers (read from /proc before they close). The table prints both conditions side by
+side with the ratio plant / twin of wall clocks; results go to ``OUT/bench_train.json``.
 
-The machine's load average is printed: on a shared machine read the ratio, within one run.
+``--curve`` (quiet run only) adds what the plant steps buy: the twin policy on the plant
+(``tensegrity gap``'s evaluation, ``--episodes`` episodes from reset seeds 0..), and the learning
+curve of direct training on the plant (the policy after every update kept, ``--points`` of them
+evaluated), the first plant step count at which it reaches the twin policy's plant progress (and
+``--target``), against the plant data of the twin pipeline: the collection of
+``scripts/make_shipped_model.sh`` (10 episodes x 3000 physics steps of 1 ms = 30 s of robot time).
+
+The load average is printed before and after every training: timings beside other jobs are not a
+quiet machine's; read the ratios within one run.
 """
 
 from __future__ import annotations
@@ -32,8 +43,10 @@ import argparse
 import json
 import os
 import resource
+import subprocess
 import sys
 import time
+from typing import Self
 
 import numpy as np
 
@@ -47,6 +60,8 @@ COLLECTION = {"episodes": 10, "physics_steps": 3000, "physics_dt_s": 0.001}
 #: CPU seconds of SubprocVecEnv workers, read just before they close: SB3 starts them through a
 #: forkserver, so they are not this process's children and RUSAGE_CHILDREN misses them.
 WORKER_CPU = [0.0]
+#: Seconds spent in each part of the current training (see :func:`instrument`).
+PARTS: dict[str, float] = {}
 
 
 def _proc_cpu_s(pid: int) -> float:
@@ -55,18 +70,45 @@ def _proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
 
 
-def count_worker_cpu() -> None:
-    """Make SubprocVecEnv.close add its workers' CPU time to :data:`WORKER_CPU` (Linux /proc)."""
+def _timed(cls: type, name: str, part: str) -> None:
+    """Add the seconds spent in ``cls.name`` to :data:`PARTS` ``[part]``."""
+    orig = getattr(cls, name)
+
+    def wrapper(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return orig(self, *args, **kwargs)
+        finally:
+            PARTS[part] = PARTS.get(part, 0.0) + time.perf_counter() - t0
+
+    setattr(cls, name, wrapper)
+
+
+def instrument() -> None:
+    """Time the parts of a training (:data:`PARTS`): PPO's collection and updates, the env's steps
+    (the twin's adapter, the plant's SubprocVecEnv), the twin's compilation; count the SubprocVecEnv
+    workers' CPU time as they close (Linux /proc)."""
+    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
+    from tensegrity_gym.backends.twin_physics import TwinPhysics
+    from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
+
+    _timed(PPO, "collect_rollouts", "collect")
+    _timed(PPO, "train", "updates")
+    _timed(SB3VecEnvAdapter, "step_wait", "env")
+    _timed(SubprocVecEnv, "step_wait", "env")
+    _timed(SubprocVecEnv, "step_async", "env")
+    _timed(TwinPhysics, "_compile_and_advance", "compile")
     close = SubprocVecEnv.close
 
     def counted(self) -> None:
-        for proc in getattr(self, "processes", []):
-            try:
-                WORKER_CPU[0] += _proc_cpu_s(proc.pid)
-            except (OSError, ValueError, IndexError):
-                pass
+        if sys.platform.startswith("linux"):
+            for proc in getattr(self, "processes", []):
+                try:
+                    WORKER_CPU[0] += _proc_cpu_s(proc.pid)
+                except (OSError, ValueError, IndexError):
+                    pass
         close(self)
 
     SubprocVecEnv.close = counted  # type: ignore[method-assign]
@@ -91,57 +133,161 @@ def plant_progress(policy: str, identified: str, episodes: int) -> float:
         venv.close()
 
 
+def train_timed(cfg, out: str) -> dict:
+    """Train ``cfg`` into ``out``; its wall clock, CPU time and parts (:func:`instrument`)."""
+    from tensegrity_gym.training import train
+
+    PARTS.clear()
+    load0 = os.getloadavg()[0]
+    c0, t0 = cpu_s(), time.perf_counter()
+    r = train(cfg, out, progress=False)
+    wall, cpu = time.perf_counter() - t0, cpu_s() - c0
+    parts = dict(PARTS)
+    compile_s = parts.get("compile", 0.0)
+    env = parts.get("env", 0.0) - compile_s
+    collect = parts.get("collect", 0.0)
+    updates = parts.get("updates", 0.0)
+    return {"wall_s": wall, "cpu_s": cpu, "timesteps": int(r.timesteps), "envs": cfg.n_envs,
+            "steps_per_s": r.timesteps / wall, "policy": out, "load_before": load0, "load_after": os.getloadavg()[0],
+            "compile_s": compile_s, "env_s": env, "sb3_collect_s": collect - env - compile_s, "updates_s": updates,
+            "other_s": wall - collect - updates, "hyperparameters": cfg.algo_kwargs()}
+
+
+class Busy:
+    """One more process busy on one core (a Python loop) while the block runs."""
+
+    def __enter__(self) -> Self:
+        self.proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+ROWS = (("wall clock (s)", "wall_s"), ("  twin compilation", "compile_s"),
+        ("  env steps (twin engine / plant workers)", "env_s"),
+        ("  SB3 while collecting (policy, buffer, VecNormalize)", "sb3_collect_s"),
+        ("  PPO updates (gradient epochs)", "updates_s"), ("  other (setup, saving)", "other_s"),
+        ("CPU time (s)", "cpu_s"), ("process wall clock (s): imports, training, exit", "process_wall_s"),
+        ("env steps per second", "steps_per_s"), ("load average after", "load_after"))
+
+
+def print_table(runs: dict) -> None:
+    """Both conditions side by side: twin, plant, plant / twin."""
+    conds = list(runs)
+    head = f"{'':54s}" + "".join(f"{c + ': twin':>14s}{'plant':>10s}{'plant/twin':>12s}" for c in conds)
+    print(head)
+    for label, key in ROWS:
+        line = f"{label:54s}"
+        for c in conds:
+            tw, pl = runs[c]["twin"][key], runs[c]["plant"][key]
+            ratio = f"{pl / tw:.2f}x" if key in ("wall_s", "cpu_s", "process_wall_s") and tw > 0 else ""
+            fmt = "{:14.0f}{:10.0f}" if key == "steps_per_s" else "{:14.1f}{:10.1f}"
+            line += fmt.format(tw, pl) + f"{ratio:>12s}"
+        print(line)
+    for c in conds:
+        r = runs[c]
+        share = r["twin"]["updates_s"] + r["twin"]["sb3_collect_s"]
+        print(f"{c}: the twin trains {r['plant']['wall_s'] / r['twin']['wall_s']:.2f}x faster than the plant "
+              f"(wall clock); SB3's own work (updates + collection overhead) is {100 * share / r['twin']['wall_s']:.0f} % "
+              f"of the twin's wall clock, the twin's engine and env {100 * r['twin']['env_s'] / r['twin']['wall_s']:.0f} %")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--identified", default=os.path.join(ROOT, "identified", "data", "robot.json"))
     ap.add_argument("--timesteps", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--episodes", type=int, default=10, help="evaluation episodes on the plant")
-    ap.add_argument("--target", type=float, default=0.5, help="a progress (m) to report the plant steps of")
-    ap.add_argument("--points", type=int, default=8,
-                    help="snapshots of the plant run evaluated (evenly spaced; plus the final policy)")
-    ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
+    ap.add_argument("--busy", choices=("both", "none", "only"), default="both",
+                    help="run quiet and with one busy process (both, default), quiet only, or busy only")
+    ap.add_argument("--twin-envs", type=int, default=None, help="twin envs (default: tensegrity train's, 64)")
+    ap.add_argument("--plant-envs", type=int, default=8, help="plant envs, one process each (default 8)")
+    ap.add_argument("--batch-size", type=int, default=None, help="PPO mini-batch (default: tensegrity train's)")
+    ap.add_argument("--n-epochs", type=int, default=None, help="PPO epochs per update (default: tensegrity train's)")
+    ap.add_argument("--rollout", type=int, default=None, help="PPO transitions per update (default 4096)")
+    ap.add_argument("--fused-adam", action="store_true", help="Adam's fused CPU kernel (the same update rule)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of both trainings (default 1)")
-    ap.add_argument("--no-curve", action="store_true",
-                    help="wall clock and CPU only: no evaluation, no learning curve of the plant run")
+    ap.add_argument("--curve", action="store_true",
+                    help="also evaluate on the plant: the twin policy and the learning curve of the plant run")
+    ap.add_argument("--no-curve", action="store_true", help=argparse.SUPPRESS)  # the default now
+    ap.add_argument("--episodes", type=int, default=10, help="evaluation episodes on the plant (--curve)")
+    ap.add_argument("--target", type=float, default=0.5, help="a progress (m) to report the plant steps of (--curve)")
+    ap.add_argument("--points", type=int, default=8,
+                    help="snapshots of the plant run evaluated (--curve; evenly spaced, plus the final policy)")
+    ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
+    ap.add_argument("--one", choices=("twin", "plant"), default=None, help=argparse.SUPPRESS)  # a child: one training
+    ap.add_argument("--policy-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if sys.platform.startswith("linux"):
-        count_worker_cpu()
 
     import tensegrity_gym  # noqa: F401
-    from tensegrity_gym.gap import measure_gap
-    from tensegrity_gym.training import TrainConfig, snapshot_path, train
+    from tensegrity_gym.training import DEFAULT_ROLLOUT, TrainConfig
 
     os.makedirs(args.out, exist_ok=True)
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
-          f"{args.threads} torch thread(s)")
-    rows = {}
-    for where in ("twin", "plant"):
-        out = os.path.join(args.out, f"{where}.zip")
-        cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified,
-                          plant=where == "plant", snapshots=where == "plant" and not args.no_curve,
-                          threads=args.threads)
-        c0, t0 = cpu_s(), time.perf_counter()
-        r = train(cfg, out, progress=False)
-        wall, cpu = time.perf_counter() - t0, cpu_s() - c0
-        rows[where] = {"wall_s": wall, "cpu_s": cpu, "train_wall_s": r.wall_s, "timesteps": r.timesteps,
-                       "envs": cfg.n_envs, "steps_per_s": r.timesteps / wall, "policy": out,
-                       "load_after": os.getloadavg()[0]}
-        print(f"{where:5s}: {r.timesteps} steps, {cfg.n_envs} envs: {wall:.0f} s wall ({r.timesteps / wall:.0f} "
-              f"steps/s), {cpu:.0f} s CPU; load average {os.getloadavg()[0]:.1f}", flush=True)
-    ratio = rows["plant"]["wall_s"] / rows["twin"]["wall_s"]
-    print(f"twin {ratio:.2f}x faster than the plant (wall clock), "
-          f"{rows['plant']['cpu_s'] / rows['twin']['cpu_s']:.2f}x in CPU time")
-    if args.no_curve:
-        with open(os.path.join(args.out, "bench_train.json"), "w") as fh:
-            json.dump({"rows": rows, "twin_over_plant_speed": ratio}, fh, indent=1)
+    hp: dict = {}
+    if args.batch_size is not None:
+        hp["batch_size"] = args.batch_size
+    if args.n_epochs is not None:
+        hp["n_epochs"] = args.n_epochs
+    if args.fused_adam:
+        hp["policy_kwargs"] = {"optimizer_kwargs": {"fused": True}}
+    rollout = args.rollout or DEFAULT_ROLLOUT
+    if args.one is not None:  # the child: train, print the row as the last line of stdout
+        instrument()
+        plant = args.one == "plant"
+        cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified, plant=plant,
+                          envs=args.plant_envs if plant else args.twin_envs, rollout=rollout, threads=args.threads,
+                          hyperparameters=dict(hp), snapshots=args.curve and plant and os.path.basename(args.policy_out) == "plant-quiet.zip")
+        print(json.dumps(train_timed(cfg, args.policy_out), default=str))
         return
+    conds = {"both": ("quiet", "busy"), "none": ("quiet",), "only": ("busy",)}[args.busy]
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
+          f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}", flush=True)
+    runs: dict = {}
+    for cond in conds:
+        runs[cond] = {}
+        for where in ("twin", "plant"):
+            # each training in a fresh process, as 'tensegrity train' runs: the twin compiles (from
+            # inductor's on-disk cache) every time, and nothing one training warmed helps the next
+            out = os.path.join(args.out, f"{where}-{cond}.zip")
+            child = [sys.executable, os.path.abspath(__file__), "--one", where, "--policy-out", out,
+                     *sys.argv[1:]]
+            t0 = time.perf_counter()
+            if cond == "busy":
+                with Busy():
+                    proc = subprocess.run(child, check=False, capture_output=True, text=True)
+            else:
+                proc = subprocess.run(child, check=False, capture_output=True, text=True)
+            if proc.returncode != 0:
+                sys.exit(f"bench_train: the {where} training failed:\n{proc.stderr[-3000:]}")
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            row["process_wall_s"] = time.perf_counter() - t0
+            runs[cond][where] = row
+            print(f"{cond:5s} {where:5s}: {row['timesteps']} steps, {row['envs']} envs: {row['wall_s']:.1f} s wall "
+                  f"({row['steps_per_s']:.0f} steps/s; compile {row['compile_s']:.1f}, env {row['env_s']:.1f}, SB3 "
+                  f"collecting {row['sb3_collect_s']:.1f}, updates {row['updates_s']:.1f} s), {row['cpu_s']:.0f} s CPU; "
+                  f"process {row['process_wall_s']:.1f} s; load {row['load_before']:.1f} -> {row['load_after']:.1f}",
+                  flush=True)
+    print()
+    print_table(runs)
+    result: dict = {"runs": runs, "overrides": {k: v for k, v in hp.items() if k != "policy_kwargs"},
+                    "fused_adam": args.fused_adam, "rollout": rollout,
+                    "plant_over_twin_wall": {c: runs[c]["plant"]["wall_s"] / runs[c]["twin"]["wall_s"] for c in runs}}
+    if args.curve and "quiet" in runs:
+        result.update(learning_curve(args, runs["quiet"]))
+    with open(os.path.join(args.out, "bench_train.json"), "w") as fh:
+        json.dump(result, fh, indent=1, default=str)
+
+
+def learning_curve(args: argparse.Namespace, rows: dict) -> dict:
+    """The twin policy on the plant, the plant run's learning curve and the plant-data anchors."""
+    from tensegrity_gym.gap import measure_gap
+    from tensegrity_gym.training import snapshot_path
 
     gap = measure_gap(rows["twin"]["policy"], args.identified, args.episodes, seed=0, progress=False)
     twin_on_plant = gap["plant"]["progress_m"]
     print(f"twin policy: {gap['twin']['progress_m']:.3f} m on the twin, {twin_on_plant:.3f} m on the plant, "
           f"random {gap['random_plant']['progress_m']:.3f} m")
-
     curve = []
     plant_out = rows["plant"]["policy"]
     stem = os.path.basename(plant_out).removesuffix(".zip") + ".step"
@@ -154,7 +300,6 @@ def main() -> None:
     print("direct training on the plant: progress on the plant (m) after N plant control steps")
     for n, p in curve:
         print(f"  {n:7d}  {p:7.3f}")
-
     coll_physics = COLLECTION["episodes"] * COLLECTION["physics_steps"]
     coll_robot_s = coll_physics * COLLECTION["physics_dt_s"]
     dt = 0.02  # the env's control period: frame_skip 20 x 1 ms
@@ -170,11 +315,8 @@ def main() -> None:
             print(f"  {level:.3f} m reached after {first} plant control steps ({first * dt:.0f} s of robot time); "
                   f"the twin pipeline used {coll_robot_s:.0f} s of plant time (collection): "
                   f"{100 * coll_robot_s / (first * dt):.1f} % of it")
-    result = {"rows": rows, "twin_over_plant_speed": ratio, "gap": {k: gap[k] for k in ("twin", "plant", "random_plant")},
-              "plant_curve": curve, "anchors": anchors,
-              "collection": {**COLLECTION, "robot_s": coll_robot_s, "control_steps": coll_robot_s / dt}}
-    with open(os.path.join(args.out, "bench_train.json"), "w") as fh:
-        json.dump(result, fh, indent=1)
+    return {"gap": {k: gap[k] for k in ("twin", "plant", "random_plant")}, "plant_curve": curve, "anchors": anchors,
+            "collection": {**COLLECTION, "robot_s": coll_robot_s, "control_steps": coll_robot_s / dt}}
 
 
 if __name__ == "__main__":

@@ -23,6 +23,8 @@ key                shape            meaning
 ``push_point``     (E, T, R, 3)     where the push acts, in the rod frame, m
 ``noise``          (4,)             sensor-noise std added to pos, vel, quat, angvel (0 = clean)
 ``seed``           ()               seed of the collection run (-1 if unknown)
+``actuator_names`` (U,)             optional: MJCF names of MuJoCo tendon actuators
+``ctrl``           (E, T, U)        optional: command sent to each actuator during step t
 =================  ===============  ==========================================================
 
 Step ``t`` takes the state at instant ``t`` to instant ``t + 1`` under ``rest_length[:, t]`` and
@@ -67,6 +69,8 @@ class Dataset:
     push_point: np.ndarray
     noise: np.ndarray = field(default_factory=lambda: np.zeros(4))
     seed: int = -1
+    actuator_names: tuple[str, ...] = ()
+    ctrl: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
 
     @property
     def n_episodes(self) -> int:
@@ -100,6 +104,7 @@ class Dataset:
             rest_length=self.rest_length[ep, :t],
             push_force=self.push_force[ep, :t],
             push_point=self.push_point[ep, :t],
+            ctrl=self.ctrl[ep, :t] if self.ctrl.ndim == 3 and self.ctrl.shape[0] else self.ctrl,
         )
 
     def validate(self) -> Dataset:
@@ -124,6 +129,15 @@ def _validate(d: Dataset) -> None:
         raise DatasetError(f"'pos' must have shape (E, T+1, R, 3), got {d.pos.shape}")
     E, T1, R, _ = d.pos.shape
     S, A = len(d.tendon_names), len(d.actuated_names)
+    U = len(d.actuator_names)
+    if U == 0 and np.size(d.ctrl) == 0 and np.shape(d.ctrl) != (E, T1 - 1, 0):
+        object.__setattr__(d, "ctrl", np.zeros((E, T1 - 1, 0)))  # no actuators: an empty record
+    ctrl = np.asarray(d.ctrl)
+    if ctrl.shape != (E, T1 - 1, U):
+        raise DatasetError(f"'ctrl' must have shape {(E, T1 - 1, U)} (one command per actuator and step), "
+                           f"got {ctrl.shape}")
+    if U and not np.all(np.isfinite(ctrl)):
+        raise DatasetError("'ctrl' holds non-finite values")
     if T1 < 2:
         raise DatasetError("the dataset holds fewer than 2 instants per episode: no step to learn from")
     if E < 1 or R < 1:
@@ -218,6 +232,8 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
         actuated_names=tuple(str(x) for x in arrays["actuated_names"]),
         noise=np.asarray(arrays.get("noise", np.zeros(4)), dtype=np.float64).reshape(4),
         seed=int(arrays.get("seed", -1)),
+        actuator_names=tuple(str(x) for x in np.atleast_1d(arrays.get("actuator_names", np.array([], dtype=str)))),
+        ctrl=np.asarray(arrays.get("ctrl", np.zeros((0, 0, 0))), dtype=np.float64),
         **{k: np.asarray(arrays[k], dtype=np.float64) for k in (*_STATE_KEYS, *_STEP_KEYS)},
     )
 
@@ -227,7 +243,7 @@ def save_dataset(path: str | os.PathLike, d: Dataset) -> None:
     d.validate()
     arrays = {f.name: getattr(d, f.name) for f in fields(d)}
     arrays["format"] = np.array(FORMAT)
-    for k in ("rod_names", "tendon_names", "actuated_names"):
+    for k in ("rod_names", "tendon_names", "actuated_names", "actuator_names"):
         arrays[k] = np.array(arrays[k], dtype=str)
     arrays["dt"] = np.array(d.dt)
     arrays["seed"] = np.array(d.seed)

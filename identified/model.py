@@ -86,6 +86,11 @@ class IdentifiedModel:
                 line += (f", one-step {g(step['one_step_before'])} -> {g(step.get('one_step_after'))} "
                          f"(evidence: {step.get('evidence')})")
             lines.append(line)
+        res = self.metrics.get("residual") or {}
+        if res.get("large"):
+            lines.append(f"NOT A DESCRIPTION OF ITS DATA: the equations leave {res['relative_one_step']:.3g} of the "
+                         "recorded wrench unexplained (the model lacks something the plant has; the parameters "
+                         "above absorb it)")
         return "\n".join(lines)
 
     # ------------------------------------------------------------------ JSON

@@ -1,32 +1,32 @@
 """The system topology graph (paper, Sec. "System Topology Graph"), read from an MJCF file.
 
-Only *structure and geometry* are read: which bodies are rods, where their end points are in the
-rod frame, which sites each spring joins, whether a spring is a pull-only cable (MuJoCo tendon
-dead-band ``springlength="0 L"``) and which cables are actuated.  The physical parameters written
-in the file (stiffness, damping, masses, inertias, rest lengths) are never read: identification
-must find them from data.
+Only *structure and geometry* are read, from the model as MuJoCo compiles it
+(:func:`identified.mjcf.read_system`): which bodies are rods, where their sites are in the rod
+frame, which sites each spring joins, whether a spring is a pull-only cable (MuJoCo tendon
+dead-band ``springlength="0 L"``), which cables have rest-length motors and which MuJoCo actuators
+act on which tendon. The physical parameters written in the file (stiffness, damping, masses,
+inertias, rest lengths, gains) are never read: identification must find them from data.
 
-MJCF conventions (:mod:`identified.mjcf`, which parses the file for this module):
+What a model may hold:
 
-* every rod is a top-level ``<body>`` with a ``<freejoint>``; its centre of mass is the body origin;
-* rod end points are ``<site>`` elements of the rod body;
-* every spring/cable is a ``<spatial>`` tendon between exactly two sites, each on a rod or fixed
-  in the world (an anchor, e.g. a nail);
-* actuated cables are listed in ``<custom><text name="tensegrity_actuated" data="..."/></custom>``.
+* a rod is a body with a free joint together with all its jointless descendant bodies (one rigid
+  body); its frame is the free body's compiled frame, its centre of mass anywhere in it;
+* every spring/cable is a ``<spatial>`` tendon between two sites, each on a rod or fixed to the
+  world (an anchor, e.g. a nail), never two sites of one body;
+* rest-length motors are listed in ``<custom><text name="tensegrity_actuated" data="..."/></custom>``;
+  MuJoCo actuators (``motor``, ``position``, ``general``) act on tendons.
 """
 
 from __future__ import annotations
 
 import os
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from identified.mjcf import ACTUATED_KEY, custom_entries, is_free_body, parse_mjcf, read_mjcf_text
-from identified.rotation import quat_to_matrix
+from identified.mjcf import SystemDescription, compile_mjcf, parse_mjcf, read_mjcf_text, read_system
 
-__all__ = ["Rod", "Spring", "Topology", "TopologyError"]
+__all__ = ["Actuator", "Rod", "Spring", "Topology", "TopologyError"]
 
 
 class TopologyError(ValueError):
@@ -35,17 +35,51 @@ class TopologyError(ValueError):
 
 @dataclass(frozen=True)
 class Rod:
-    """A rigid rod: a free body whose centre of mass is the body origin."""
+    """A rigid rod: a free body with its jointless descendants; its frame is the free body's.
+
+    ``sites`` are all sites of the rod's bodies with ``site_offsets`` their positions in the rod
+    frame; ``attachments`` the sites cables use (all sites when not given); ``radius`` its largest
+    capsule or cylinder radius (geometry, m; 0 when unknown).
+    """
 
     name: str
     sites: tuple[str, ...]
     site_offsets: np.ndarray = field(repr=False)  # (n_sites, 3) positions in the rod frame, m
+    attachments: tuple[str, ...] = ()
+    bodies: tuple[str, ...] = ()
+    radius: float = 0.0
+
+    def site_offset(self, site: str) -> np.ndarray:
+        """(3,) position of one of the rod's sites in the rod frame, m."""
+        return self.site_offsets[self.sites.index(site)]
+
+    @property
+    def ends(self) -> np.ndarray:
+        """(2, 3) the two attachment sites farthest apart (the rod's ends), rod frame, m."""
+        names = self.attachments or self.sites
+        p = np.array([self.site_offset(s) for s in names]).reshape(-1, 3)
+        d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
+        i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+        return p[[i, j]]
 
     @property
     def length(self) -> float:
         """Distance between the two outermost attachment sites, m."""
-        d = self.site_offsets[:, None, :] - self.site_offsets[None, :, :]
-        return float(np.max(np.linalg.norm(d, axis=-1)))
+        e = self.ends
+        return float(np.linalg.norm(e[1] - e[0]))
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """A control input of the system (see :class:`identified.mjcf.ActuatorInfo`): ``kind``
+    ``"motor"``, ``"general"`` (affine bias) or ``"rest_length"``; the ``tendon`` it acts on; its
+    activation ``dynamics``; its command range ``ctrlrange`` (``None``: unlimited)."""
+
+    name: str
+    kind: str
+    tendon: str
+    dynamics: str = "none"
+    ctrlrange: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -70,6 +104,8 @@ class Topology:
 
     rods: tuple[Rod, ...]
     springs: tuple[Spring, ...]
+    actuators: tuple[Actuator, ...] = ()
+    ground: float | None = None  # height of the model's ground plane, m (None: no ground)
 
     # ------------------------------------------------------------------ names and counts
     @property
@@ -115,6 +151,30 @@ class Topology:
         """(S,) bool: cables that only pull (tension only when longer than the rest length)."""
         return np.array([s.pull_only for s in self.springs], dtype=bool)
 
+    @property
+    def site_rod(self) -> dict[str, int]:
+        """Rod index of every site on a rod and of every cable end (-1: fixed to the world)."""
+        out = {s: i for i, r in enumerate(self.rods) for s in r.sites}
+        for sp in self.springs:
+            for s, r in zip(sp.sites, sp.rods, strict=True):
+                out.setdefault(s, r)
+        return out
+
+    def site_position(self, site: str) -> np.ndarray:
+        """(3,) a site in its rod's frame (a fixed site: in the world frame), m."""
+        for r in self.rods:
+            if site in r.sites:
+                return r.site_offset(site).copy()
+        for sp in self.springs:
+            if site in sp.sites:
+                return sp.offsets[sp.sites.index(site)].copy()
+        raise KeyError(f"no site '{site}' in the topology")
+
+    @property
+    def routes(self) -> dict[str, tuple[str, ...]]:
+        """The sites every cable is routed over, in order."""
+        return {s.name: s.sites for s in self.springs}
+
     def springs_of_rod(self, i: int) -> tuple[int, ...]:
         """Indices of the springs attached to rod ``i``."""
         return tuple(j for j, s in enumerate(self.springs) if i in s.rods)
@@ -126,133 +186,50 @@ class Topology:
         text = read_mjcf_text(source, TopologyError)
         if not os.fspath(source).lstrip().startswith("<"):
             try:  # name the user's file in every error
-                return cls._from_text(text)
+                return cls._from_text(text, source)
             except TopologyError as exc:
                 msg = str(exc)
                 raise TopologyError(msg if str(source) in msg else f"'{source}': {msg}") from None
         return cls._from_text(text)
 
     @classmethod
-    def _from_text(cls, text: str) -> Topology:
+    def _from_text(cls, text: str, source: str | os.PathLike | None = None) -> Topology:
         root = parse_mjcf(text, TopologyError)
         if root.tag != "mujoco":
             raise TopologyError(f"not an MJCF file: root element is <{root.tag}>, expected <mujoco>")
-        world = root.find("worldbody")
-        if world is None:
+        if root.find("worldbody") is None:
             raise TopologyError("MJCF has no <worldbody>")
-
-        rods: list[Rod] = []
-        site_where: dict[str, tuple[int, np.ndarray]] = {}  # site -> (rod index or -1, offset)
-        _collect_world_sites(world, np.zeros(3), np.eye(3), site_where)
-        for body in world.findall("body"):
-            if not is_free_body(body):
-                _collect_world_sites(body, *_frame(body), site_where, static=True)
-                continue
-            name = body.get("name")
-            if not name:
-                raise TopologyError("a body with a free joint has no name; every rod body must be named")
-            if body.find("body") is not None:
-                raise TopologyError(f"rod body '{name}' has child bodies; a rod must be a single rigid body")
-            sites = [s for s in body.findall("site")]
-            if not sites:
-                raise TopologyError(f"rod body '{name}' has no sites for its end points")
-            idx = len(rods)
-            names, offsets = [], []
-            for s in sites:
-                sname = s.get("name")
-                if not sname:
-                    raise TopologyError(f"rod body '{name}' has an unnamed site")
-                off = _vec(s.get("pos"), 3)
-                names.append(sname)
-                offsets.append(off)
-                site_where[sname] = (idx, off)
-            rods.append(Rod(name=name, sites=tuple(names), site_offsets=np.array(offsets)))
-        if not rods:
-            raise TopologyError("MJCF has no rods: no top-level body with a free joint")
-
-        actuated = _actuated_names(root)
-        springs: list[Spring] = []
-        tendon = root.find("tendon")
-        spatials = [] if tendon is None else tendon.findall("spatial")
-        if not spatials:
+        model = compile_mjcf(text if source is None else source, TopologyError)
+        if not any(model.jnt_type == 0):  # mjJNT_FREE
+            raise TopologyError("MJCF has no rods: no body with a free joint")
+        if model.ntendon == 0:
             raise TopologyError("MJCF has no springs: no <spatial> tendon in <tendon>")
-        for t in spatials:
-            tname = t.get("name")
-            if not tname:
-                raise TopologyError("a spatial tendon has no name; every spring/cable must be named")
-            refs = [s.get("site") for s in t.findall("site")]
-            if len(refs) != 2 or len(t) != 2:
-                raise TopologyError(f"tendon '{tname}' must join exactly two sites (found {len(refs)} sites)")
-            ends = []
-            for ref in refs:
-                if ref not in site_where:
-                    raise TopologyError(f"tendon '{tname}' uses site '{ref}', which is not on a rod or fixed")
-                ends.append(site_where[ref])
-            if ends[0][0] == ends[1][0]:
-                raise TopologyError(f"tendon '{tname}' joins two points of the same body")
-            springs.append(
-                Spring(
-                    name=tname,
-                    sites=(refs[0], refs[1]),
-                    rods=(ends[0][0], ends[1][0]),
-                    offsets=np.array([ends[0][1], ends[1][1]]),
-                    pull_only=_is_deadband(t, tname),
-                    actuated=tname in actuated,
-                )
-            )
-        unknown = set(actuated) - {s.name for s in springs}
-        if unknown:
-            raise TopologyError(f"'{ACTUATED_KEY}' names tendons that do not exist: {sorted(unknown)}")
-        return cls(rods=tuple(rods), springs=tuple(springs))
+        return cls.from_system(read_system(model, TopologyError))
 
-
-# ---------------------------------------------------------------------- XML helpers
-def _vec(text: str | None, n: int) -> np.ndarray:
-    if text is None:
-        return np.zeros(n)
-    vals = np.array([float(x) for x in text.split()])
-    if vals.size != n:
-        raise TopologyError(f"expected {n} numbers, got '{text}'")
-    return vals
-
-
-def _frame(body: ET.Element) -> tuple[np.ndarray, np.ndarray]:
-    """World position and rotation of a static (joint-less) top-level body."""
-    pos = _vec(body.get("pos"), 3)
-    q = _vec(body.get("quat"), 4) if body.get("quat") else np.array([1.0, 0, 0, 0])
-    if any(body.get(k) for k in ("euler", "axisangle", "xyaxes", "zaxis")):
-        raise TopologyError(f"static body '{body.get('name')}' must give its orientation as quat")
-    return pos, quat_to_matrix(q)
-
-
-def _collect_world_sites(
-    elem: ET.Element, pos: np.ndarray, rot: np.ndarray, out: dict, static: bool = False
-) -> None:
-    for s in elem.findall("site"):
-        if s.get("name"):
-            out[s.get("name")] = (-1, pos + rot @ _vec(s.get("pos"), 3))
-    if static:
-        for child in elem.findall("body"):
-            if child.find("joint") is not None or child.find("freejoint") is not None:
-                raise TopologyError(f"body '{child.get('name')}' has a joint but is not a top-level rod")
-            cpos, crot = _frame(child)
-            _collect_world_sites(child, pos + rot @ cpos, rot @ crot, out, static=True)
-
-
-def _is_deadband(t: ET.Element, name: str) -> bool:
-    spec = t.get("springlength")
-    if spec is None:
-        return False
-    vals = [float(x) for x in spec.split()]
-    if len(vals) == 1 or vals[0] == vals[1]:
-        return False
-    if vals[0] > 0:
-        raise TopologyError(
-            f"tendon '{name}': a dead-band with a non-zero lower bound is not a spring or a cable"
-        )
-    return True
-
-
-def _actuated_names(root: ET.Element) -> set[str]:
-    texts, _ = custom_entries(root)
-    return set(texts.get(ACTUATED_KEY, "").split())
+    @classmethod
+    def from_system(cls, system: SystemDescription) -> Topology:
+        """The topology of a :class:`~identified.mjcf.SystemDescription` (read by
+        :func:`identified.mjcf.read_system`), refusing what the identified engine does not model:
+        cables routed over more than two sites, tendon length limits and two-sided dead bands."""
+        rods = tuple(Rod(name=r.name, sites=r.sites, site_offsets=r.site_pos, attachments=r.attachments,
+                         bodies=r.bodies, radius=r.radius) for r in system.rods)
+        motors = {a.tendon for a in system.actuators if a.kind == "rest_length"}
+        springs: list[Spring] = []
+        for t in system.tendons:
+            if len(t.sites) != 2:
+                raise TopologyError(f"tendon '{t.name}' is routed over {len(t.sites)} sites: the identified "
+                                    "engine models a cable between exactly two sites")
+            if t.limited:
+                raise TopologyError(f"tendon '{t.name}' has a length limit (limited/range): the identified "
+                                    "engine does not model tendon limits; remove it or the range")
+            if t.deadband == "two_sided":
+                raise TopologyError(f"tendon '{t.name}': a dead-band with a non-zero lower bound "
+                                    "(springlength=\"a b\", a > 0) is not modelled; use \"0 L\" for a cable")
+            ends = [(system.site_rod[s], system.site_pos[s]) for s in t.sites]
+            springs.append(Spring(name=t.name, sites=(t.sites[0], t.sites[1]),
+                                  rods=(ends[0][0], ends[1][0]),
+                                  offsets=np.array([ends[0][1], ends[1][1]], dtype=float),
+                                  pull_only=t.deadband == "pull_only", actuated=t.name in motors))
+        actuators = tuple(Actuator(name=a.name, kind=a.kind, tendon=a.tendon, dynamics=a.dynamics,
+                                   ctrlrange=a.ctrlrange) for a in system.actuators)
+        return cls(rods=rods, springs=tuple(springs), actuators=actuators, ground=system.ground)

@@ -24,7 +24,7 @@ DOC = ROOT / "docs" / "ARCHITECTURE.md"
 
 #: the path of the data, each stage by the module that does it (checked to exist)
 DATA_PATH = (
-    ("MJCF", "the system's structure and geometry, read as XML", "identified.mjcf", "identified.topology"),
+    ("MJCF", "the system's structure and geometry, as MuJoCo compiles it", "identified.mjcf", "identified.topology"),
     ("recording", "rod states, commands and pushes of the plant", "tensegrity_gym.collect", None),
     ("lab recording", "markers, encoder rest lengths (CSV, C3D, Motive): read, checked, labelled",
      "identified.recording", None),

@@ -12,6 +12,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -173,6 +174,16 @@ def cmd_fit(args: argparse.Namespace) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (fit {model.metrics['fit_seconds']:.3g} s{extra}, "
           f"integrator {model.integrator}, effects: {added})")
+    _strict(args, model)
+
+
+def _strict(args: argparse.Namespace, model) -> None:
+    """``fit --strict``: an error when the fitted equations do not describe their own data."""
+    res = model.metrics.get("residual") or {}
+    if args.strict and res.get("large"):
+        raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
+                           f"unexplained on its own data (above {res['threshold']:g}); '{args.out}' is written "
+                           "for inspection")
 
 
 def _is_recording(path: str) -> bool:
@@ -203,6 +214,7 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
           f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")
+    _strict(args, model)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -244,7 +256,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
           f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
     print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
     for e in result["one_step"].get("effect_rows") or []:
-        pct = lambda v: "n/a" if v is None else f"{v:.1%}"
+        pct = lambda v: "n/a" if v is None else (f"{v:.1%}" if v >= 1e-3 else f"{v:.2g}")
         print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "
               f"{pct(e['inside']['force'])}, torque {pct(e['inside']['torque'])} of the recorded; other rods "
               f"{pct(e['outside']['force'])}, {pct(e['outside']['torque'])}")
@@ -300,7 +312,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from tensegrity_gym.training import TrainConfig, train
+    from tensegrity_gym.training import TrainConfig, resolve_randomize, train
 
     if args.timesteps < 1:
         raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
@@ -310,10 +322,24 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise CommandError("--identified F.json is needed to train on the twin (or train on the plant with --plant)")
     if args.identified is not None:
         _check_readable(args.identified)
-    _check_writable(args.out)
-    cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, algo=args.algo, identified=args.identified,
-                      plant=args.plant, envs=args.envs, rollout=args.rollout, episode_steps=args.episode_steps,
-                      threads=args.threads, tensorboard=args.tensorboard)
+    if args.seeds is None and (args.ray is not None or args.jobs is not None):
+        raise CommandError(f"{'--ray' if args.ray is not None else '--jobs'} runs several seeds: give them with "
+                           "--seeds (e.g. --seeds 0-4)")
+    own = _xml_file_kwargs(args)
+    if args.seeds is None:
+        _check_writable(args.out)
+    cfg = TrainConfig(timesteps=args.timesteps, seed=0 if args.seed is None else args.seed, algo=args.algo,
+                      identified=args.identified, plant=args.plant, envs=args.envs, rollout=args.rollout,
+                      episode_steps=args.episode_steps, threads=args.threads, tensorboard=args.tensorboard,
+                      randomize=args.randomize, **own)
+    if not args.plant:
+        try:
+            resolve_randomize(cfg)
+        except ValueError as exc:
+            raise CommandError(f"--randomize {args.randomize}: {exc}") from None
+    if args.seeds is not None:
+        _train_seeds(args, cfg)
+        return
     r = train(cfg, args.out, progress=not args.quiet)
     last = ("" if r.mean_return is None else
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
@@ -321,22 +347,79 @@ def cmd_train(args: argparse.Namespace) -> None:
           f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
 
 
+def cmd_improve(args: argparse.Namespace) -> None:
+    from tensegrity_gym.improve import ImproveConfig, improve
+
+    for name in ("rounds", "episodes", "timesteps"):
+        if getattr(args, name) < 1:
+            raise CommandError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    for p in (args.identified, args.data, args.policy):
+        _check_readable(p)
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise CommandError(f"--out '{args.out}' exists and is not a folder")
+    cfg = ImproveConfig(rounds=args.rounds, episodes=args.episodes, timesteps=args.timesteps,
+                        randomize=args.randomize, effects=args.effects, seed=args.seed)
+    rows = improve(args.identified, args.data, args.policy, args.out, cfg, mjcf=args.model, progress=not args.quiet)
+    for r in rows:
+        e = r["twin_error_on_policy_states"]
+        print(f"round {r['round']}: plant {r['plant_progress_m']:.3f} m, twin {r['twin_progress_m']:.3f} m, twin on "
+              f"the policy's states: one-step {e['one_step_vel_m_s']:.3g} m/s, free run {e['free_run_m']:.3g} m; "
+              f"plant data {r['plant_data_s']:.0f} s")
+    print(f"wrote {os.path.join(args.out, 'improve.json')}")
+
+
+def _train_seeds(args: argparse.Namespace, cfg: Any) -> None:
+    """``train --seeds``: ``cfg`` once per seed into the folder ``--out`` (tensegrity_gym/sweep.py)."""
+    import dataclasses
+
+    from tensegrity_gym.sweep import parse_seeds, run_sweep
+
+    if args.seed is not None:
+        raise CommandError("give either --seed or --seeds, not both")
+    seeds = parse_seeds(args.seeds)
+    if args.out.endswith(".zip"):
+        raise CommandError(f"--out {args.out}: with --seeds, --out is a folder (one sub-folder per seed)")
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        raise CommandError(f"--out {args.out}: exists and is not a folder (with --seeds, --out is a folder)")
+    parent = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+        raise CommandError(f"--out {args.out}: cannot write there (folder '{parent}' missing or not writable)")
+    if args.tensorboard is not None:
+        raise CommandError("--tensorboard takes one run: train one --seed at a time for TensorBoard logs")
+    cfg = dataclasses.replace(cfg, seed=seeds[0])
+    s = run_sweep(cfg, seeds, args.out, jobs=args.jobs, ray_address=args.ray, progress=not args.quiet,
+                  log=print)
+    sp = s["over_seeds"]["last_progress_m"]
+    where = f"Ray ({args.ray})" if args.ray is not None else f"{s['jobs']} local process(es)"
+    last = "" if sp["mean"] is None else (f"; last training episodes' progress {sp['mean']:.3f} m "
+                                          f"(std {sp['std']:.3f}, {sp['min']:.3f} to {sp['max']:.3f})")
+    print(f"wrote {len(seeds)} {args.algo} policies to {args.out}/seed_*/ ({where}, {s['wall_s']:.1f} s{last}); "
+          f"summary: {os.path.join(args.out, 'summary.json')}")
+
+
 def cmd_gap(args: argparse.Namespace) -> None:
     from tensegrity_gym.gap import measure_gap
+    from tensegrity_gym.sweep import policies_in
 
     if args.episodes < 1:
         raise CommandError(f"--episodes must be at least 1, got {args.episodes}")
     if args.episode_steps is not None and args.episode_steps < 1:
         raise CommandError(f"--episode-steps must be at least 1, got {args.episode_steps}")
+    if args.video_every < 1:
+        raise CommandError(f"--video-every must be at least 1, got {args.video_every}")
     _check_readable(args.identified)
-    _check_readable(args.policy)
+    policies = policies_in(args.policy)
     if args.video is not None:
         if os.path.exists(args.video) and not os.path.isdir(args.video):
             raise CommandError(f"--video {args.video}: not a folder")
         _check_writable(os.path.join(args.video, "plant.mp4") if os.path.isdir(args.video) else args.video)
-    r = measure_gap(args.policy, args.identified, args.episodes, seed=args.seed,
+    own = _xml_file_kwargs(args)
+    if len(policies) > 1:
+        _gap_over_policies(args, policies, own.get("backend_kwargs"))
+        return
+    r = measure_gap(policies[0], args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
-                    threads=args.threads)
+                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"), video_every=args.video_every)
     if args.json:
         print(json.dumps(r, indent=2))
         return
@@ -362,6 +445,40 @@ def cmd_gap(args: argparse.Namespace) -> None:
           f"at 1 s {metres(ol['at']['1s'])}, final {metres(ol['final_m'])}")
     for name, path in r.get("videos", {}).items():
         print(f"  video {name}: {path}")
+
+
+def _gap_over_policies(args: argparse.Namespace, policies: list[str],
+                       backend_kwargs: dict[str, Any] | None = None) -> None:
+    """``gap`` of several policies: one line each, then mean and spread over them."""
+    from tensegrity_gym.gap import measure_gaps
+
+    r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
+                     video_dir=args.video, progress=not args.quiet, threads=args.threads,
+                     backend_kwargs=backend_kwargs, video_every=args.video_every)
+    if args.json:
+        print(json.dumps(json_safe(r), indent=2))
+        return
+    print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}; "
+          "forward progress per episode (m), mean over the episodes")
+    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin':>12s}")
+    for path, rep in zip(policies, r["reports"], strict=True):
+        ratio = rep["transfer"]["plant_over_twin"]
+        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}"
+              f"{'n/a' if ratio is None else format(ratio, '.2f'):>12s}")
+    o = r["over_policies"]
+
+    def line(label: str, sp: dict) -> str:
+        if sp["mean"] is None:
+            return f"  {label}: n/a"
+        return (f"  {label}: mean {sp['mean']:.3f}, std {sp['std']:.3f}, min {sp['min']:.3f}, max {sp['max']:.3f} "
+                f"(over {sp['n']})")
+
+    print("over the policies:")
+    print(line("twin progress (m)", o["twin"]["progress_m"]))
+    print(line("plant progress (m)", o["plant"]["progress_m"]))
+    print(line("plant / twin", o["plant_over_twin"]))
+    print(f"  random policy on the plant: {o['random_plant']['progress_m']:.3f} m; "
+          f"{o['plant_progress_at_least_0.5m']} of {len(policies)} policies roll >= 0.5 m on the plant")
 
 
 # ---------------------------------------------------------------------- parser
@@ -465,6 +582,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--jobs", type=jobs, default="auto", metavar="N|auto",
                    help="processes the effect search fits its candidates in (default auto: one per core "
                    "this process may use; the model is the same with any N)")
+    f.add_argument("--strict", action="store_true",
+                   help="exit with an error when the fitted equations leave a large residual on their own "
+                   "(clean) data: the model cannot describe the plant")
     f.add_argument("--dt", type=finite_float(0.0, 1.0, "s", True), default=0.001, metavar="SECONDS",
                    help="for a recording: the step of the identified engine (default 0.001 s)")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
@@ -508,6 +628,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
     rp.set_defaults(func=cmd_reproduce)
 
+    from tensegrity_gym.training import DEFAULT_RANDOMIZE, DEFAULT_TIMESTEPS
+
     t = sub.add_parser("train", help="train an SB3 policy on the identified twin (or on the plant)",
                        description="Train a Stable-Baselines3 policy to roll the robot forward on the identified "
                        "twin, stepped natively batched (one engine call for all envs; MuJoCo is never stepped), "
@@ -519,9 +641,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="identified model of the twin; with --plant it names the plant (the MJCF it was fitted "
                    "against; default with --plant: the robot preset)")
     t.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="algorithm (default ppo)")
-    t.add_argument("--timesteps", type=int, required=True, metavar="N", help="environment steps to train for")
-    t.add_argument("--seed", type=int, default=0, help="random seed: the same seed gives the same policy (default 0)")
-    t.add_argument("--out", required=True, metavar="P.zip", help="output policy file")
+    t.add_argument("--timesteps", type=int, default=DEFAULT_TIMESTEPS, metavar="N",
+                   help=f"environment steps to train for (default {DEFAULT_TIMESTEPS:,}: the budget at which "
+                   "policies trained on the twin transfer, README 'Training on the twin')")
+    t.add_argument("--seed", type=int, default=None,
+                   help="random seed: the same seed gives the same policy (default 0)")
+    t.add_argument("--seeds", default=None, metavar="A-B",
+                   help="train several seeds (e.g. 0-4 or 0,3,7) in parallel into the folder --out: one "
+                   "sub-folder per seed (policy.zip, vecnormalize.pkl, config.json, progress.csv, "
+                   "learning_curve.png) and summary.json")
+    t.add_argument("--jobs", type=int, default=None, metavar="J",
+                   help="with --seeds: local processes at a time (default: one per seed, at most one per core)")
+    t.add_argument("--ray", default=None, metavar="ADDRESS",
+                   help="with --seeds: run the seeds as Ray tasks on the cluster at ADDRESS (HOST:PORT, 'auto', "
+                   "or 'local' for a Ray instance on this machine; pip install 'tensegrity-gym[ray]')")
+    t.add_argument("--out", required=True, metavar="P.zip",
+                   help="output policy file (with --seeds: output folder)")
     t.add_argument("--plant", action="store_true", help="train on the MuJoCo plant (SubprocVecEnv) instead of the twin")
     t.add_argument("--envs", type=int, default=None, metavar="K",
                    help="envs stepped in parallel (default: ppo 64 on the twin, 8 on the plant; sac 8 / 4)")
@@ -532,8 +667,42 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
+    t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                   help="domain randomization of the twin, drawn per env at every reset: 'auto' (default: "
+                   "widths from the fit's standard errors, its contact law's unexplained variance and its "
+                   "one-step error; never from the plant's MJCF), 'none', or a JSON/YAML FILE of widths "
+                   "(tensegrity_gym/randomize.py documents the keys); recorded in the policy file")
+    t.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=cmd_train)
+
+    im = sub.add_parser("improve", help="rounds of: policy on the plant -> refit with its data -> train on",
+                        description="Close the loop through the policy: each round rolls the current policy on the "
+                        "plant (recorded in the collect format), measures the twin's error on those states, refits "
+                        "the model with them added to the fit's data, and continues training the policy on the new "
+                        "twin. Writes OUT/round<k>/ (plant.npz, model.json, policy.zip) and OUT/improve.json "
+                        "(per round: plant and twin progress, the twin's one-step and free-run error on the "
+                        "policy's states, plant data used so far).")
+    im.add_argument("--identified", required=True, metavar="F.json", help="the model the policy was trained on")
+    im.add_argument("--data", required=True, metavar="D.npz", help="the dataset the model was fitted on")
+    im.add_argument("--policy", required=True, metavar="P.zip", help="the policy to improve")
+    im.add_argument("--model", default=None, metavar="M.xml",
+                    help="the plant's MJCF (default: the one the model was fitted against)")
+    im.add_argument("--rounds", type=int, default=2, help="rounds (default 2)")
+    im.add_argument("--episodes", type=int, default=2, help="plant episodes recorded per round (default 2)")
+    im.add_argument("--timesteps", type=int, default=100_000, metavar="N",
+                    help="training steps on each new twin (default 100,000)")
+    im.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
+                    help="randomization while training on (default auto, as 'train')")
+    im.add_argument("--effects", default="same", help="effects of the refit: 'same' (the model's, default) or as "
+                    "'fit --effects'")
+    im.add_argument("--seed", type=int, default=0, help="seed of the plant episodes and the training (default 0)")
+    im.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    im.add_argument("--quiet", action="store_true", help="no progress lines")
+    im.set_defaults(func=cmd_improve)
 
     g = sub.add_parser("gap", help="the sim-to-sim gap of a policy: twin, plant, random, open loop",
                        description="Run the policy on the twin and on the plant from the same reset seeds, a random "
@@ -543,21 +712,44 @@ def build_parser() -> argparse.ArgumentParser:
                        "mass per episode) and open_loop.")
     g.add_argument("--identified", required=True, metavar="F.json",
                    help="identified model of the twin (the plant is the MJCF it was fitted against)")
-    g.add_argument("--policy", required=True, metavar="P.zip", help="policy written by 'tensegrity train'")
+    g.add_argument("--policy", required=True, nargs="+", metavar="P.zip",
+                   help="policy written by 'tensegrity train', several, or a folder of seeds written by "
+                   "'tensegrity train --seeds' (then: each policy's gap, and mean and spread over them)")
     g.add_argument("--episodes", type=int, default=10, metavar="K", help="episodes on each (default 10)")
     g.add_argument("--seed", type=int, default=0, help="episode k resets with seed + k on every env (default 0)")
     g.add_argument("--episode-steps", type=int, default=None, metavar="T",
                    help="time limit of an episode (default: the policy's training limit)")
     g.add_argument("--json", action="store_true", help="machine-readable output")
     g.add_argument("--video", default=None, metavar="DIR",
-                   help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here")
+                   help="write twin.mp4, plant.mp4 and random_plant.mp4 of the first episode here, and "
+                   "twin_plant.mp4: the twin (left) beside the plant (right)")
+    g.add_argument("--video-every", type=int, default=2, metavar="K",
+                   help="one video frame every K control steps, played at 25 fps (default 2: real time; "
+                   "K > 2: a time-lapse, fewer frames to render)")
     g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
+    g.add_argument("--xml-file", default=None, metavar="PATH",
+                   help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "
+                   "actions its actuators or rest-length motors): the plant, and the twin's motors, pose and "
+                   "drawing; health derives from it (healthy_z_range='auto')")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=cmd_gap)
     return p
 
 
 # ---------------------------------------------------------------------- helpers
+def _xml_file_kwargs(args: argparse.Namespace) -> dict:
+    """``--xml-file PATH``: the MJCF of the plant and of the twin's source (``backend_kwargs['mjcf']``),
+    with the env's health derived from it; ``{}`` without the option."""
+    if args.xml_file is None:
+        return {}
+    _check_readable(args.xml_file)
+    from identified.mjcf import read_system
+
+    read_system(args.xml_file)  # a model that is no tensegrity fails here, in one line
+    return {"backend_kwargs": {"mjcf": os.path.abspath(args.xml_file)},
+            "env_kwargs": {"healthy_z_range": "auto"}}
+
+
 def _parse_mass(text: str) -> tuple[str, float]:
     name, sep, kg = text.partition("=")
     if not sep:

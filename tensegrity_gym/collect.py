@@ -5,7 +5,8 @@ Exciting inputs, as in the paper's experiments:
 * random initial states around the model's nominal pose (position, orientation, linear and angular
   velocity perturbations of every rod);
 * smooth random commands to the actuated cables: a target rest length that glides between random
-  way points inside the motor's range (the motor's speed limit smooths it further);
+  way points inside the motor's range (the motor's speed limit smooths it further); MuJoCo tendon
+  actuators get commands that glide the same way inside their ``ctrlrange``, recorded as ``ctrl``;
 * random pushes (the paper's control force ``f_u``) every ``push_every`` steps: a force of random
   direction and known magnitude on a rod (in shuffled rounds, so every rod is pushed as often)
   at a random point of its surface (a random point
@@ -96,23 +97,41 @@ def _command_schedule(rng: np.random.Generator, steps: int, dt: float, period: f
     return way[k] * (1 - blend[:, None]) + way[k + 1] * blend[:, None]
 
 
+def _push_frames(ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each rod's middle, axis and two directions across it, in the rod frame (for rods along z:
+    the rod frame's own x and y)."""
+    mid = ends.mean(axis=1)
+    axis = ends[:, 1] - ends[:, 0]
+    half = 0.5 * np.linalg.norm(axis, axis=1)
+    axis = axis / np.maximum(2.0 * half, 1e-12)[:, None]
+    across1 = np.empty_like(axis)
+    for i, a in enumerate(axis):
+        pick = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        v = pick - (pick @ a) * a
+        across1[i] = v / np.linalg.norm(v)
+    across2 = np.cross(axis, across1)
+    return mid, axis * half[:, None], across1, across2
+
+
 def _pushes(rng: np.random.Generator, cfg: CollectConfig, steps: int, n_rods: int,
-            half_lengths: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            ends: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     force = np.zeros((steps, n_rods, 3))
     point = np.zeros((steps, n_rods, 3))
     if cfg.push_every is None:
         return force, point
+    mid, half_axis, across1, across2 = _push_frames(ends)
     starts = range(cfg.push_every, steps, cfg.push_every)
     # rods in shuffled rounds: every rod is pushed as often as any other (±1)
     order = np.concatenate([rng.permutation(n_rods) for _ in range(len(starts) // n_rods + 1)])
     for start, rod in zip(starts, order):
         d = rng.normal(size=3)
         f = cfg.push_magnitude * d / np.linalg.norm(d)
-        z = rng.uniform(-1, 1) * half_lengths[rod]
+        z = rng.uniform(-1, 1)
         phi = rng.uniform(0, 2 * np.pi)
         stop = min(start + cfg.push_duration, steps)
         force[start:stop, rod] = f
-        point[start:stop, rod] = (radii[rod] * np.cos(phi), radii[rod] * np.sin(phi), z)
+        point[start:stop, rod] = (mid[rod] + z * half_axis[rod]
+                                  + radii[rod] * (np.cos(phi) * across1[rod] + np.sin(phi) * across2[rod]))
     return force, point
 
 
@@ -135,7 +154,7 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     plant = MujocoPlant(model, integrator=cfg.integrator)
     rng = np.random.default_rng(cfg.seed)
     E, T, R, S = cfg.episodes, cfg.steps, len(plant.rod_names), len(plant.tendon_names)
-    A = len(plant.actuated_names)
+    A, U = len(plant.actuated_names), len(plant.actuators)
     if R == 0 or S == 0:
         raise ValueError(f"'{model}' has {R} rods (free bodies) and {S} spatial tendons: a spring-rod model "
                          "needs both (see the MJCF conventions in DESIGN.md)")
@@ -145,11 +164,13 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     vel = np.empty((E, T + 1, R, 3))
     angvel = np.empty((E, T + 1, R, 3))
     command = np.empty((E, T, A))
+    ctrl = np.empty((E, T, U))
+    ctrl_lo, ctrl_hi = plant.ctrl_bounds() if U else (np.zeros(0), np.zeros(0))
     rest = np.empty((E, T, S))
     push_force = np.zeros((E, T, R, 3))
     push_point = np.zeros((E, T, R, 3))
     lo, hi = plant.rest_bounds() if A else (np.zeros(0), np.zeros(0))
-    half, radii = 0.5 * plant.rod_lengths(), plant.rod_radii()
+    ends, radii = plant.rod_ends(), plant.rod_radii()
 
     bar = None
     if progress:
@@ -159,7 +180,7 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
     try:
         with MujocoWarnings() as caught:  # MuJoCo's instability warnings become an error (in _roll)
             _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force,
-                  push_point, lo, hi, half, radii)
+                  push_point, lo, hi, ends, radii, ctrl, ctrl_lo, ctrl_hi)
     finally:
         if bar is not None:
             bar.close()
@@ -174,11 +195,13 @@ def collect(model: str | os.PathLike, cfg: CollectConfig, progress: bool = False
         command=command, rest_length=rest, push_force=push_force, push_point=push_point,
         noise=np.array([cfg.noise_pos, cfg.noise_vel, cfg.noise_quat, cfg.noise_angvel]),
         seed=int(cfg.seed),
+        actuator_names=plant.actuator_names,
+        ctrl=ctrl,
     ).validate()
 
 
 def _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, push_force, push_point,
-          lo, hi, half, radii) -> None:
+          lo, hi, ends, radii, ctrl, ctrl_lo, ctrl_hi) -> None:
     """Fill the record episode by episode; raise naming the episode where MuJoCo warned or diverged."""
     E, T, R, A = pos.shape[0], pos.shape[1] - 1, pos.shape[2], command.shape[2]
     for e in range(E):
@@ -186,12 +209,17 @@ def _roll(plant, cfg, rng, bar, caught, pos, quat, vel, angvel, command, rest, p
         plant.set_states(perturb_states(plant.states(), rng, cfg.init_pos_std, cfg.init_rot_std,
                                         cfg.init_vel_std, cfg.init_angvel_std))
         command[e] = _command_schedule(rng, T, plant.dt, cfg.command_period, lo, hi)
-        push_force[e], push_point[e] = _pushes(rng, cfg, T, R, half, radii)
+        push_force[e], push_point[e] = _pushes(rng, cfg, T, R, ends, radii)
+        U = ctrl.shape[2]
+        if U:  # drawn after the pushes: a model without actuators records what it always did
+            ctrl[e] = _command_schedule(rng, T, plant.dt, cfg.command_period, ctrl_lo, ctrl_hi)
         for t in range(T):
             s = plant.states()
             pos[e, t], quat[e, t], vel[e, t], angvel[e, t] = s.pos, s.quat, s.vel, s.angvel
             if A:
                 plant.set_targets(command[e, t])
+            if U:
+                plant.set_ctrl(ctrl[e, t])
             pushing = push_force[e, t].any()
             plant.step(push_force[e, t] if pushing else None, push_point[e, t] if pushing else None)
             rest[e, t] = plant.rest_lengths()  # the rest lengths used during step t

@@ -31,13 +31,17 @@ import numpy as np
 
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["EpisodeSet", "measure_gap", "run_episodes", "write_mp4"]
+__all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
+           "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
-#: Videos: frame size (pixels) and one frame every this many control steps (25 fps at 50 Hz):
-#: MuJoCo's offscreen renderer on a CPU-only machine takes ~0.1-0.4 s per 480 x 480 frame.
+#: Videos: frame size (pixels) and by default one frame every this many control steps (25 fps at
+#: 50 Hz: real time); MuJoCo's offscreen renderer on a CPU-only machine takes ~0.1-0.6 s per frame.
 VIDEO_SIZE = 320
 VIDEO_EVERY = 2
+#: Frames per second of every video: real time at one frame every 2 control steps, a time-lapse
+#: (``every / 2`` times faster) above.
+VIDEO_FPS = 25.0
 
 
 @dataclass
@@ -182,6 +186,15 @@ def open_loop_divergence(plant: EpisodeSet, twin: EpisodeSet, dt: float) -> dict
     }
 
 
+def transfer_ratios(twin: dict[str, Any], plant: dict[str, Any], random_plant: dict[str, Any]
+                    ) -> dict[str, float | None]:
+    """The ratios a transfer is judged by, from :meth:`EpisodeSet.summary` blocks: the policy's
+    mean progress on the plant over its progress on the twin, and over a random policy's on the
+    plant (``None`` where the denominator is not positive)."""
+    return {"plant_over_twin": _ratio(plant["progress_m"], twin["progress_m"]),
+            "plant_over_random": _ratio(plant["progress_m"], random_plant["progress_m"])}
+
+
 def _ratio(a: float, b: float) -> float | None:
     return float(a / b) if b > 0 and np.isfinite(a / b) else None
 
@@ -232,7 +245,8 @@ def _episode_frames(env: gym.Env, act: Act, seed: int, every: int) -> list[np.nd
 def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None, episodes: int,
                 seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
                 progress: bool = True, threads: int = 1,
-                backend_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+                backend_kwargs: dict[str, Any] | None = None,
+                random_plant: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY) -> dict[str, Any]:
     """The gap report (see the module docstring) as a JSON-ready dict.
 
     Args:
@@ -241,13 +255,19 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
             is the MJCF it was fitted against.
         episodes: K episodes on each, reset seeds ``seed .. seed + K - 1``.
         episode_steps: time limit (``None``: the one the policy was trained with).
-        video_dir: write ``twin.mp4``, ``plant.mp4`` and ``random_plant.mp4`` of episode ``seed``.
+        video_dir: write ``twin.mp4``, ``plant.mp4`` and ``random_plant.mp4`` of episode ``seed``, and
+            ``twin_plant.mp4``: the twin (left) beside the plant (right), frame by frame.
+        video_every: one video frame every this many control steps (played at :data:`VIDEO_FPS`).
         threads: torch threads while the twin runs.
+        random_plant: the ``random_plant`` block of an earlier report with the same plant, seeds,
+            ``seed`` and episode length, reused instead of running the random policy again.
     """
     import tensegrity_gym  # noqa: F401  (registers the env)
 
     if int(episodes) != episodes or episodes < 1:
         raise ValueError(f"episodes must be an integer >= 1, got {episodes}")
+    if int(video_every) != video_every or video_every < 1:
+        raise ValueError(f"--video-every must be an integer >= 1, got {video_every}")
     if episode_steps is not None and (int(episode_steps) != episode_steps or episode_steps < 1):
         raise ValueError(f"episode steps must be an integer >= 1, got {episode_steps}")
     if identified is not None and not os.path.isfile(identified):
@@ -261,10 +281,10 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=4 * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
+        bar = tqdm(total=(4 if random_plant is None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
-            mjcf = plant_mjcf(identified)
+            mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:
@@ -274,7 +294,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
                 A = int(twin.single_action_space.shape[0])  # type: ignore[index]
                 on_twin = run_episodes(twin, pol.act, seeds, bar=bar)
                 on_plant = run_episodes(plant, pol.act, seeds, bar=bar)
-                on_random = run_episodes(plant, _random_act(A, seed), seeds, bar=bar)
+                on_random = (None if random_plant is not None else
+                             run_episodes(plant, _random_act(A, seed), seeds, bar=bar))
             finally:
                 twin.close()
                 plant.close()
@@ -293,22 +314,20 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
             videos = {}
             if video_dir is not None:
                 videos = _write_videos(video_dir, pol, identified, mjcf, steps, env_kwargs, backend_kwargs,
-                                       seeds[0], A, seed, dt)
+                                       seeds[0], A, seed, int(video_every))
         if bar is not None:  # episodes that ended early leave part of the estimate unused
             bar.update(bar.total - bar.n)
     finally:
         if bar is not None:
             bar.close()
-    t, p, r = on_twin.summary(), on_plant.summary(), on_random.summary()
+    t, p = on_twin.summary(), on_plant.summary()
+    r = random_plant if on_random is None else on_random.summary()
     out: dict[str, Any] = {
         "twin": t,
         "plant": p,
         "random_plant": r,
         "open_loop": open_loop,
-        "transfer": {
-            "plant_over_twin": _ratio(p["progress_m"], t["progress_m"]),
-            "plant_over_random": _ratio(p["progress_m"], r["progress_m"]),
-        },
+        "transfer": transfer_ratios(t, p, r),
         "twin_diverged_episodes": int(on_twin.diverged.sum()),
         "policy": {k: pol.meta.get(k) for k in ("algo", "trained_on", "identified", "timesteps", "seed")},
         "identified": None if identified is None else os.path.abspath(identified),
@@ -322,9 +341,9 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
 
 def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: str, steps: int,
                   env_kwargs: dict[str, Any], backend_kwargs: dict[str, Any] | None, ep_seed: int, A: int,
-                  seed: int, dt: float) -> dict[str, str]:
+                  seed: int, every: int) -> dict[str, str]:
     """One episode (reset seed ``ep_seed``) on the twin, on the plant and of the random policy on the
-    plant, each as an MP4 in ``folder``."""
+    plant, each as an MP4 in ``folder``, and the twin's beside the plant's (``twin_plant.mp4``)."""
     os.makedirs(folder, exist_ok=True)
     kw = {**env_kwargs, "render_mode": "rgb_array", "max_episode_steps": steps, "width": VIDEO_SIZE,
           "height": VIDEO_SIZE}
@@ -334,13 +353,70 @@ def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: 
         "plant": (gym.make(ENV_ID, model=mjcf, **kw), pol.act),
         "random_plant": (gym.make(ENV_ID, model=mjcf, **kw), _random_act(A, seed)),
     }
-    paths = {}
+    paths, frames = {}, {}
     for name, (env, act) in runs.items():
         try:
-            frames = _episode_frames(env, act, ep_seed, VIDEO_EVERY)
+            frames[name] = _episode_frames(env, act, ep_seed, every)
         finally:
             env.close()
         path = os.path.join(folder, f"{name}.mp4")
-        write_mp4(path, frames, fps=1.0 / (dt * VIDEO_EVERY))
+        write_mp4(path, frames[name], fps=VIDEO_FPS)
         paths[name] = path
+    path = os.path.join(folder, "twin_plant.mp4")
+    write_mp4(path, side_by_side(frames["twin"], frames["plant"]), fps=VIDEO_FPS)
+    paths["twin_plant"] = path
     return paths
+
+
+def side_by_side(left: list[np.ndarray], right: list[np.ndarray], gap: int = 4) -> list[np.ndarray]:
+    """Frames of two videos of the same size side by side (``gap`` white pixels between); the
+    shorter one (an episode that ended early) holds its last frame."""
+    n = max(len(left), len(right))
+    out = []
+    for k in range(n):
+        a, b = left[min(k, len(left) - 1)], right[min(k, len(right) - 1)]
+        sep = np.full((a.shape[0], gap, 3), 255, dtype=np.uint8)
+        out.append(np.concatenate([a, sep, b], axis=1))
+    return out
+
+def measure_gaps(policies: list[str], identified: str | None, episodes: int, seed: int = 0,
+                 episode_steps: int | None = None, video_dir: str | None = None, progress: bool = True,
+                 threads: int = 1, log: Callable[[str], None] | None = None,
+                 backend_kwargs: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY) -> dict[str, Any]:
+    """:func:`measure_gap` of several policies (e.g. the seeds of ``tensegrity train --seeds``) from
+    the same reset seeds, and their mean and spread over policies.
+
+    Returns ``{"policies": [path, ...], "reports": [the gap report of each], "over_policies": {...}}``
+    where ``over_policies`` holds, for ``twin`` and ``plant`` progress and return and for the
+    ``plant_over_twin`` ratio, the mean, standard deviation, minimum and maximum over the policies
+    (:func:`tensegrity_gym.sweep.spread`), plus ``random_plant`` (run once per episode length and
+    env settings: the same for every policy that shares them) and how many policies roll at least ``0.5`` m on the plant. ``video_dir``: the videos
+    of policy ``i`` in ``video_dir/<i>``.
+    """
+    from tensegrity_gym.sweep import spread
+
+    if not policies:
+        raise ValueError("no policy given")
+    reports: list[dict[str, Any]] = []
+    randoms: dict[str, dict[str, Any]] = {}  # the random policy's block per episode length and env settings
+    for i, path in enumerate(policies):
+        pol = load_policy(path)
+        key = f"{int(episode_steps or pol.episode_steps)} {sorted(pol.env_kwargs.items())!r}"
+        vd = None if video_dir is None else (video_dir if len(policies) == 1 else os.path.join(video_dir, str(i)))
+        rep = measure_gap(pol, identified, episodes, seed=seed, episode_steps=episode_steps, video_dir=vd,
+                          progress=progress, threads=threads, random_plant=randoms.get(key),
+                          backend_kwargs=backend_kwargs, video_every=video_every)
+        randoms[key] = rep["random_plant"]
+        reports.append(rep)
+        if log is not None:
+            log(f"{pol}: twin {rep['twin']['progress_m']:.3f} m, plant {rep['plant']['progress_m']:.3f} m")
+    over: dict[str, Any] = {}
+    for where in ("twin", "plant"):
+        over[where] = {"progress_m": spread(r[where]["progress_m"] for r in reports),
+                       "return": spread(r[where]["return"] for r in reports)}
+    over["plant_over_twin"] = spread(r["transfer"]["plant_over_twin"] for r in reports)
+    over["random_plant"] = {"progress_m": spread(r["random_plant"]["progress_m"] for r in reports)["mean"],
+                            "return": spread(r["random_plant"]["return"] for r in reports)["mean"]}
+    over["plant_progress_at_least_0.5m"] = sum(r["plant"]["progress_m"] >= 0.5 for r in reports)
+    return {"policies": [os.fspath(p) for p in policies], "reports": reports, "over_policies": over,
+            "episodes": int(episodes), "seeds": reports[0]["seeds"]}

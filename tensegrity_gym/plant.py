@@ -24,7 +24,6 @@ body-frame free-joint velocity happens in :meth:`MujocoPlant.states` and its inv
 from __future__ import annotations
 
 import os
-import re
 import sys
 
 # Offscreen rendering on a headless Linux machine: MuJoCo picks its GL back-end from MUJOCO_GL when
@@ -37,12 +36,13 @@ if sys.platform.startswith("linux") and "mujoco" not in sys.modules and not os.e
 import mujoco
 import numpy as np
 
+from identified.mjcf import ActuatorInfo, SystemDescription, read_system
 from identified.rotation import quat_to_matrix
 from identified.state import RodState
 from tensegrity_gym.cables import MotorSpec, motor_step, read_motor_spec
 from tensegrity_gym.checks import check_push, check_rest_lengths, check_targets
 
-__all__ = ["MujocoPlant", "RodState"]
+__all__ = ["MujocoPlant", "RodState", "standing_pose"]
 
 _INTEGRATORS = {
     "euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -78,14 +78,21 @@ class MujocoPlant:
             or ``"implicitfast"`` overrides it.
 
     Raises:
-        ValueError: the model breaks the conventions (a ``rod*`` body without a free joint, a rod
-            without its ``<rod>_end0``/``<rod>_end1`` sites, a rod whose centre of mass is not its
-            body origin, a tendon that is not a spatial tendon between exactly two sites, an
-            actuated name that is not a tendon); the message names the element.
+        ValueError: the model is not a spring-rod system as :func:`identified.mjcf.read_system`
+            reads it (a body moving on a joint that is not a rod, a tendon over a site on no rod or
+            between two sites of one rod, a rod with one attachment site, a rod no cable attaches,
+            an actuator on something other than a tendon, an actuated name that is not a tendon);
+            the message names the element.
+
+    A rod is a free body with all its jointless descendants; its state is the free body's frame
+    (MuJoCo's ``qpos`` of its free joint), its centre of mass anywhere in that frame.
 
     Attributes:
         rod_names, site_names, tendon_names, actuated_names: names in model order (actuated in
-            command order).
+            command order: the cables with rest-length motors).
+        actuators: the MuJoCo tendon actuators (:class:`~identified.mjcf.ActuatorInfo`), commanded
+            by :meth:`set_ctrl`.
+        system: the :class:`~identified.mjcf.SystemDescription` read from the compiled model.
         dt: physics time step, s.
         motor: the :class:`~tensegrity_gym.cables.MotorSpec`.
         model, data: the raw MuJoCo objects. As with any ``mj_step``, after :meth:`step` the derived
@@ -122,61 +129,40 @@ class MujocoPlant:
         self._act_idx = np.array([tid[n] for n in self.motor.names], dtype=int)
         self._pull_only = self.model.tendon_lengthspring[:, 0] < self.model.tendon_lengthspring[:, 1]
         self._spring0 = self.model.tendon_lengthspring.copy()  # the MJCF values
-        self._key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "nominal")
+        key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "nominal")
+        self._key = key if key >= 0 else (0 if m.nkey else -1)  # "nominal", else the first keyframe
         self._act_both = np.flatnonzero(~self._pull_only[self._act_idx])  # actuated push-pull springs
         self._dt = float(m.opt.timestep)
         self._target = np.zeros(len(self.actuated_names))
         self._rest_act = np.zeros(len(self.actuated_names))
         self.reset()
 
-    # ------------------------------------------------------------------ conventions
+    # ------------------------------------------------------------------ the system, as MuJoCo compiled it
     def _validate_and_index(self) -> None:
         m = self.model
-        rods, qadr, vadr, bids = [], [], [], []
-        for b in range(1, m.nbody):
-            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body#{b}"
-            j0, nj = m.body_jntadr[b], m.body_jntnum[b]
-            free = nj == 1 and m.jnt_type[j0] == mujoco.mjtJoint.mjJNT_FREE
-            if not free:
-                if re.fullmatch(r"rod\d+", name):
-                    raise ValueError(f"rod body '{name}' has no free joint; every rod must be a free body")
-                continue
-            for end in ("end0", "end1"):
-                if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{name}_{end}") < 0:
-                    raise ValueError(f"rod body '{name}' has no site '{name}_{end}'")
-            sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{name}_end0")
-            if m.site_bodyid[sid] != b:
-                raise ValueError(f"site '{name}_end0' is not on rod body '{name}'")
-            if np.linalg.norm(m.body_ipos[b]) > 1e-9 or abs(abs(m.body_iquat[b][0]) - 1) > 1e-9:
-                raise ValueError(
-                    f"rod body '{name}': the centre of mass must be the body origin with principal axes "
-                    "along the body frame (<inertial pos=\"0 0 0\" diaginertia=...>)"
-                )
-            rods.append(name)
-            qadr.append(m.jnt_qposadr[j0])
-            vadr.append(m.jnt_dofadr[j0])
-            bids.append(b)
-        if not rods:
-            raise ValueError("the model has no rods: no body with a free joint")
-        tendons = []
-        for t in range(m.ntendon):
-            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_TENDON, t) or f"tendon#{t}"
-            a, n = m.tendon_adr[t], m.tendon_num[t]
-            types = m.wrap_type[a : a + n]
-            if n != 2 or not np.all(types == mujoco.mjtWrap.mjWRAP_SITE):
-                raise ValueError(f"tendon '{name}' must be a spatial tendon between exactly two sites")
-            tendons.append(name)
-        sites = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, i) or f"site#{i}" for i in range(m.nsite)]
+        self.system: SystemDescription = read_system(m)  # rods, sites, cables, actuators (one line on error)
+        sysd = self.system
+        rods = [r.name for r in sysd.rods]
+        bids = [r.body for r in sysd.rods]
+        joints = [m.body_jntadr[b] for b in bids]
         self.rod_names: tuple[str, ...] = tuple(rods)
-        self.tendon_names: tuple[str, ...] = tuple(tendons)
-        self.site_names: tuple[str, ...] = tuple(sites)
-        self._qadr = np.array(qadr)[:, None] + np.arange(7)
-        self._vadr = np.array(vadr)[:, None] + np.arange(6)
+        self.tendon_names: tuple[str, ...] = tuple(t.name for t in sysd.tendons)
+        self.site_names: tuple[str, ...] = tuple(
+            mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, i) or f"site#{i}" for i in range(m.nsite))
+        self._qadr = np.array([m.jnt_qposadr[j] for j in joints])[:, None] + np.arange(7)
+        self._vadr = np.array([m.jnt_dofadr[j] for j in joints])[:, None] + np.arange(6)
         self._bid = np.array(bids)
-        self._end_sites = np.array(
-            [[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{r}_end{e}") for e in (0, 1)] for r in rods]
-        )
-        self._mass = m.body_mass[self._bid].copy()
+        #: (R, 2, 3) each rod's two attachment sites farthest apart, in the rod frame
+        self._ends = np.array([_farthest_pair(r.site_pos[[r.sites.index(a) for a in r.attachments]])
+                               for r in sysd.rods])
+        self._radius = np.array([r.radius for r in sysd.rods])
+        self._mass = m.body_subtreemass[self._bid].copy()
+        #: MuJoCo tendon actuators (motor, position, general), in model order
+        self.actuators: tuple[ActuatorInfo, ...] = tuple(a for a in sysd.actuators if a.kind != "rest_length")
+        self._act_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a.name)
+                                  for a in self.actuators], dtype=int)
+        self._act_has_state = np.array([a.dynamics != "none" for a in self.actuators], dtype=bool)
+        self._act_stateadr = np.array([m.actuator_actadr[i] for i in self._act_ids], dtype=int)
 
     # ------------------------------------------------------------------ basic facts
     @property
@@ -189,19 +175,17 @@ class MujocoPlant:
         return len(self.rod_names)
 
     def rod_lengths(self) -> np.ndarray:
-        """(R,) distance between each rod's end0 and end1 sites, m."""
-        p = self.model.site_pos[self._end_sites]  # (R, 2, 3) in the body frame
-        return np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
+        """(R,) distance between each rod's two attachment sites farthest apart (its ends), m."""
+        return np.linalg.norm(self._ends[:, 1] - self._ends[:, 0], axis=1)
 
     def rod_radii(self) -> np.ndarray:
-        """(R,) radius of each rod's largest capsule or cylinder geom (0 if it has none), m."""
-        m = self.model
-        out = np.zeros(len(self._bid))
-        for i, b in enumerate(self._bid):
-            for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b]):
-                if int(m.geom_type[g]) in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
-                    out[i] = max(out[i], float(m.geom_size[g, 0]))
-        return out
+        """(R,) radius of each rod's largest capsule or cylinder geom, its bodies all counted (0 if
+        it has none), m."""
+        return self._radius.copy()
+
+    def rod_ends(self) -> np.ndarray:
+        """(R, 2, 3) each rod's ends (its two attachment sites farthest apart) in the rod frame, m."""
+        return self._ends.copy()
 
     def rest_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(rest_min, rest_max), each (A,), m: the motor range of every actuated cable."""
@@ -212,8 +196,8 @@ class MujocoPlant:
         """Put the plant at a state with zero time.
 
         Args:
-            states: rod states; ``None`` takes the keyframe ``"nominal"`` when the model has one,
-                else the model's ``qpos0``, with zero velocities.
+            states: rod states; ``None`` takes the keyframe ``"nominal"`` (else the model's first
+                keyframe, else its ``qpos0``) with zero velocities.
             rest_lengths: (S,) rest length of every tendon (the upper bound for pull-only cables);
                 ``None`` restores the MJCF values. Motor targets are set to the actuated rest
                 lengths, so the motors hold still until :meth:`set_targets`.
@@ -224,6 +208,7 @@ class MujocoPlant:
         else:
             mujoco.mj_resetData(m, d)
         d.qvel[:] = 0.0
+        d.ctrl[:] = 0.0 if self._key < 0 else m.key_ctrl[self._key]
         m.tendon_lengthspring[:] = self._spring0
         if rest_lengths is not None:
             self._write_rest(check_rest_lengths(rest_lengths, m.ntendon, self._act_idx, self.motor))
@@ -270,10 +255,9 @@ class MujocoPlant:
         return self.data.ten_length.copy()
 
     def end_points(self) -> np.ndarray:
-        """(R, 2, 3) world positions of every rod's end0 and end1 sites, m."""
+        """(R, 2, 3) world positions of every rod's ends (:meth:`rod_ends`), m."""
         s = self.states()
-        local = self.model.site_pos[self._end_sites]  # (R, 2, 3)
-        return s.pos[:, None, :] + np.einsum("rij,rej->rei", quat_to_matrix(s.quat), local)
+        return s.pos[:, None, :] + np.einsum("rij,rej->rei", quat_to_matrix(s.quat), self._ends)
 
     @property
     def time(self) -> float:
@@ -281,8 +265,43 @@ class MujocoPlant:
 
     @property
     def masses(self) -> np.ndarray:
-        """(R,) rod masses from the model, kg."""
+        """(R,) rod masses from the model (each rod's bodies together), kg."""
         return self._mass.copy()
+
+    # ------------------------------------------------------------------ MuJoCo actuators
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        """Names of the MuJoCo tendon actuators (``motor``, ``position``, ``general``), model order."""
+        return tuple(a.name for a in self.actuators)
+
+    def ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high), each (U,): every actuator's ``ctrlrange``; ValueError naming an actuator
+        without one (an action cannot be scaled onto an unlimited command)."""
+        missing = [a.name for a in self.actuators if a.ctrlrange is None]
+        if missing:
+            raise ValueError(f"actuator '{missing[0]}' has no ctrlrange: give it ctrlrange=\"low high\" "
+                             "so that commands can be scaled onto it")
+        r = np.array([a.ctrlrange for a in self.actuators], dtype=float).reshape(-1, 2)
+        return r[:, 0].copy(), r[:, 1].copy()
+
+    def set_ctrl(self, ctrl: np.ndarray) -> None:
+        """Set the (U,) actuator commands (``data.ctrl``; held until changed, clipped by MuJoCo to
+        ``ctrlrange`` where the actuator is ctrl-limited)."""
+        u = check_targets(ctrl, len(self.actuators))
+        self.data.ctrl[self._act_ids] = u
+
+    @property
+    def ctrl(self) -> np.ndarray:
+        """(U,) current actuator commands."""
+        return self.data.ctrl[self._act_ids].copy()
+
+    def actuator_state(self) -> np.ndarray:
+        """(U,) what each actuator's force acts on now: its activation (filter or integrator
+        dynamics), else its command (in command units, so both normalise alike)."""
+        out = self.data.ctrl[self._act_ids].copy()
+        if self._act_has_state.any():
+            out[self._act_has_state] = self.data.act[self._act_stateadr[self._act_has_state]]
+        return out
 
     # ------------------------------------------------------------------ commands and stepping
     @property
@@ -320,14 +339,17 @@ class MujocoPlant:
             d.xfrc_applied[self._bid] = 0.0
 
     def _push_wrench(self, push_force: np.ndarray, push_point: np.ndarray | None) -> np.ndarray:
-        """(R, 6) force and torque about each COM, world frame: [F, (R p) x F]."""
+        """(R, 6) force and torque about the free body's own centre of mass (where MuJoCo's
+        ``xfrc_applied`` acts), world frame: [F, R (p - c) x F], c that centre in the rod frame."""
         f, p = push_force, push_point  # checked by check_push
         wrench = np.zeros((self.n_rods, 6))
         wrench[:, :3] = f
-        if p is not None:
+        ipos = self.model.body_ipos[self._bid]
+        if p is not None or np.any(ipos):
+            p = np.zeros((self.n_rods, 3)) if p is None else p
             quat = self.data.qpos[self._qadr[:, 3:]]
             quat /= np.sqrt(np.einsum("ri,ri->r", quat, quat))[:, None]
-            a = (quat_to_matrix(quat) @ p[:, :, None])[:, :, 0]  # lever arm in the world frame
+            a = (quat_to_matrix(quat) @ (p - ipos)[:, :, None])[:, :, 0]  # lever arm in the world frame
             wrench[:, 3] = a[:, 1] * f[:, 2] - a[:, 2] * f[:, 1]
             wrench[:, 4] = a[:, 2] * f[:, 0] - a[:, 0] * f[:, 2]
             wrench[:, 5] = a[:, 0] * f[:, 1] - a[:, 1] * f[:, 0]
@@ -373,3 +395,32 @@ class MujocoPlant:
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def standing_pose(plant: MujocoPlant, settle_time: float = 5.0) -> tuple[RodState, str]:
+    """The pose a model stands in, with zero velocities, and where it came from.
+
+    Its keyframe ``"nominal"``, else its first keyframe; a model without a keyframe is released
+    from ``qpos0`` (motors and actuators at rest) and simulated for ``settle_time`` seconds, and
+    the pose it has then is its standing pose (what a lab does with a robot put on the floor).
+    The plant is left reset.
+    """
+    plant.reset()
+    if plant._key >= 0:
+        name = mujoco.mj_id2name(plant.model, mujoco.mjtObj.mjOBJ_KEY, plant._key) or str(plant._key)
+        how = f"keyframe '{name}'"
+    else:
+        for _ in range(max(1, round(settle_time / plant.dt))):
+            plant.step()
+        how = f"settled for {settle_time:g} s from qpos0"
+    s = plant.states()
+    plant.reset()
+    zero = np.zeros_like(s.pos)
+    return RodState(s.pos, s.quat, zero, zero.copy()), how
+
+
+def _farthest_pair(p: np.ndarray) -> np.ndarray:
+    """(2, 3) the two points of ``p`` (n, 3) farthest apart."""
+    d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
+    i, j = np.unravel_index(int(np.argmax(d)), d.shape)
+    return p[[i, j]]

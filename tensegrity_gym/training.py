@@ -16,6 +16,17 @@ algorithm, the env id and its keyword arguments, the observation and action shap
 normalisation statistics, where it was trained and with what. SB3's ``PPO.load`` reads the file as
 usual (it ignores the extra entry).
 
+Domain randomization and budget
+-------------------------------
+By default the twin is randomized (``randomize="auto"``, :mod:`tensegrity_gym.randomize`: every
+env draws its own contact, spring, rod, motor parameters, latency and sensor noise at each reset,
+widths from the identified model's own uncertainty and unexplained residual), and ``tensegrity
+train`` runs :data:`DEFAULT_TIMESTEPS` steps. Why: the policy's search finds where the nominal twin
+is wrong (contact while rolling over an edge) and rolls further on the twin than on the plant;
+a policy that must roll on every draw relies less on the twin's own contact (measured per seed in
+README, "Randomized twins, defaults that transfer"). The randomization is recorded in the policy's
+metadata (``randomization``).
+
 Hyperparameters (:data:`PPO_HYPERPARAMETERS`, :data:`SAC_HYPERPARAMETERS`) and why
 -----------------------------------------------------------------------------------
 PPO is the default. Its settings are SB3's defaults (learning rate 3e-4, 10 epochs, clip 0.2,
@@ -58,7 +69,9 @@ from tensegrity_gym.backends.twin_physics import torch_threads
 
 __all__ = [
     "ALGORITHMS",
+    "DEFAULT_RANDOMIZE",
     "DEFAULT_ROLLOUT",
+    "DEFAULT_TIMESTEPS",
     "ENV_ID",
     "POLICY_FORMAT",
     "PPO_HYPERPARAMETERS",
@@ -70,6 +83,7 @@ __all__ = [
     "checkpoint_path",
     "load_policy",
     "plant_mjcf",
+    "resolve_randomize",
     "snapshot_path",
     "torch_threads",
     "train",
@@ -90,6 +104,9 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
     "learning_rate": 3e-4, "batch_size": 256, "tau": 0.005, "gamma": 0.99, "train_freq": 1,
     "gradient_steps": -1, "learning_starts": 5_000, "buffer_size": 1_000_000,
 }
+#: ``tensegrity train``'s default budget and randomization (README, "Training on the twin")
+DEFAULT_TIMESTEPS = 300_000
+DEFAULT_RANDOMIZE = "auto"
 #: ``VecNormalize`` settings (SB3's defaults); rewards are normalised for PPO only.
 NORMALIZE = {"clip_obs": 10.0, "epsilon": 1e-8}
 
@@ -122,6 +139,13 @@ class TrainConfig:
         env_kwargs: keyword arguments of the env (``frame_skip``, reward weights, ...).
         hyperparameters: overrides of :data:`PPO_HYPERPARAMETERS` / :data:`SAC_HYPERPARAMETERS`.
         backend_kwargs: keyword arguments of the twin's backend (``dtype``, ``effects``, ``mjcf``).
+        randomize: domain randomization of the twin (:mod:`tensegrity_gym.randomize`): ``"auto"``
+            (from the identified model's uncertainty and unexplained residual), ``"none"``/``None``,
+            a FILE path, a mapping or a :class:`~tensegrity_gym.randomize.Randomization`; recorded
+            in the policy's metadata. Ignored with ``plant=True``.
+        init_policy: a policy file of :func:`train` to continue from (its network weights and its
+            observation normalisation; the algorithm's other settings are this config's), e.g. on
+            a refitted twin (:mod:`tensegrity_gym.improve`).
         snapshots: also keep the policy after every update as :func:`snapshot_path` ``(out, N)``
             (``P.step<N>.zip``, N the steps trained so far): learning curves, e.g. the plant steps
             direct training needs to reach a given progress (benchmarks/bench_train.py).
@@ -141,6 +165,8 @@ class TrainConfig:
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     backend_kwargs: dict[str, Any] = field(default_factory=dict)
     snapshots: bool = False
+    randomize: Any = DEFAULT_RANDOMIZE
+    init_policy: str | None = None
 
     def validate(self) -> None:
         """ValueError with one line for every setting out of range."""
@@ -154,6 +180,8 @@ class TrainConfig:
             raise ValueError(f"envs must be an integer >= 1, got {self.envs}")
         if self.identified is not None and not os.path.isfile(self.identified):
             raise ValueError(f"'{self.identified}' does not exist or is not a file")
+        if self.init_policy is not None and not os.path.isfile(self.init_policy):
+            raise ValueError(f"'{self.init_policy}' does not exist or is not a file")
 
     @property
     def n_envs(self) -> int:
@@ -190,15 +218,27 @@ class TrainResult:
     config: dict[str, Any]
     model: Any = field(default=None, repr=False)
     vecnormalize: Any = field(default=None, repr=False)
+    #: the learning curve: one row per finished episode, in the order they ended, with
+    #: ``timesteps`` (steps trained when it ended), ``wall_s`` (since training started),
+    #: ``return``, ``progress_m`` (forward distance of the centre of mass) and ``length`` (steps)
+    episode_log: list[dict[str, float]] = field(default_factory=list, repr=False)
 
 
 # ---------------------------------------------------------------------- helpers
-def plant_mjcf(identified: str | None) -> str:
+def plant_mjcf(identified: str | None, mjcf: str | None = None) -> str:
     """MJCF text of the plant an identified model belongs to (its source MJCF, as the twin resolves
-    it; ``None``: the robot preset)."""
+    it; ``None``: the robot preset); ``mjcf`` (a path): that MJCF, a lab's own robot."""
     from tensegrity_gym.backends.identified_backend import resolve_source_mjcf
     from tensegrity_gym.backends.mujoco_backend import default_robot_xml
 
+    if mjcf is not None:
+        from identified.mjcf import read_mjcf_text
+
+        if identified is not None:
+            from identified.model import load_model
+
+            resolve_source_mjcf(load_model(identified), mjcf)  # the twin's topology must be the MJCF's
+        return read_mjcf_text(mjcf)
     if identified is None:
         return default_robot_xml()
     from identified.model import load_model
@@ -223,12 +263,24 @@ def _algo_class(algo: str) -> type:
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def _make_twin_venv(cfg: TrainConfig) -> Any:
+def resolve_randomize(cfg: TrainConfig) -> Any:
+    """The :class:`~tensegrity_gym.randomize.Randomization` a twin run draws from (``None``: none)."""
+    from identified.model import load_model
+    from tensegrity_gym.backends.identified_backend import default_model_path
+    from tensegrity_gym.randomize import resolve_randomization
+
+    if cfg.plant or cfg.randomize is None or (isinstance(cfg.randomize, str) and cfg.randomize == "none"):
+        return None
+    model = load_model(cfg.identified if cfg.identified is not None else default_model_path())
+    return resolve_randomization(cfg.randomize, model, int(cfg.env_kwargs.get("frame_skip", 20)))
+
+
+def _make_twin_venv(cfg: TrainConfig, randomize: Any = None) -> Any:
     from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
 
     venv = gym.make_vec(ENV_ID, num_envs=cfg.n_envs, vectorization_mode="vector_entry_point",
                         backend="identified", model=cfg.identified, max_episode_steps=cfg.episode_steps,
-                        backend_kwargs=dict(cfg.backend_kwargs) or None, **cfg.env_kwargs)
+                        backend_kwargs=dict(cfg.backend_kwargs) or None, randomize=randomize, **cfg.env_kwargs)
     return SB3VecEnvAdapter(venv)
 
 
@@ -352,11 +404,14 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             self.returns: deque[float] = deque(maxlen=20)
             self.progress: deque[float] = deque(maxlen=20)
             self.episodes = 0
+            self.log: list[dict[str, float]] = []
+            self._t0 = time.perf_counter()
             self.last_checkpoint: int | None = None
             self._dist = np.zeros(cfg.n_envs)
             self._bar: Any = None
 
         def _on_training_start(self) -> None:
+            self._t0 = time.perf_counter()
             if progress:
                 from tqdm.auto import tqdm
 
@@ -374,6 +429,11 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
                     if ep is not None:
                         self.returns.append(float(ep["r"]))
                     self.progress.append(float(self._dist[i]))
+                    self.log.append({"timesteps": int(self.num_timesteps),
+                                     "wall_s": time.perf_counter() - self._t0,
+                                     "return": float(ep["r"]) if ep is not None else float("nan"),
+                                     "progress_m": float(self._dist[i]),
+                                     "length": int(ep["l"]) if ep is not None else -1})
                     self._dist[i] = 0.0
                     self.episodes += 1
             if self._bar is not None:
@@ -422,17 +482,18 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         except ImportError:
             raise ValueError("--tensorboard needs the tensorboard package (pip install tensorboard)") from None
 
+    randomization = resolve_randomize(cfg)
     with torch_threads(cfg.threads):
         mjcf = None
         if cfg.plant:
-            mjcf = plant_mjcf(cfg.identified)
+            mjcf = plant_mjcf(cfg.identified, (cfg.backend_kwargs or {}).get("mjcf"))
             probe = gym.make(ENV_ID, model=mjcf, **cfg.env_kwargs)  # spaces and control period, here
             dt = float(probe.unwrapped.dt)  # type: ignore[attr-defined]
             spaces = (probe.observation_space, probe.action_space)
             probe.close()
             venv = _make_plant_venv(cfg, mjcf)
         else:
-            venv = _make_twin_venv(cfg)
+            venv = _make_twin_venv(cfg, randomization)
             dt = float(venv.venv.dt)
             spaces = (venv.observation_space, venv.action_space)
         base = venv
@@ -442,6 +503,8 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                                 **NORMALIZE)
             model = _algo_class(cfg.algo)("MlpPolicy", venv, seed=cfg.seed, device="cpu", verbose=0,
                                           tensorboard_log=cfg.tensorboard, **hp)
+            if cfg.init_policy is not None:
+                _continue_from(model, venv, cfg.init_policy, spaces)
             t0 = time.perf_counter()
             started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
@@ -459,6 +522,8 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                     "identified": None if cfg.identified is None else os.path.abspath(cfg.identified),
                     "timesteps": int(model.num_timesteps),
                     "seed": int(cfg.seed),
+                    "randomization": None if randomization is None else randomization.to_json(),
+                    "continued_from": None if cfg.init_policy is None else os.path.abspath(cfg.init_policy),
                     "envs": cfg.n_envs,
                     "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str))},
                     "started": started,
@@ -495,8 +560,20 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         mean_progress_m=float(np.mean(prog)) if prog else None,
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
-        model=model, vecnormalize=venv,
+        model=model, vecnormalize=venv, episode_log=list(callback.log),
     )
+
+
+def _continue_from(model: Any, venv: Any, path: str, spaces: tuple) -> None:
+    """Start ``model`` from the policy file ``path``: its weights and its normalisation statistics."""
+    pol = load_policy(path)
+    pol.check_env(*spaces)
+    if pol.meta["algo"] != ("sac" if "SAC" in type(model).__name__ else "ppo"):
+        raise PolicyFileError(f"'{path}' holds a {pol.meta['algo']} policy; continue it with --algo {pol.meta['algo']}")
+    model.policy.load_state_dict(pol.model.policy.state_dict())
+    rms = venv.obs_rms
+    rms.mean, rms.var = pol.obs_mean.copy(), pol.obs_var.copy()
+    rms.count = float(pol.meta["normalize"]["count"])
 
 
 def _close(venv: Any, base: Any) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import tensegrity_gym  # noqa: F401  (registers the env)
@@ -447,11 +447,19 @@ def test_fuzz_bad_flags(files, work, flag):
 @FUZZ
 @given(ctrl=st.sampled_from([0.0, 0.01, 1e6, *BAD_FLOATS]), noise=st.sampled_from([0.0, 0.01, 0.5, *BAD_FLOATS]),
        lo=st.sampled_from([0.4, -1.0, float("nan"), 3.0]), seed=st.integers(0, 2**31))
+@example(ctrl=0.01, noise=0.01, lo=0.4, seed=0)  # valid: must go through
+@example(ctrl=0.01, noise=0.01, lo=3.0, seed=0)  # an empty healthy range: refused
 def test_fuzz_env_arguments(ctrl, noise, lo, seed):
+    """Refused up front exactly when a value is out of range (a weight not finite, the reset noise
+    outside [0, 1], an empty healthy range); otherwise the env runs with finite observations and
+    rewards."""
+    valid = bool(np.isfinite(ctrl) and np.isfinite(noise) and 0.0 <= noise <= 1.0 and np.isfinite(lo) and lo < 2.0)
     try:
         env = gym.make("TensegrityIco-v0", ctrl_cost_weight=ctrl, reset_noise_scale=noise, healthy_z_range=(lo, 2.0))
-    except ValueError:
-        return  # refused up front: fine
+    except ValueError as err:
+        assert not valid, f"a valid input was refused: {err}"
+        return
+    assert valid, f"accepted ctrl_cost_weight={ctrl}, reset_noise_scale={noise}, healthy_z_range=({lo}, 2.0)"
     obs, _ = env.reset(seed=seed)
     assert finite(obs)
     for _ in range(3):

@@ -16,8 +16,8 @@ import pytest
 
 from identified import Topology
 from identified.dataset import DatasetError
-from identified.diagnose import DOFS, diagnose, ljung_box, verdict, write_report
-from identified.diagnose.stats import corr_matrix, input_correlation
+from identified.diagnose import DOFS, at_rounding_level, diagnose, improved, ljung_box, verdict, write_report
+from identified.diagnose.stats import ALPHA, corr_matrix, input_correlation, whiteness
 from identified.effects import EFFECTS, make_effect
 from identified.fit.identify import identify
 from tensegrity_gym.collect import CollectConfig, collect
@@ -246,12 +246,12 @@ def test_input_correlation_finds_the_push_a_residual_follows(plants):
     _, data, _, _ = plants["viscous"]
     E, T, R = data.n_episodes, data.n_steps, data.n_rods
     res = np.random.default_rng(0).standard_normal((E, T, R, 6)) * 1e-3
-    res[:, :, 4, 1] += 0.5 * data.push_force[:, :T, 4, 2]  # rod 4's fy follows its push's z
+    res[:, :, 4, 1] -= 0.5 * data.push_force[:, :T, 4, 2]  # rod 4's fy against its push's z
     out = input_correlation(res, np.arange(T), data)
     pf = out["push_force"]
     assert (pf["rod"], pf["dof"], pf["input"]) == (data.rod_names[4], "fy", "push_force.z")
     want = np.corrcoef(res[:, :, 4, 1].reshape(-1), data.push_force[:, :T, 4, 2].reshape(-1))[0, 1]
-    assert pf["corr"] == pytest.approx(want, rel=1e-12) and pf["corr"] > 0.99
+    assert pf["corr"] == pytest.approx(want, rel=1e-12) and pf["corr"] < -0.99
     assert out["rest_length"]["corr"] is None  # the preset's rest lengths never change
 
 
@@ -272,6 +272,8 @@ def test_verdict_true_partial_false():
     assert verdict(True, False, False, _rows(0.01, 0.001))[0] == "partial"
     assert verdict(True, False, False, _rows(0.0099, 1e-9))[0] is True
     assert verdict(True, False, False, _rows(0.05, 0.0051))[0] is True
+    # every episode past 10x but not the whole: not clear
+    assert verdict(True, False, False, _rows(0.2, 0.05, [0.2, 0.2], [0.001, 0.001]))[0] is True
     # one episode without the signature: not clear
     assert verdict(True, False, False, _rows(0.2, 1e-6, [0.3, 0.1], [1e-6, 0.02]))[0] is True
     # no rule explains it: false whatever the rows say; no effect with a region: true
@@ -317,3 +319,61 @@ def test_contact_rods_reported_apart_and_explained_partial(robot):
     near = (depth > -0.01).any(-1)
     assert r["regions"]["near_ground"]["fraction"] == pytest.approx(near.mean(), abs=1e-12)
     assert e["fraction"] == pytest.approx(near.mean(), abs=1e-12)
+
+
+def test_whiteness_corrects_for_the_number_of_series():
+    """36 white series (6 rods x 6 dofs): the smallest p-value of this draw is 0.0073, below 1 % but
+    above 1 % / 36, so the Bonferroni-corrected test calls the residual white; an AR(1) series among
+    them makes it not white."""
+    from scipy.stats import chi2
+
+    res = np.random.default_rng(0).standard_normal((2, 400, 6, 6))
+    rods = tuple(f"rod{i}" for i in range(6))
+    w = whiteness(res, rods)
+    assert ALPHA / 36 < w["min_p"] < ALPHA and w["white"] is True
+    assert w["fraction_rejected"] == pytest.approx(1 / 36)
+    cell = w["per_rod"][2]["series"][4]
+    q, dof = ljung_box(res[:, :, 2, 4], w["lags"])
+    assert (cell["Q"], cell["df"]) == (pytest.approx(q, rel=1e-12), dof) and cell["p"] == pytest.approx(chi2.sf(q, dof))
+    for t in range(1, 400):
+        res[:, t, 3, 0] = 0.5 * res[:, t - 1, 3, 0] + res[:, t, 3, 0]
+    assert whiteness(res, rods)["white"] is False
+
+
+def test_the_rules_behind_the_verdict():
+    assert at_rounding_level({"force": 9.9e-7, "torque": 1e-12})
+    assert not at_rounding_level({"force": 1e-12, "torque": 1e-6})  # both must be
+    assert not at_rounding_level({"force": 1e-12, "torque": None})
+    assert improved(["linear_drag"], 1.0, 0.2) and not improved(["linear_drag"], 1.0, 0.21)  # 5x
+    assert not improved([], 1.0, 0.0)  # nothing added: nothing improved
+    assert improved(["ground_contact"], None, 3.0) and not improved(["ground_contact"], 1.0, None)
+    assert not improved(["linear_drag"], 0.0, 0.0)
+
+
+def test_one_step_summary_by_hand(viscous_result, plants):
+    """The one-step RMS per axis, per rod and relative to the recorded wrench, from the residual
+    wrench recomputed here; the fast region is the top 10 % of rod speeds."""
+    import torch
+
+    from identified.evaluate import recorded_samples, residual_wrench
+    from identified.twin import engine_from_model
+
+    _, data, _, model = plants["viscous"]
+    ch, _, point = recorded_samples(data, "forward")
+    rw = residual_wrench(engine_from_model(model), ch, point)
+    f, t = rw.force.numpy(), rw.torque_body.numpy()  # (N, R, 3)
+    rf, rt = rw.inertial_force.numpy(), rw.inertial_torque_body.numpy()
+    os_ = viscous_result["one_step"]
+    assert os_["force_rms"] == pytest.approx(np.sqrt((f ** 2).mean((0, 1))), rel=1e-9)
+    assert os_["torque_rms"] == pytest.approx(np.sqrt((t ** 2).mean((0, 1))), rel=1e-9)
+    assert os_["relative"]["force"] == pytest.approx(np.sqrt((f ** 2).mean() / (rf ** 2).mean()), rel=1e-9)
+    assert os_["relative"]["torque"] == pytest.approx(np.sqrt((t ** 2).mean() / (rt ** 2).mean()), rel=1e-9)
+    per = os_["per_rod"][3]
+    assert per["force_rms"] == pytest.approx(np.sqrt((f[:, 3] ** 2).mean(0)), rel=1e-9)
+    speed = torch.as_tensor(data.vel[:, :-1]).norm(dim=-1).numpy()
+    fast = speed >= np.quantile(speed, 0.9)
+    fn = np.linalg.norm(f, axis=-1).reshape(fast.shape)
+    reg = viscous_result["regions"]["fast"]
+    assert reg["fraction"] == pytest.approx(fast.mean(), abs=1e-12)
+    assert reg["force_rms_in"] == pytest.approx(np.sqrt((fn[fast] ** 2).mean()), rel=1e-9)
+    assert reg["force_rms_out"] == pytest.approx(np.sqrt((fn[~fast] ** 2).mean()), rel=1e-9)

@@ -221,25 +221,49 @@ def test_integrator_override(robot_xml: str) -> None:
 
 
 # ---------------------------------------------------------------------- conventions
-def test_convention_errors_name_the_element() -> None:
+def test_rods_are_found_by_structure_not_by_name() -> None:
+    """Rods are free bodies, whatever their sites are called; a body without a free joint is part of
+    the world; a rod's centre of mass may lie anywhere in its frame; a routed cable runs."""
     xml = build_model("ico", "paper-uniform")
-    no_site = xml.replace('<site name="rod3_end1"', '<site name="rod3_tip"')
-    with pytest.raises(ValueError, match="rod3_end1"):
-        MujocoPlant(no_site.replace('site="rod3_end1"', 'site="rod3_tip"'))
-    no_free = xml.replace('<freejoint name="rod2_free" />', "")
-    with pytest.raises(ValueError, match="'rod2' has no free joint"):
-        MujocoPlant(no_free)
+    renamed = xml.replace('name="rod3_end1"', 'name="rod3_tip"').replace('site="rod3_end1"', 'site="rod3_tip"')
+    plant = MujocoPlant(renamed)
+    assert plant.rod_names == tuple(f"rod{i}" for i in range(6))
+    assert "rod3_tip" in plant.system.rods[3].attachments
+    fixed = MujocoPlant(xml.replace('<freejoint name="rod2_free" />', ""))
+    assert fixed.rod_names == ("rod0", "rod1", "rod3", "rod4", "rod5")
     three = xml.replace('<site site="rod0_end0" />', '<site site="rod0_end0" /><site site="rod1_end1" />', 1)
-    with pytest.raises(ValueError, match="spring0"):
-        MujocoPlant(three)
-    offset = xml.replace('<inertial pos="0 0 0"', '<inertial pos="0 0 0.1"', 1)
-    with pytest.raises(ValueError, match="rod0"):
-        MujocoPlant(offset)
+    assert MujocoPlant(three).n_rods == 6
+    offset = MujocoPlant(xml.replace('<inertial pos="0 0 0"', '<inertial pos="0 0 0.1"', 1))
+    assert offset.n_rods == 6
+
+
+def test_convention_errors_name_the_element() -> None:
     bad_act = build_model("ico", "robot").replace("cable0 cable1", "cable0 wire1")
     with pytest.raises(ValueError, match="wire1"):
         MujocoPlant(bad_act)
     with pytest.raises(ValueError, match="does not exist"):
         MujocoPlant("/nonexistent/model.xml")
+
+
+def test_push_acts_at_its_point_on_a_rod_whose_centre_of_mass_is_off_its_origin() -> None:
+    """A push F at a point p of the rod frame changes the velocities by dt M^-1 J(p)^T F, MuJoCo's own
+    force-at-a-point (``mj_applyFT``), on a rod whose centre of mass is off its frame's origin."""
+    xml = build_model("ico", "paper-uniform").replace('<inertial pos="0 0 0"', '<inertial pos="0.05 -0.02 0.1"', 1)
+    pushed, still = MujocoPlant(xml), MujocoPlant(xml)
+    f, p = np.zeros((6, 3)), np.zeros((6, 3))
+    f[0], p[0] = [3.0, -40.0, 25.0], [0.01, 0.02, -0.4]
+    m, d = pushed.model, mujoco.MjData(pushed.model)
+    d.qpos[:] = pushed.data.qpos
+    mujoco.mj_forward(m, d)
+    b = pushed._bid[0]
+    point = d.xpos[b] + d.xmat[b].reshape(3, 3) @ p[0]
+    qfrc = np.zeros(m.nv)
+    mujoco.mj_applyFT(m, d, f[0], np.zeros(3), point, b, qfrc)
+    expect = np.zeros(m.nv)
+    mujoco.mj_solveM(m, d, expect.reshape(1, -1), qfrc.reshape(1, -1))
+    still.step()
+    pushed.step(f, p)
+    np.testing.assert_allclose(pushed.data.qvel - still.data.qvel, pushed.dt * expect, rtol=1e-9, atol=1e-12)
 
 
 # ---------------------------------------------------------------------- the robot stands and rolls

@@ -286,10 +286,10 @@ def test_gap_writes_an_mp4_of_each(trained, robot, tmp_path):
     folder = tmp_path / "videos"
     script = f"import sys; sys.argv = ['x', {trained.path!r}, {str(robot['twin'])!r}, {str(folder)!r}]\n"
     r = render_in_subprocess(script + _VIDEO_SCRIPT)
-    assert r["files"] == ["plant.mp4", "random_plant.mp4", "twin.mp4"]  # nothing temporary left
-    for name in ("twin", "plant", "random_plant"):
+    assert r["files"] == ["plant.mp4", "random_plant.mp4", "twin.mp4", "twin_plant.mp4"]  # nothing temporary left
+    for name in ("twin", "plant", "random_plant", "twin_plant"):
         v = r["videos"][name]
-        assert v["ftyp"] == "ftyp" and v["size"] == [64, 64]
+        assert v["ftyp"] == "ftyp" and v["size"] == ([64 + 4 + 64, 64] if name == "twin_plant" else [64, 64])
         assert v["frames"] == 3  # reset, then every 2nd of 4 steps
 
 

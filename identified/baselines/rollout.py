@@ -5,7 +5,7 @@ A *step model* is any callable ``step(state, rest_length, push_force, push_point
 ``step``, Koopman+Int's ``step``).  :func:`rollout_errors` starts it from each recorded initial
 state, drives it with the recorded rest lengths and pushes, and returns the paper's curves:
 position error (m) and quaternion distance against the time step, averaged over episodes and
-rods (as :func:`identified.predict.rollout_errors` does for the identified model).
+rods (as :func:`identified.evaluate.rollout_errors` does for the identified model).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 
 from identified.dataset import Dataset
 from identified.engine.integration import RodState
-from identified.predict import quat_distance
+from identified.evaluate import quat_distance
 
 __all__ = ["StepModel", "rollout", "rollout_errors"]
 

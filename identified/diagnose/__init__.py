@@ -81,7 +81,7 @@ from .report import write_report
 from .residual import one_step
 from .stats import ALPHA, DOFS, LJUNG_BOX_LAGS, input_correlation, ljung_box, whiteness
 
-__all__ = ["DOFS", "K_STEPS", "diagnose", "ljung_box", "verdict", "write_report"]
+__all__ = ["DOFS", "K_STEPS", "at_rounding_level", "diagnose", "improved", "ljung_box", "verdict", "write_report"]
 
 #: k-step prediction errors are reported for these k
 K_STEPS = (1, 10, 100)
@@ -133,6 +133,20 @@ def diagnose(
     """
     with threadpool_limits(1):
         return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps)
+
+
+def at_rounding_level(relative: dict[str, float | None]) -> bool:
+    """Whether the one-step residual relative to the recorded wrench is below
+    :data:`ROUNDING_LEVEL` for the force AND the torque (``None``: undefined, not at rounding)."""
+    return all(v is not None and v < ROUNDING_LEVEL for v in relative.values())
+
+
+def improved(added: list[str], error_before: float | None, error_after: float | None) -> bool:
+    """Whether the model's added effects cut the free-run error at least ``1 / EXPLAINED_GAIN``
+    (5x), or turned a diverging free run (``None``) into a finite one."""
+    eb, ea = error_before, error_after
+    return bool(added) and ((eb is None and ea is not None)
+                            or (eb is not None and ea is not None and eb > 0 and ea <= EXPLAINED_GAIN * eb))
 
 
 def verdict(rounding: bool, white: bool, improved: bool,
@@ -188,11 +202,9 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
     res = one["res"]  # (E, T', R, 6)
     lb = whiteness(res, topo.rod_names)
     rel = one["relative"]
-    rounding = all(v is not None and v < ROUNDING_LEVEL for v in rel.values())
     eb, ea = fr_before["error"], fr_after["error"]
-    improved = bool(added) and ((eb is None and ea is not None)
-                                or (eb is not None and ea is not None and eb > 0 and ea <= EXPLAINED_GAIN * eb))
-    explained, reasons, partial = verdict(rounding, lb["white"], improved, one["effect_rows"])
+    explained, reasons, partial = verdict(at_rounding_level(rel), lb["white"], improved(added, eb, ea),
+                                          one["effect_rows"])
     region_out = dict(one["regions"])
     for name, why in _unavailable_regions(regions, src).items():
         region_out[name] = why

@@ -72,46 +72,29 @@ class GeometryError(ValueError):
 
 
 def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, Any]:
-    """Capsule radius and segment ends per rod, and the ground plane, from an MJCF (XML only).
+    """Capsule radius and segment ends per rod, and the ground plane, from an MJCF as MuJoCo compiles it
+    (:func:`identified.mjcf.read_system`: geometry only, in each rod's frame).
 
-    Returns ``{"radius": [R], "segment": [R][2][3] rod frame, "ground_height": h, "normal": [3]}``.
-    Raises :class:`GeometryError` (one line) when there is no ground plane or a rod has no capsule.
+    A rod's capsule spans its collision geoms (capsule and cylinder ends, sphere centres: a tube
+    with end caps is the capsule between the caps). Returns ``{"radius": [R], "segment": [R][2][3]
+    rod frame, "ground_height": h, "normal": [3]}``. Raises :class:`GeometryError` (one line) when
+    there is no ground plane or a rod has no collision capsule, cylinder or sphere.
     """
-    from identified.mjcf import parse_mjcf, read_mjcf_text
-    from identified.rotation import quat_to_matrix
-    from identified.topology import _vec
+    from identified.mjcf import read_system
 
-    root = parse_mjcf(read_mjcf_text(mjcf, GeometryError), GeometryError)
-    world = root.find("worldbody")
-    planes = [g for g in world.iter("geom") if g.get("type") == "plane"] if world is not None else []
-    if not planes:
+    system = read_system(mjcf, GeometryError)
+    if system.plane is None:
         raise GeometryError("ground_contact needs a ground plane (a <geom type=\"plane\">) in the MJCF; it has none")
-    g = planes[0]
-    pos = _vec(g.get("pos"), 3)
-    q = _vec(g.get("quat"), 4) if g.get("quat") else np.array([1.0, 0, 0, 0])
-    normal = quat_to_matrix(q / np.linalg.norm(q))[:, 2]
+    normal, height = system.plane
+    rods = {r.name: r for r in system.rods}
     radius, segment = [], []
-    bodies = {b.get("name"): b for b in world.findall("body")}
     for name in rod_names:
-        b = bodies.get(name)
-        caps = [] if b is None else [x for x in b.findall("geom") if x.get("type") == "capsule"]
-        if not caps:
+        rod = rods.get(name)
+        if rod is None or rod.contact_segment is None:
             raise GeometryError(f"ground_contact needs a collision capsule on rod '{name}'; the MJCF has none")
-        c = caps[0]
-        size = [float(v) for v in (c.get("size") or "0").split()]
-        if c.get("fromto"):
-            ft = _vec(c.get("fromto"), 6)
-            ends = [ft[:3], ft[3:]]
-        else:
-            if c.get("quat") or c.get("euler") or c.get("axisangle"):
-                raise GeometryError(f"rod '{name}': give its capsule as fromto to read its geometry")
-            p = _vec(c.get("pos"), 3)
-            half = size[1] if len(size) > 1 else 0.0
-            ends = [p - [0, 0, half], p + [0, 0, half]]
-        radius.append(size[0])
-        segment.append([list(map(float, e)) for e in ends])
-    return {"radius": radius, "segment": segment, "ground_height": float(normal @ pos),
-            "normal": normal.tolist()}
+        radius.append(float(rod.contact_radius))
+        segment.append([list(map(float, e)) for e in rod.contact_segment])
+    return {"radius": radius, "segment": segment, "ground_height": float(height), "normal": normal.tolist()}
 
 
 class GroundContact(Effect):
@@ -306,7 +289,9 @@ class GroundContact(Effect):
         are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves by
         3x3 blocks, all elementwise over rods and envs, which ``torch.compile`` fuses and
         vectorises (tests/test_twin_speed.py checks the two forms agree)."""
-        th = self.theta(pos[0])  # the cached tensor: a compiled step never converts ``values``
+        # the cached tensor: a compiled step never converts ``values``; (P,), or (N, 1, P) bound
+        # per environment (each env its own law, broadcast over its rods)
+        th = self.theta(pos[0])
         radius, seg, n, t1, height = self._geom_components(pos[0])
         # friction axes per rod: along the rod's shadow on the ground (a) and across it (p)
         axis = (rot[2], rot[5], rot[8])
@@ -328,11 +313,11 @@ class GroundContact(Effect):
             # velocity and its acceleration under every other force
             v = vadd(vel, vcross(angvel, lever))
             a0 = vadd(base_lin_acc, vcross(alpha_w, lever))
-            refs.append(tuple(-(th[1 + 2 * k] * vdot(d, v) + th[2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
+            refs.append(tuple(-(th[..., 1 + 2 * k] * vdot(d, v) + th[..., 2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
             levers.append(lever)
-        refs[0] = (refs[0][0] + th[0] * depths[0], *refs[0][1:])
-        refs[1] = (refs[1][0] + th[0] * depths[1], *refs[1][1:])
-        inv_m, eps = 1.0 / mass, th[NL + 1]
+        refs[0] = (refs[0][0] + th[..., 0] * depths[0], *refs[0][1:])
+        refs[1] = (refs[1][0] + th[..., 0] * depths[1], *refs[1][1:])
+        inv_m, eps = 1.0 / mass, th[..., NL + 1]
 
         def block(b: Mat, c: Mat, regularised: bool) -> Mat:  # I/M + B_b B_cᵀ (ε on the diagonal)
             out = []
@@ -350,7 +335,7 @@ class GroundContact(Effect):
         raw = _masked_block_solve(P, Q, W, active, refs)
         # solved again with the pulling ends released (always: one graph)
         raw = _masked_block_solve(P, Q, W, (active[0] & (raw[0][0] > 0), active[1] & (raw[1][0] > 0)), refs)
-        mu = th[NL]
+        mu = th[..., NL]
         force: Vec = (0.0, 0.0, 0.0)
         torque: Vec = (0.0, 0.0, 0.0)
         for lever, (rn, ra, rp) in zip(levers, raw):

@@ -270,6 +270,39 @@ def relative_residual(model) -> float | None:
     return float(max(cond)) / scale
 
 
+#: a fit on clean data whose one-step residual wrench exceeds this share of the recorded inertial
+#: wrench does not describe its own data (its equations hold to ~1e-13 on a plant they model)
+LARGE_RESIDUAL = 1e-2
+
+
+def residual_check(model, data) -> dict:
+    """Whether the model's equations describe the data it was fitted on, in ``metrics.residual``.
+
+    The one-step residual wrench relative to the recorded inertial wrench
+    (:func:`identified.evaluate.relative_one_step_errors`, rows of residual-strategy effects left
+    out). Above :data:`LARGE_RESIDUAL` on clean data the fit is flagged ``large`` with a warning in
+    ``metrics.warnings``: the model lacks something the plant has (geometry it cannot express, an
+    effect), and its parameters absorb it. On data that record sensor noise the differenced
+    accelerations carry the noise, so the figure is reported and not judged.
+    """
+    from identified.evaluate import relative_one_step_errors
+
+    rel = float(relative_one_step_errors([model], data)[0])
+    noisy = bool(np.any(np.asarray(data.noise) > 0))
+    large = bool(not noisy and not rel <= LARGE_RESIDUAL)
+    out = {"relative_one_step": rel if np.isfinite(rel) else None, "threshold": LARGE_RESIDUAL,
+           "judged": not noisy, "large": large}
+    model.metrics["residual"] = out
+    if large:
+        line = (f"the fitted equations leave {rel:.3g} of the recorded wrench unexplained on their own data "
+                f"(above {LARGE_RESIDUAL:g}): the model lacks something the plant has; its parameters are "
+                "not the plant's")
+        model.metrics.setdefault("warnings", [])
+        if line not in model.metrics["warnings"]:
+            model.metrics["warnings"].append(line)
+    return out
+
+
 def json_safe_nan(tree):
     """``tree`` (nested dicts/lists of numbers) with every number replaced by NaN (not estimable)."""
     if isinstance(tree, dict):

@@ -68,7 +68,7 @@ from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 
-__all__ = ["fit_model", "parse_effects", "select_effects"]
+__all__ = ["fit_model", "one_step_evidence", "parse_effects", "search_explained", "select_effects"]
 #: a held-out one-step error (relative) below this is rounding or noise-free exactness: no effect
 #: is added on the evidence of the one-step error alone (the free run must then show it)
 ONE_STEP_FLOOR = 1e-6
@@ -166,11 +166,12 @@ def fit_model(
         from identified.fit.refine import refine as refine_model
 
         model = refine_model(model, data, progress=progress)
-    from identified.fit.checks import refresh_physics
+    from identified.fit.checks import refresh_physics, residual_check
     from identified.predict import attach_metrics
 
     refresh_physics(model)  # the checks of the final parameters (refinement moves them)
     attach_metrics(model, data)
+    residual_check(model, data)  # a fit that does not describe its own data says so
     return model
 
 
@@ -317,7 +318,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             # inexact law whose error dominates the free run (drag on a robot rolling on its ground)
             alt = min(ones, key=ones.get)
             alt_err = runs[alt] if alt in runs else _free_run(fits[alt], ctx)
-            if one_base >= min_gain * ones[alt] and np.isfinite(alt_err) and alt_err <= min_gain * base_err:
+            if one_step_evidence(one_base, ones[alt], base_err, alt_err, min_gain):
                 best, err, evidence = alt, alt_err, "one step"
         if evidence is None:
             break
@@ -350,16 +351,31 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             bar.total += len(candidates) - len(chosen)
     if bar is not None:
         bar.close()
-    rel = relative_residual(base_model)
-    explained = bool((rel is not None and rel < ROUNDING) or (first_err > 0 and base_err <= first_err / 5)
-                     or (first_err == 0))
-    return chosen, loop, explained, fixed
+    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed
 
 
 def halves(before: float, after: float, min_gain: float = 2.0) -> bool:
     """The free-run evidence for an effect: the held-out free-run error falls from ``before`` to
     ``after`` by at least ``min_gain``, from above :data:`FREE_RUN_FLOOR` (rounding)."""
     return bool(np.isfinite(after) and before >= max(min_gain * after, FREE_RUN_FLOOR))
+
+
+def one_step_evidence(one_before: float, one_after: float, free_before: float, free_after: float,
+                      min_gain: float = 2.0) -> bool:
+    """The one-step evidence for an effect: the held-out one-step error falls from ``one_before``
+    (above :data:`ONE_STEP_FLOOR`) by at least ``min_gain``, and the free-run error does not grow
+    from ``free_before`` by ``min_gain`` or more."""
+    return bool(one_before > ONE_STEP_FLOOR and one_before >= min_gain * one_after
+                and np.isfinite(free_after) and free_after <= min_gain * free_before)
+
+
+def search_explained(relative: float | None, first_err: float, last_err: float) -> bool:
+    """Whether what the search leaves is explained: the final model's one-step residual relative to
+    the forces (``relative``) is below :data:`~identified.fit.checks.ROUNDING`, or the held-out
+    free-run error fell at least 5x from the model without effects (``first_err``) to the final
+    one (``last_err``), or it was 0 to begin with."""
+    return bool((relative is not None and relative < ROUNDING) or (first_err > 0 and last_err <= first_err / 5)
+                or first_err == 0)
 
 
 def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,

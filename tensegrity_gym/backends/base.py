@@ -11,7 +11,10 @@ Static metadata a backend exposes (fixed for its lifetime):
 * ``rod_names`` (R,), ``tendon_names`` (S,), ``actuated_names`` (A,) — actuated in command order;
 * ``dt`` — one physics step, s;
 * ``motor`` — the :class:`~tensegrity_gym.cables.MotorSpec` (speed, rest_min, rest_max per
-  actuated cable), the one motor model both backends share.
+  actuated cable), the one motor model both backends share;
+* ``actuator_names`` (U,) — MuJoCo tendon actuators (``motor``, ``position``, ``general``), with
+  :meth:`Backend.ctrl_bounds` their ``ctrlrange``; commanded by :meth:`Backend.set_ctrl` (held
+  until changed), their state read by :meth:`Backend.actuator_state`. Empty by default.
 
 Dynamic interface: :meth:`Backend.reset`, :meth:`Backend.step`, :meth:`Backend.states`,
 :meth:`Backend.rest_lengths`, plus :meth:`Backend.nominal_states` and
@@ -74,6 +77,9 @@ class Backend(abc.ABC):
     tendon_names: tuple[str, ...]
     actuated_names: tuple[str, ...]
     motor: MotorSpec
+    actuator_names: tuple[str, ...] = ()
+    #: height of the model's ground plane, m (``None``: no ground)
+    ground: float | None = None
 
     # ------------------------------------------------------------------ metadata
     @property
@@ -90,6 +96,21 @@ class Backend(abc.ABC):
         """(A,) int: position of every actuated cable in ``tendon_names``."""
         idx = {n: i for i, n in enumerate(self.tendon_names)}
         return np.array([idx[n] for n in self.actuated_names], dtype=int)
+
+    # ------------------------------------------------------------------ MuJoCo actuators
+    def ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high), each (U,): the actuators' command ranges."""
+        return np.zeros(0), np.zeros(0)
+
+    def set_ctrl(self, ctrl: np.ndarray) -> None:
+        """Set the (U,) actuator commands, held until changed (cleared by :meth:`reset`)."""
+        if np.asarray(ctrl).size:
+            raise ValueError(f"the {self.name!r} backend has no actuators")
+
+    def actuator_state(self) -> np.ndarray:
+        """(U,) what each actuator's force acts on now: its activation where it has dynamics, else
+        its command."""
+        return np.zeros(0)
 
     # ------------------------------------------------------------------ the standing pose
     @abc.abstractmethod

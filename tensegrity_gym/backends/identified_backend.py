@@ -12,7 +12,9 @@ XML only (:func:`read_source_mjcf`):
 
 * the motor specification (which cables are actuated, speed, bounds: ``read_motor_spec``);
 * the nominal pose the env perturbs at reset: keyframe ``nominal`` (:func:`identified.mjcf.nominal_pose`),
-  so plant and twin start from the same reset distribution;
+  or for a model without one the plant's own standing pose (:func:`tensegrity_gym.plant.standing_pose`,
+  the MJCF's first keyframe or the pose it settles in), so plant and twin start from the same reset
+  distribution;
 * the neutral rest length of every actuated cable (its ``springlength``): the motor setting the
   robot starts from, a command, not a fitted parameter. Non-actuated springs keep the identified
   ``model.rest_length``;
@@ -202,7 +204,20 @@ class IdentifiedBackend(Backend):
         if unknown:
             raise ValueError(f"actuated cables {unknown} of the MJCF are not springs of the identified model")
         self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
-        self._nominal = nominal_pose(self.mjcf, self.rod_names)
+        topo_mjcf = Topology.from_mjcf(self.mjcf)
+        self.ground = topo_mjcf.ground
+        forces = [a.name for a in topo_mjcf.actuators if a.kind != "rest_length"]
+        if forces:
+            raise ValueError(f"the MJCF '{self.mjcf_source}' has MuJoCo actuators {forces}, which the identified "
+                             "model does not hold: the twin cannot step them")
+        if parse_mjcf(self.mjcf).find("keyframe/key[@name='nominal']") is not None:
+            self._nominal = nominal_pose(self.mjcf, self.rod_names)
+        else:  # a lab's model: the pose the plant stands in (a keyframe, or settled from qpos0)
+            from tensegrity_gym.plant import MujocoPlant, standing_pose
+
+            pose, _ = standing_pose(MujocoPlant(self.mjcf))
+            order = [topo_mjcf.rod_names.index(n) for n in self.rod_names]
+            self._nominal = RodState(pose.pos[order], pose.quat[order], pose.vel[order], pose.angvel[order])
         rest = np.array(m.rest_length, dtype=float)
         written = spring_lengths(self.mjcf)
         act = self.actuated_index

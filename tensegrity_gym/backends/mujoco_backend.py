@@ -15,7 +15,7 @@ import numpy as np
 
 from tensegrity_gym.backends.base import Backend, RodState, _sync_viewer
 from tensegrity_gym.checks import check_substeps
-from tensegrity_gym.plant import MujocoPlant
+from tensegrity_gym.plant import MujocoPlant, standing_pose
 
 __all__ = ["MujocoBackend", "default_robot_xml"]
 
@@ -41,8 +41,10 @@ class MujocoBackend(Backend):
         integrator: ``None`` keeps the model's integrator; else ``"euler"``, ``"rk4"``,
             ``"implicit"`` or ``"implicitfast"``.
 
-    The nominal pose is the model's keyframe ``"nominal"`` (its ``qpos0`` when it has none) with
-    zero velocities, and the MJCF rest lengths.
+    The nominal pose is the model's standing pose (:func:`~tensegrity_gym.plant.standing_pose`:
+    keyframe ``"nominal"``, else its first keyframe, else the pose it settles in from ``qpos0``)
+    with zero velocities, and the MJCF rest lengths. MuJoCo tendon actuators are commanded by
+    :meth:`set_ctrl` (``data.ctrl``, zero after :meth:`reset`).
 
     Divergence: when MuJoCo finds a bad position, velocity or acceleration it warns and silently
     resets its data to ``qpos0``. This backend reports that instead as non-finite rod states (NaN)
@@ -60,8 +62,11 @@ class MujocoBackend(Backend):
         self.tendon_names = p.tendon_names
         self.actuated_names = p.actuated_names
         self.motor = p.motor
+        self.actuator_names = p.actuator_names
+        self.ground = p.system.ground
+        self._ctrl_bounds = p.ctrl_bounds() if p.actuators else (np.zeros(0), np.zeros(0))
+        self._nominal, self.nominal_source = standing_pose(p)
         p.reset()  # the keyframe, zero velocities, MJCF rest lengths
-        self._nominal = p.states()
         self._nominal_rest = p.rest_lengths()
         self._diverged = False
 
@@ -74,6 +79,15 @@ class MujocoBackend(Backend):
 
     def nominal_rest_lengths(self) -> np.ndarray:
         return self._nominal_rest.copy()
+
+    def ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._ctrl_bounds[0].copy(), self._ctrl_bounds[1].copy()
+
+    def set_ctrl(self, ctrl: np.ndarray) -> None:
+        self.plant.set_ctrl(ctrl)
+
+    def actuator_state(self) -> np.ndarray:
+        return self.plant.actuator_state()
 
     def reset(self, states: RodState, rest_lengths: np.ndarray) -> None:
         # MujocoPlant.reset restores the keyframe (mj_resetDataKeyframe clears time, warm start

@@ -39,6 +39,7 @@ reads as NaN until it is reset.
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import time
@@ -49,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from identified.engine import SpringRodEngine
+from identified.engine import SpringRodEngine, SpringRodParams
 from identified.state import RodState
 from identified.threads import torch_threads
 from tensegrity_gym.cables import MotorSpec, motor_step
@@ -105,16 +106,33 @@ class TwinPhysics:
         num_threads: torch intra-op threads for the twin's work, ``"auto"`` (1 on CPU), an int,
             or ``None`` (torch's setting); scoped to :meth:`step` (module docstring).
         compile: ``"auto"``, ``True`` or ``False``: ``torch.compile`` one substep (module docstring).
+        per_env: each copy carries its own parameters (needs ``batch``, not ``chunk_size``): the
+            engine's spring and rod parameters get a leading (N,) dimension, the effects with a
+            component form (ground contact) their parameters as (N, 1, P), and every copy a rest
+            offset per spring and a motor speed; all start at the engine's values and change with
+            :meth:`set_parameters`. The engine is copied: the one passed in is left as it is.
     """
 
     def __init__(self, engine: SpringRodEngine, motor: MotorSpec, actuated_index: np.ndarray,
                  batch: int | None = None, chunk_size: int | None = None,
-                 num_threads: int | str | None = "auto", compile: bool | str = "auto") -> None:
+                 num_threads: int | str | None = "auto", compile: bool | str = "auto",
+                 per_env: bool = False) -> None:
         if batch is not None and (int(batch) != batch or batch < 1):
             raise ValueError(f"batch must be an integer >= 1 or None, got {batch}")
         if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1 or batch is None):
             raise ValueError(f"chunk_size must be an integer >= 1 (and needs batch), got {chunk_size}")
         self.chunk_size = None if chunk_size is None or chunk_size >= (batch or 0) else int(chunk_size)
+        if per_env and (batch is None or self.chunk_size is not None):
+            raise ValueError("per_env parameters need a batch and no chunk_size")
+        self.per_env = bool(per_env)
+        #: per-copy parameters: the rest offsets (N, S) added to the springs' rest lengths and the
+        #: motor speed (N, 1) (a float when not per copy)
+        self._rest_offset: torch.Tensor | None = None
+        self._speed: Any = motor.speed
+        if per_env:
+            engine = self._per_env_engine(engine, int(batch))  # type: ignore[arg-type]
+            self._rest_offset = torch.zeros((int(batch), engine.n_springs), dtype=engine.dtype, device=engine.device)
+            self._speed = torch.full((int(batch), 1), float(motor.speed), dtype=engine.dtype, device=engine.device)
         self.engine = engine
         self.motor = motor
         self.batch = None if batch is None else int(batch)
@@ -175,6 +193,57 @@ class TwinPhysics:
         """Motor targets (*B, A) in metres (clipped into the motor bounds)."""
         t = self.tensor(target)
         self.target[self._index(index)] = torch.minimum(torch.maximum(t, self._lo), self._hi)
+
+    # ------------------------------------------------------------------ per-copy parameters
+    @staticmethod
+    def _per_env_engine(engine: SpringRodEngine, n: int) -> SpringRodEngine:
+        """A copy of ``engine`` whose parameters have a leading (n,) dimension (values unchanged)."""
+        e = copy.copy(engine)
+        p = engine.params
+        e.params = SpringRodParams(**{k: v.detach().expand((n,) + tuple(v.shape)).clone()
+                                      for k, v in p.as_dict().items()})
+        e.effects = []
+        for eff in engine.effects:
+            eff = copy.copy(eff)
+            if hasattr(eff, "wrench_components") and getattr(eff, "values", None) is not None:
+                th = torch.as_tensor(np.asarray(eff.values, dtype=np.float64), dtype=engine.dtype, device=engine.device)
+                eff.bind(th.expand(n, 1, th.shape[-1]).clone())  # a copy's bind leaves the original's cache
+            e.effects.append(eff)
+        return e
+
+    def effect_parameters(self) -> dict[str, torch.Tensor]:
+        """The per-copy parameters of each effect that has them, (N, 1, P) (``per_env`` only)."""
+        out = {}
+        for eff in self.engine.effects:
+            th = eff._cache.get(("theta", self.engine.dtype, self.engine.device)) if hasattr(eff, "_cache") else None
+            if th is not None and th.dim() == 3:
+                out[eff.name] = th
+        return out
+
+    def set_parameters(self, index: Any, *, stiffness: Any = None, damping: Any = None, mass: Any = None,
+                       inertia: Any = None, rest_offset: Any = None, motor_speed: Any = None,
+                       effects: dict[str, Any] | None = None) -> None:
+        """Give the copies ``index`` (n,) their own parameters (``per_env`` only; ``None`` keeps a
+        parameter as it is): ``stiffness``, ``damping``, ``rest_offset`` (n, S) (N/m, N s/m, m, the
+        offset added to every spring's rest length), ``mass`` (n, R) kg, ``inertia`` (n, R, 3)
+        kg m², ``motor_speed`` (n,) m/s, ``effects`` {name: (n, P)} in the effect's parameter order.
+        Written in place: a compiled substep reads the new values."""
+        if not self.per_env:
+            raise ValueError("set_parameters needs a TwinPhysics built with per_env=True")
+        i = self._index(index)
+        p = self.engine.params
+        for name, value in (("stiffness", stiffness), ("damping", damping), ("mass", mass), ("inertia", inertia)):
+            if value is not None:
+                getattr(p, name)[i] = self.tensor(value)
+        if rest_offset is not None:
+            self._rest_offset[i] = self.tensor(rest_offset)  # type: ignore[index]
+        if motor_speed is not None:
+            self._speed[i] = self.tensor(motor_speed).reshape(-1, 1)
+        table = self.effect_parameters()
+        for name, value in (effects or {}).items():
+            if name not in table:
+                raise ValueError(f"effect '{name}' has no per-copy parameters (per-copy: {sorted(table) or 'none'})")
+            table[name][i] = self.tensor(value).reshape(-1, 1, table[name].shape[-1])
 
     def step(self, n_substeps: int, push_force: Any | None = None, push_point: Any | None = None) -> None:
         """``n_substeps`` physics steps of every copy, the push (``(*B, R, 3)`` world force, N, at
@@ -241,11 +310,12 @@ class TwinPhysics:
         result: the components of (pos, quat, vel, angvel), each (*B, R)."""
         e = self.engine
         if self.motor.n:
-            rest_act = motor_step(rest_act, target, self.motor.speed, e.dt, self._lo, self._hi)
+            rest_act = motor_step(rest_act, target, self._speed, e.dt, self._lo, self._hi)
             rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)
+        springs = rest if self._rest_offset is None else rest + self._rest_offset
         if self._fused:
-            return e.step_components(*state, rest, pf, pp), rest, rest_act
-        return _split(e.step(_stack(state), rest, pf, pp)), rest, rest_act
+            return e.step_components(*state, springs, pf, pp), rest, rest_act
+        return _split(e.step(_stack(state), springs, pf, pp)), rest, rest_act
 
     def _compile_and_advance(self, n: int, comps: tuple, rest: torch.Tensor, rest_act: torch.Tensor,
                              target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None

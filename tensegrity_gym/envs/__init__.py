@@ -3,6 +3,7 @@
 | id | entry point | time limit |
 | --- | --- | --- |
 | ``TensegrityIco-v0`` | ``tensegrity_gym.envs.tensegrity_ico_v0:TensegrityIcoEnv`` | 1000 steps (20 s) |
+| ``Tensegrity-v0`` | ``tensegrity_gym.envs.tensegrity_v0:TensegrityEnv`` (any MJCF: ``xml_file=PATH``) | 1000 steps |
 
 ``TensegrityIco-v0`` also has a ``vector_entry_point``, ``tensegrity_gym.envs.vector:make_vector_env``:
 ``gym.make_vec("TensegrityIco-v0", num_envs=N, backend="identified", ...)`` is the natively batched
@@ -16,7 +17,7 @@ import gymnasium
 
 __all__ = ["ENV_IDS", "register_envs"]
 
-ENV_IDS: tuple[str, ...] = ("TensegrityIco-v0",)
+ENV_IDS: tuple[str, ...] = ("TensegrityIco-v0", "Tensegrity-v0")
 
 
 def register_envs() -> None:
@@ -26,6 +27,12 @@ def register_envs() -> None:
             id="TensegrityIco-v0",
             entry_point="tensegrity_gym.envs.tensegrity_ico_v0:TensegrityIcoEnv",
             vector_entry_point="tensegrity_gym.envs.vector:make_vector_env",
+            max_episode_steps=1000,
+        )
+    if "Tensegrity-v0" not in gymnasium.registry:
+        gymnasium.register(
+            id="Tensegrity-v0",
+            entry_point="tensegrity_gym.envs.tensegrity_v0:TensegrityEnv",
             max_episode_steps=1000,
         )
 

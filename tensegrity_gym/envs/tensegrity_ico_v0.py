@@ -25,6 +25,7 @@ from tensegrity_gym.backends import Backend, make_backend
 __all__ = [
     "TensegrityIcoEnv",
     "action_to_rest",
+    "healthy_range",
     "observation",
     "observation_names",
     "perturb_start",
@@ -62,7 +63,8 @@ def structure_com(states: RodState) -> np.ndarray:
 
 def observation(states: RodState, rest_lengths: np.ndarray, actuated_index: np.ndarray,
                 rest_min: np.ndarray, rest_max: np.ndarray,
-                exclude_current_positions: bool = True) -> np.ndarray:
+                exclude_current_positions: bool = True, actuator_state: np.ndarray | None = None,
+                ctrl_low: np.ndarray | None = None, ctrl_high: np.ndarray | None = None) -> np.ndarray:
     """The observation vector (float64; the env casts it to float32) of rod states and rest lengths.
 
     Works on one env (``pos`` (R, 3) -> (n_obs,)) and on a batch (``pos`` (N, R, 3), ``rest_lengths``
@@ -72,7 +74,9 @@ def observation(states: RodState, rest_lengths: np.ndarray, actuated_index: np.n
     ``[x_com, y_com]`` (only with ``exclude_current_positions=False``), ``z_com`` (1),
     rod centres relative to the structure's centre (3R), rod rotation matrices body -> world,
     row-major (9R), rod linear velocities (3R), rod angular velocities (3R), actuated rest lengths
-    normalised as actions, -1 = rest_min, +1 = rest_max (A). Everything in the world frame, SI.
+    normalised as actions, -1 = rest_min, +1 = rest_max (A), then the MuJoCo actuators' states
+    (activation, or command where an actuator has no dynamics) normalised over their ``ctrlrange``
+    (U, only when ``actuator_state`` is given). Everything in the world frame, SI.
 
     Args:
         states: rod states (R rods).
@@ -80,6 +84,7 @@ def observation(states: RodState, rest_lengths: np.ndarray, actuated_index: np.n
         actuated_index: (A,) positions of the actuated cables in ``rest_lengths``.
         rest_min, rest_max: (A,) motor bounds, m.
         exclude_current_positions: leave out the structure's x, y (the task is invariant to them).
+        actuator_state, ctrl_low, ctrl_high: (U,) the actuators' states and command ranges.
     """
     pos = np.asarray(states.pos, dtype=float)
     lead = pos.shape[:-2]  # () for one env, (N,) for a batch
@@ -99,12 +104,15 @@ def observation(states: RodState, rest_lengths: np.ndarray, actuated_index: np.n
         flat(states.angvel),
         rest_to_action(rest, rest_min, rest_max),
     ]
+    if actuator_state is not None:
+        parts.append(rest_to_action(np.asarray(actuator_state, dtype=float), ctrl_low, ctrl_high))
     return np.concatenate(parts, axis=-1)
 
 
 def observation_names(rod_names: tuple[str, ...], actuated_names: tuple[str, ...],
-                      exclude_current_positions: bool = True) -> list[str]:
-    """A name for every element of :func:`observation`, in order (e.g. ``"rod2_R01"``, ``"cable5_rest"``)."""
+                      exclude_current_positions: bool = True, actuator_names: tuple[str, ...] = ()) -> list[str]:
+    """A name for every element of :func:`observation`, in order (e.g. ``"rod2_R01"``, ``"cable5_rest"``,
+    ``"winch0_act"``)."""
     names = [] if exclude_current_positions else ["x_com", "y_com"]
     names.append("z_com")
     names += [f"{r}_rel_{c}" for r in rod_names for c in "xyz"]
@@ -112,7 +120,21 @@ def observation_names(rod_names: tuple[str, ...], actuated_names: tuple[str, ...
     names += [f"{r}_vel_{c}" for r in rod_names for c in "xyz"]
     names += [f"{r}_angvel_{c}" for r in rod_names for c in "xyz"]
     names += [f"{a}_rest" for a in actuated_names]
+    names += [f"{a}_act" for a in actuator_names]
     return names
+
+
+def healthy_range(nominal: RodState, ground: float | None) -> tuple[float, float] | None:
+    """The healthy height range of the structure's centre derived from a model: from a quarter to
+    three times its standing height ``h`` above the ground plane, ``(g + h/4, g + 3h)`` (a prism
+    tipped onto its side keeps about half its height; a collapsed structure lies flat); ``None``
+    (no height check) for a model without a ground plane or standing on nothing above it."""
+    if ground is None:
+        return None
+    h = float(structure_com(nominal)[2]) - ground
+    if not (np.isfinite(h) and h > 0):
+        return None
+    return ground + 0.25 * h, ground + 3.0 * h
 
 
 def reward_terms(com_before: np.ndarray, com_after: np.ndarray, action: np.ndarray, dt_control: float,
@@ -261,12 +283,13 @@ class TensegrityIcoEnv(gym.Env):
     | `backend` | `"mujoco"` | `"mujoco"` (plant), `"identified"` (twin), or a `Backend` instance |
     | `model` | `None` | MJCF path/text (mujoco) or identified-model JSON (twin); `None`: the robot preset |
     | `backend_kwargs` | `None` | extra keyword arguments of the backend (e.g. `{"integrator": "rk4"}`) |
+    | `xml_file` | `None` | an MJCF path (Gymnasium's MuJoCo convention): the plant's model, or the twin's source MJCF (its `mjcf`) |
     | `frame_skip` | `20` | physics steps per env step (20 × 1 ms = 50 Hz control) |
     | `forward_reward_weight` | `1.0` | weight of the forward speed |
     | `ctrl_cost_weight` | `0.01` | weight of ‖action‖² (≤ 0.24 per step for A = 24) |
     | `reset_noise_scale` | `0.01` | half-width of the uniform reset noise (m, rad, m/s, rad/s) |
     | `terminate_when_unhealthy` | `True` | end the episode when the centre leaves `healthy_z_range` |
-    | `healthy_z_range` | `(0.4, 2.0)` | healthy height of the structure's centre, m (standing: 0.71) |
+    | `healthy_z_range` | `(0.4, 2.0)` | healthy height of the structure's centre, m (standing: 0.71); `"auto"`: from the model (`healthy_range`); `None`: no height check |
     | `exclude_current_positions_from_observation` | `True` | leave the centre's x, y out |
     | `render_mode` | `None` | `"rgb_array"` (H×W×3 uint8) or `"human"` (`mujoco.viewer`) |
     | `width`, `height` | `480`, `480` | image size for `"rgb_array"` |
@@ -287,13 +310,14 @@ class TensegrityIcoEnv(gym.Env):
         ctrl_cost_weight: float = 0.01,
         reset_noise_scale: float = 0.01,
         terminate_when_unhealthy: bool = True,
-        healthy_z_range: tuple[float, float] = (0.4, 2.0),
+        healthy_z_range: tuple[float, float] | str | None = (0.4, 2.0),
         exclude_current_positions_from_observation: bool = True,
         render_mode: str | None = None,
         width: int = 480,
         height: int = 480,
         camera: str | int | None = None,
         backend_kwargs: dict[str, Any] | None = None,
+        xml_file: str | os.PathLike | None = None,
     ) -> None:
         if int(frame_skip) != frame_skip or frame_skip < 1:
             raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip}")
@@ -306,10 +330,27 @@ class TensegrityIcoEnv(gym.Env):
         for name, w in (("ctrl_cost_weight", ctrl_cost_weight), ("forward_reward_weight", forward_reward_weight)):
             if not np.isfinite(w):  # a NaN weight would make every reward NaN
                 raise ValueError(f"{name} must be a finite number, got {w}")
-        lo_z, hi_z = (float(v) for v in healthy_z_range)
-        if not (np.isfinite(lo_z) and np.isfinite(hi_z) and lo_z < hi_z):
-            raise ValueError(f"healthy_z_range must be (low, high) with low < high, got {healthy_z_range}")
+        z_range: tuple[float, float] | None = None
+        if healthy_z_range is not None and not (isinstance(healthy_z_range, str) and healthy_z_range == "auto"):
+            try:
+                lo_z, hi_z = (float(v) for v in healthy_z_range)  # type: ignore[union-attr]
+            except (TypeError, ValueError):
+                raise ValueError(f"healthy_z_range must be (low, high), 'auto' or None, got {healthy_z_range!r}") from None
+            if not (np.isfinite(lo_z) and np.isfinite(hi_z) and lo_z < hi_z):
+                raise ValueError(f"healthy_z_range must be (low, high) with low < high, got {healthy_z_range}")
+            z_range = (lo_z, hi_z)
 
+        if xml_file is not None:  # Gymnasium's MuJoCo convention: the plant's MJCF
+            if isinstance(backend, Backend):
+                raise ValueError("xml_file applies to a backend given by name, not to a Backend instance")
+            if backend == "mujoco":
+                if model is not None:
+                    raise ValueError("give the MJCF once: as xml_file or as model, not both")
+                model = xml_file
+            else:  # the twin: the MJCF its model was fitted against (motors, pose, drawing)
+                if backend_kwargs and "mjcf" in backend_kwargs:
+                    raise ValueError("give the MJCF once: as xml_file or as backend_kwargs['mjcf'], not both")
+                backend_kwargs = {**(backend_kwargs or {}), "mjcf": xml_file}
         if isinstance(backend, Backend):
             if model is not None or backend_kwargs:
                 raise ValueError("model and backend_kwargs apply to a backend given by name, "
@@ -318,30 +359,38 @@ class TensegrityIcoEnv(gym.Env):
         else:
             self.backend = make_backend(backend, model, **(backend_kwargs or {}))
         b = self.backend
-        if b.motor.n == 0:
-            raise ValueError("the model has no actuated cables: nothing to control")
+        if b.motor.n == 0 and not b.actuator_names:
+            raise ValueError("the model has no actuated cables and no actuators: nothing to control")
 
         self.frame_skip = int(frame_skip)
         self.forward_reward_weight = float(forward_reward_weight)
         self.ctrl_cost_weight = float(ctrl_cost_weight)
         self.reset_noise_scale = float(reset_noise_scale)
         self.terminate_when_unhealthy = bool(terminate_when_unhealthy)
-        self.healthy_z_range = (lo_z, hi_z)
+        if healthy_z_range is None:
+            self.healthy_z_range = None
+        elif z_range is None:  # "auto": from the model's standing pose and ground
+            self.healthy_z_range = healthy_range(b.nominal_states(), b.ground)
+        else:
+            self.healthy_z_range = z_range
         self.exclude_current_positions = bool(exclude_current_positions_from_observation)
         self.render_mode = render_mode
         self.width, self.height, self.camera = int(width), int(height), camera
 
         self.rest_min = b.motor.rest_min.copy()
         self.rest_max = b.motor.rest_max.copy()
+        self.ctrl_low, self.ctrl_high = b.ctrl_bounds()
         self.actuated_index = b.actuated_index
         self.dt = self.frame_skip * b.dt  # control period, s
         self.metadata = {**self.metadata, "render_fps": round(1.0 / self.dt)}
 
-        A, R = b.motor.n, b.n_rods
-        self.action_space = spaces.Box(-1.0, 1.0, shape=(A,), dtype=np.float32)
-        n_obs = len(observation_names(b.rod_names, b.actuated_names, self.exclude_current_positions))
+        A, U, R = b.motor.n, len(b.actuator_names), b.n_rods
+        self._n_motors = A
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(A + U,), dtype=np.float32)
+        n_obs = len(observation_names(b.rod_names, b.actuated_names, self.exclude_current_positions,
+                                      b.actuator_names))
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(n_obs,), dtype=np.float32)
-        assert n_obs == 1 + 18 * R + A + (0 if self.exclude_current_positions else 2)
+        assert n_obs == 1 + 18 * R + A + U + (0 if self.exclude_current_positions else 2)
 
         # the last finite states and observation (what a diverged step falls back to)
         self._states: RodState | None = None
@@ -349,8 +398,9 @@ class TensegrityIcoEnv(gym.Env):
 
     # ------------------------------------------------------------------ helpers
     def _observe(self, states: RodState, rest: np.ndarray) -> np.ndarray:
+        act = self.backend.actuator_state() if self.backend.actuator_names else None
         obs = observation(states, rest, self.actuated_index, self.rest_min, self.rest_max,
-                          self.exclude_current_positions)
+                          self.exclude_current_positions, act, self.ctrl_low, self.ctrl_high)
         return obs.astype(np.float32)
 
     def _info(self, com: np.ndarray, com_before: np.ndarray | None) -> dict[str, Any]:
@@ -394,7 +444,10 @@ class TensegrityIcoEnv(gym.Env):
         a = np.clip(a, -1.0, 1.0)
         com_before = structure_com(self._states)
 
-        self.backend.step(action_to_rest(a, self.rest_min, self.rest_max), self.frame_skip)
+        A = self._n_motors
+        if self.backend.actuator_names:
+            self.backend.set_ctrl(action_to_rest(a[A:], self.ctrl_low, self.ctrl_high))
+        self.backend.step(action_to_rest(a[:A], self.rest_min, self.rest_max), self.frame_skip)
         states, rest = self.backend.states(), self.backend.rest_lengths()
 
         z_range = self.healthy_z_range if self.terminate_when_unhealthy else None

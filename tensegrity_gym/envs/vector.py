@@ -23,6 +23,14 @@ The registered ``vector_entry_point`` is :func:`make_vector_env`: with ``backend
 builds this class; with any other backend (the MuJoCo plant, which cannot be batched) it returns a
 ``SyncVectorEnv`` of single envs, so ``gym.make_vec("TensegrityIco-v0", num_envs=N)`` keeps giving
 N plants.
+
+Domain randomization (``randomize=``, a :class:`~tensegrity_gym.randomize.Randomization`): every
+sub-env draws its own spring, rod, contact, rest-offset and motor parameters, its command latency,
+at each of its resets from its own generator (seeded as its reset state is: the same seed, the same
+draw); observation noise and pushes come from one generator seeded by ``reset(seed=...)``. The
+physics carries the parameters as tensors with a leading env dimension
+(:class:`~tensegrity_gym.backends.twin_physics.TwinPhysics` ``per_env``), so a step is still one
+batched engine call. Without ``randomize`` (or with nothing to draw) nothing of this runs.
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import (
     reward_terms,
     termination_reasons,
 )
+from tensegrity_gym.randomize import CONTACT_PARAMETERS, Randomization
 
 __all__ = [
     "TensegrityIcoVectorEnv",
@@ -99,7 +108,9 @@ class TensegrityIcoVectorEnv(VectorEnv):
             ``effects``, ``mjcf``, ``num_threads``, ``compile``).
         chunk_size: ``None`` (default): one engine call per physics substep for all N envs; an int
             steps blocks of that many envs one after the other (faster on a CPU for large N, see
-            :class:`TwinPhysics`).
+            :class:`TwinPhysics`; not with a randomization of the physics).
+        randomize: a :class:`~tensegrity_gym.randomize.Randomization` (or its JSON mapping) drawn
+            per sub-env at every reset (module docstring); ``None``: the identified values.
         **env_kwargs: every other keyword argument of :class:`TensegrityIcoEnv` (``frame_skip``,
             reward weights, ``reset_noise_scale``, ``healthy_z_range``, ``render_mode`` (only
             ``"rgb_array"``: :meth:`render` returns one image per sub-env), ...).
@@ -116,7 +127,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
                  max_episode_steps: int | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  backend_kwargs: dict[str, Any] | None = None, chunk_size: int | None = None,
-                 **env_kwargs: Any) -> None:
+                 randomize: Randomization | dict[str, Any] | None = None, **env_kwargs: Any) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs}")
         limit = max_episode_steps
@@ -133,9 +144,13 @@ class TensegrityIcoVectorEnv(VectorEnv):
         self.env = TensegrityIcoEnv(backend=backend, **env_kwargs)  # validates the arguments
         e = self.env
         self.backend = backend
+        if isinstance(randomize, dict):
+            randomize = Randomization.from_json(randomize, source="mapping")
+        self.randomize = randomize if randomize is not None and randomize.active else None
+        per_env = self.randomize is not None and self.randomize.physical
         self.physics = TwinPhysics(backend.engine, backend.motor, backend.actuated_index, batch=self.num_envs,
                                    chunk_size=chunk_size, num_threads=backend.num_threads,
-                                   compile=backend.compile)
+                                   compile=backend.compile, per_env=per_env)
         self.dt = e.dt
         self.render_mode = e.render_mode
         self.metadata = {**self.metadata, "render_fps": e.metadata["render_fps"],
@@ -157,6 +172,85 @@ class TensegrityIcoVectorEnv(VectorEnv):
         self._elapsed = np.zeros(N, dtype=np.int64)
         self._autoreset = np.zeros(N, dtype=bool)
         self._needs_reset = True
+        if self.randomize is not None:
+            self._setup_randomization(self.randomize)
+
+    # ------------------------------------------------------------------ randomization
+    def _setup_randomization(self, r: Randomization) -> None:
+        """The identified values the draws scale, the latency queue and the noise scales."""
+        e, N = self.env, self.num_envs
+        p = self.physics.engine.params
+        self._base = {k: getattr(p, k)[0].detach().cpu().double().numpy().copy()
+                      for k in ("stiffness", "damping", "mass", "inertia")}
+        self._base_effects = {k: v[0, 0].detach().cpu().double().numpy().copy()
+                              for k, v in self.physics.effect_parameters().items()}
+        contact = self._base_effects.get("ground_contact")
+        self._n_contact = 0 if contact is None else min(len(contact), len(CONTACT_PARAMETERS))
+        A = self.backend.motor.n
+        self._latency = np.zeros(N, dtype=np.int64)
+        self._queue = np.tile(action_to_rest(np.zeros(A), e.rest_min, e.rest_max), (N, r.latency + 1, 1))
+        R = self.backend.n_rods
+        sizes = ([] if e.exclude_current_positions else [("pos", 2)]) + [
+            ("pos", 1), ("pos", 3 * R), ("rot", 9 * R), ("vel", 3 * R), ("angvel", 3 * R), ("rest", A)]
+        std = np.concatenate([np.full(n, r.obs_noise.get(g, 0.0)) for g, n in sizes])
+        self._obs_std = std.astype(np.float32) if std.any() else None
+        self._noise_rng = np.random.default_rng()
+
+    def _draw(self, index: np.ndarray) -> None:
+        """Every sub-env of ``index`` draws its parameters from its own generator."""
+        r, b = self.randomize, self.backend
+        assert r is not None
+        draws = [r.draw(self._rng(int(i)), b.n_rods, len(b.tendon_names), self._n_contact) for i in index]
+        self._latency[index] = [d.latency for d in draws]
+        nominal = self.physics.rest_numpy()[index][:, b.actuated_index]
+        self._queue[index] = nominal[:, None, :]
+        if not self.physics.per_env:
+            return
+        base = self._base
+        effects = {}
+        if self._n_contact:
+            th = np.tile(self._base_effects["ground_contact"], (len(index), 1))
+            th[:, :self._n_contact] *= np.stack([d.contact for d in draws])
+            effects["ground_contact"] = th
+        self.physics.set_parameters(
+            index,
+            stiffness=base["stiffness"] * np.stack([d.stiffness for d in draws]),
+            damping=base["damping"] * np.stack([d.damping for d in draws]),
+            mass=base["mass"] * np.stack([d.mass for d in draws]),
+            inertia=base["inertia"] * np.stack([d.inertia for d in draws])[..., None],
+            rest_offset=np.stack([d.rest_offset for d in draws]),
+            motor_speed=b.motor.speed * np.array([d.motor_speed for d in draws]),
+            effects=effects)
+
+    def _commands(self, targets: np.ndarray) -> np.ndarray:
+        """The motor targets that act now: each sub-env's command of ``latency`` steps ago."""
+        if self.randomize is None or self.randomize.latency == 0:
+            return targets
+        q = self._queue
+        q[:, 1:] = q[:, :-1].copy()
+        q[:, 0] = targets
+        return q[np.arange(self.num_envs), self._latency]
+
+    def _pushes(self) -> np.ndarray | None:
+        """(N, R, 3) world forces of this step's random pushes (``None`` without pushes)."""
+        r = self.randomize
+        if r is None or r.push_force <= 0 or r.push_probability <= 0:
+            return None
+        N, R = self.num_envs, self.backend.n_rods
+        g = self._noise_rng
+        hit = g.random(N) < r.push_probability
+        rod, angle, size = g.integers(0, R, N), g.uniform(0, 2 * np.pi, N), g.uniform(0, r.push_force, N)
+        f = np.zeros((N, R, 3))
+        f[np.arange(N), rod, 0] = np.where(hit, size * np.cos(angle), 0.0)
+        f[np.arange(N), rod, 1] = np.where(hit, size * np.sin(angle), 0.0)
+        return f
+
+    def _observed(self, obs: np.ndarray) -> np.ndarray:
+        """What the policy sees: the observations plus the randomization's sensor noise."""
+        if self.randomize is None or self._obs_std is None:
+            return obs
+        noise = self._noise_rng.standard_normal(obs.shape).astype(np.float32) * self._obs_std
+        return obs + noise
 
     # ------------------------------------------------------------------ seeding
     @property
@@ -188,6 +282,8 @@ class TensegrityIcoVectorEnv(VectorEnv):
         angvel = np.stack([s.angvel for s in starts])
         rest = np.tile(self._nominal_rest, (len(index), 1))
         self.physics.reset(pos, quat, vel, angvel, rest, index=index)
+        if self.randomize is not None:
+            self._draw(index)
         # read back through the engine's dtype, as the single env reads its backend
         pos, quat, vel, angvel = (x[index] for x in self.physics.states_numpy())
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
@@ -278,9 +374,12 @@ class TensegrityIcoVectorEnv(VectorEnv):
         for i in index:
             if seeds[i] is not None:
                 self._rngs[i], self._seeds[i] = seeding.np_random(int(seeds[i]))  # type: ignore[arg-type]
+        given = [int(x) for x in seeds if x is not None]
+        if self.randomize is not None and given:
+            self._noise_rng = np.random.default_rng([given[0], 1])
         infos = self._restart(index)
         self._needs_reset = False
-        return self._obs.copy(), infos
+        return self._observed(self._obs.copy()), infos
 
     def step(self, actions: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -306,8 +405,8 @@ class TensegrityIcoVectorEnv(VectorEnv):
         # physics: one batched engine call per substep for every sub-env (restarting ones are
         # overwritten below; stepping them too is cheaper than a gather and a scatter)
         ph = self.physics
-        ph.set_targets(action_to_rest(a, e.rest_min, e.rest_max))
-        ph.step(e.frame_skip)
+        ph.set_targets(self._commands(action_to_rest(a, e.rest_min, e.rest_max)))
+        ph.step(e.frame_skip, self._pushes())
         pos, quat, vel, angvel = ph.states_numpy()
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
         rest = ph.rest_numpy()
@@ -374,7 +473,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
                 infos = top
         else:
             self._autoreset = done
-        return self._obs.copy(), rewards, terminated, truncated, infos
+        return self._observed(self._obs.copy()), rewards, terminated, truncated, infos
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """One (height, width, 3) uint8 image per sub-env (the last finite rod states), with

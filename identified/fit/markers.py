@@ -261,7 +261,7 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                       **fit_kwargs)
     model.metrics.setdefault("warnings", []).append(
         "the standard errors of a fit from a recording treat the states reconstructed from the markers as "
-        "exact; measured on the robot (100 Hz, 1 mm) they are too small by 4-8x: read them as lower bounds")
+        "exact; measured on the robot (100 Hz, 1 mm) they are too small by 3-9x: read them as lower bounds")
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes}

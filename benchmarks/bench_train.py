@@ -6,6 +6,7 @@ and the plant steps each needs.
                                      [--batch-size B] [--n-epochs E] [--rollout R] [--fused-adam]
                                      [--curve] [--episodes 10] [--target 0.5] [--points 8]
                                      [--threads 1] [--out runs/bench_train]
+    python benchmarks/bench_train.py --updates      # PPO's update alone, per mini-batch size
 
 One run, one machine, the same algorithm with the same settings on both sides (``tensegrity
 train``'s PPO, :data:`tensegrity_gym.training.PPO_HYPERPARAMETERS` with the overrides given here,
@@ -32,6 +33,10 @@ curve of direct training on the plant (the policy after every update kept, ``--p
 evaluated), the first plant step count at which it reaches the twin policy's plant progress (and
 ``--target``), against the plant data of the twin pipeline: the collection of
 ``scripts/make_shipped_model.sh`` (10 episodes x 3000 physics steps of 1 ms = 30 s of robot time).
+
+``--updates`` times PPO's update alone (``PPO.train`` on a buffer of random transitions of the
+env's shapes) per mini-batch size and with Adam's fused CPU kernel, and splits its time into a
+fixed cost per mini-batch (SB3's Python, autograd and optimizer calls) and a cost per transition.
 
 The load average is printed before and after every training: timings beside other jobs are not a
 quiet machine's; read the ratios within one run.
@@ -194,6 +199,61 @@ def print_table(runs: dict) -> None:
               f"of the twin's wall clock, the twin's engine and env {100 * r['twin']['env_s'] / r['twin']['wall_s']:.0f} %")
 
 
+def updates_table(rollout: int, repeats: int = 3) -> dict:
+    """PPO's update alone (``PPO.train`` on a full rollout buffer of random transitions of the
+    env's shapes: 133 observations, 24 actions), per mini-batch size and with Adam's fused kernel:
+    what SB3's per-mini-batch overhead costs. Same process, one torch thread, best of ``repeats``."""
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from tensegrity_gym.training import PPO_HYPERPARAMETERS
+
+    torch.set_num_threads(1)
+
+    class Shapes(gym.Env):
+        observation_space = gym.spaces.Box(-10, 10, (133,), np.float32)
+        action_space = gym.spaces.Box(-1, 1, (24,), np.float32)
+
+        def reset(self, seed=None, options=None):
+            return self.observation_space.sample(), {}
+
+        def step(self, action):
+            return self.observation_space.sample(), 0.0, False, False, {}
+
+    venv = DummyVecEnv([Shapes for _ in range(64)])
+    fused = {"policy_kwargs": {"optimizer_kwargs": {"fused": True}}}
+    settings = [("128", {"batch_size": 128}), ("128, fused Adam", {"batch_size": 128, **fused}),
+                ("256", {"batch_size": 256}), ("512", {"batch_size": 512}), ("1024", {"batch_size": 1024}),
+                ("1024, fused Adam", {"batch_size": 1024, **fused}), (str(rollout), {"batch_size": rollout})]
+    epochs = PPO_HYPERPARAMETERS["n_epochs"]
+    rows = {}
+    print(f"PPO update alone: {rollout} transitions x {epochs} epochs, random data of the env's shapes")
+    for name, kw in settings:
+        hp = {**PPO_HYPERPARAMETERS, **kw}
+        model = PPO("MlpPolicy", venv, n_steps=rollout // 64, device="cpu", seed=0, **hp)
+        model.learn(rollout)  # fills the buffer (and makes one update: warm)
+        best = float("inf")
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            model.train()
+            best = min(best, time.perf_counter() - t0)
+        minibatches = epochs * -(-rollout // hp["batch_size"])
+        rows[name] = {"update_s": best, "minibatches": minibatches, "per_minibatch_ms": 1e3 * best / minibatches}
+        print(f"  mini-batch {name:18s} {1e3 * best:7.0f} ms per update ({minibatches:4d} mini-batches, "
+              f"{1e3 * best / minibatches:5.2f} ms each)", flush=True)
+    # time = a * mini-batches + b * transitions x epochs, from the smallest and the largest batch
+    lo, hi = rows["128"], rows[str(rollout)]
+    a = (lo["update_s"] - hi["update_s"]) / (lo["minibatches"] - hi["minibatches"])
+    b = (hi["update_s"] - a * hi["minibatches"]) / (rollout * epochs)
+    share = a * lo["minibatches"] / lo["update_s"]
+    print(f"  fixed cost per mini-batch {1e3 * a:.2f} ms, per transition and epoch {1e6 * b:.1f} us: at mini-batches "
+          f"of 128, {100 * share:.0f} % of an update is SB3's per-mini-batch overhead (Python, autograd, optimizer "
+          "calls), not arithmetic")
+    return {"rows": rows, "per_minibatch_s": a, "per_sample_epoch_s": b, "overhead_share_at_128": share}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--identified", default=os.path.join(ROOT, "identified", "data", "robot.json"))
@@ -216,6 +276,8 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=8,
                     help="snapshots of the plant run evaluated (--curve; evenly spaced, plus the final policy)")
     ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
+    ap.add_argument("--updates", action="store_true",
+                    help="only time PPO's update alone per mini-batch size (seconds; no training)")
     ap.add_argument("--one", choices=("twin", "plant"), default=None, help=argparse.SUPPRESS)  # a child: one training
     ap.add_argument("--policy-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -232,6 +294,11 @@ def main() -> None:
     if args.fused_adam:
         hp["policy_kwargs"] = {"optimizer_kwargs": {"fused": True}}
     rollout = args.rollout or DEFAULT_ROLLOUT
+    if args.updates:
+        print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        with open(os.path.join(args.out, "bench_train_updates.json"), "w") as fh:
+            json.dump(updates_table(rollout), fh, indent=1)
+        return
     if args.one is not None:  # the child: train, print the row as the last line of stdout
         instrument()
         plant = args.one == "plant"

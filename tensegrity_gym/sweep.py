@@ -18,8 +18,10 @@ The output follows rl_zoo3's layout, one folder per run::
                                     carries its observation normalisation)
         vecnormalize.pkl            SB3's VecNormalize statistics (``VecNormalize.load``)
         config.json                 the TrainConfig and the algorithm's effective hyperparameters
-        progress.csv                the learning curve: one row per finished training episode
-        learning_curve.png          the same, plotted
+        progress.csv                the learning curve: one row per rollout (update): the mean
+                                    reward per step and forward velocity over all envs
+        episodes.csv                one row per finished training episode (return, progress)
+        learning_curve.png          the learning curve, plotted
         result.json                 what the run did (steps, wall clock, last episodes' figures)
 
 The figures in ``summary.json`` are those of training (the last :data:`LAST_EPISODES` training
@@ -48,18 +50,18 @@ import numpy as np
 
 from tensegrity_gym.training import TrainConfig
 
-__all__ = ["CURVE_COLUMNS", "LAST_EPISODES", "SUMMARY_FORMAT", "curve_csv", "parse_seeds", "plot_curves",
+__all__ = ["CURVE_COLUMNS", "EPISODE_COLUMNS", "LAST_EPISODES", "SUMMARY_FORMAT", "curve_csv", "parse_seeds", "plot_curves",
            "policies_in", "run_sweep", "spread"]
 
 SUMMARY_FORMAT = "tensegrity-sweep/1"
-#: Columns of ``progress.csv`` (one row per finished training episode).
-CURVE_COLUMNS = ("timesteps", "wall_s", "return", "progress_m", "length")
+#: Columns of ``progress.csv`` (one row per rollout: the learning curve).
+CURVE_COLUMNS = ("timesteps", "wall_s", "reward_per_step", "velocity_m_s")
+#: Columns of ``episodes.csv`` (one row per finished training episode).
+EPISODE_COLUMNS = ("timesteps", "wall_s", "return", "progress_m", "length")
 #: Training episodes the summary's "last" figures average over (the progress bar's window).
 LAST_EPISODES = 20
-#: Rolling window (episodes) of the plotted learning curve.
-CURVE_WINDOW = 20
-RUN_FILES = ("policy.zip", "vecnormalize.pkl", "config.json", "progress.csv", "learning_curve.png",
-             "result.json")
+RUN_FILES = ("policy.zip", "vecnormalize.pkl", "config.json", "progress.csv", "episodes.csv",
+             "learning_curve.png", "result.json")
 
 
 # ---------------------------------------------------------------------- seeds
@@ -134,7 +136,7 @@ def train_one(task: dict[str, Any]) -> dict[str, Any]:
         r = train(cfg, policy, progress=False)
         r.vecnormalize.save(os.path.join(tmp, "vecnormalize.pkl"))
         files = {name: pathlib.Path(tmp, name).read_bytes() for name in ("policy.zip", "vecnormalize.pkl")}
-    log = r.episode_log
+    log, curve = r.episode_log, r.rollout_log
     last = log[-LAST_EPISODES:]
     result = {
         "seed": int(cfg.seed),
@@ -145,29 +147,32 @@ def train_one(task: dict[str, Any]) -> dict[str, Any]:
         "last_episodes": len(last),
         "last_return": float(np.mean([e["return"] for e in last])) if last else None,
         "last_progress_m": float(np.mean([e["progress_m"] for e in last])) if last else None,
+        "last_velocity_m_s": float(curve[-1]["velocity_m_s"]) if curve else None,
+        "last_reward_per_step": float(curve[-1]["reward_per_step"]) if curve else None,
         "trained_on": "plant" if cfg.plant else "twin",
     }
     config = {**{k: v for k, v in task["config"].items()}, "identified": task.get("identified"),
               "algorithm_kwargs": {k: v for k, v in cfg.algo_kwargs().items() if isinstance(v, (int, float, str))},
               "envs_resolved": cfg.n_envs}
     files["config.json"] = json.dumps(config, indent=1).encode()
-    files["progress.csv"] = curve_csv(log).encode()
+    files["progress.csv"] = curve_csv(curve).encode()
+    files["episodes.csv"] = curve_csv(log, EPISODE_COLUMNS).encode()
     files["result.json"] = json.dumps(result, indent=1).encode()
     png = io.BytesIO()
-    plot_curves({int(cfg.seed): log}, png, title=f"{cfg.algo} on the {result['trained_on']}, seed {cfg.seed}")
+    plot_curves({int(cfg.seed): curve}, png, title=f"{cfg.algo} on the {result['trained_on']}, seed {cfg.seed}")
     files["learning_curve.png"] = png.getvalue()
     return {"seed": int(cfg.seed), "files": files, "result": result}
 
 
 # ---------------------------------------------------------------------- learning curves
-def curve_csv(log: list[dict[str, float]]) -> str:
-    """The episode log of a training run (:attr:`TrainResult.episode_log`) as CSV text."""
+def curve_csv(rows: list[dict[str, float]], columns: tuple[str, ...] = CURVE_COLUMNS) -> str:
+    """Rows of a training log (:attr:`TrainResult.rollout_log`, or ``episode_log`` with
+    :data:`EPISODE_COLUMNS`) as CSV text (floats written exactly)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CURVE_COLUMNS)
-    for e in log:
-        w.writerow([int(e["timesteps"]), f"{e['wall_s']:.3f}", repr(float(e["return"])),
-                    repr(float(e["progress_m"])), int(e["length"])])
+    w.writerow(columns)
+    for e in rows:
+        w.writerow([int(e[c]) if c in ("timesteps", "length") else repr(float(e[c])) for c in columns])
     return buf.getvalue()
 
 
@@ -177,16 +182,9 @@ def read_curve(path: str) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
-def _rolling(x: np.ndarray, window: int) -> np.ndarray:
-    c = np.cumsum(np.insert(x, 0, 0.0))
-    n = np.minimum(np.arange(1, len(x) + 1), window)
-    return (c[1:] - c[np.arange(len(x)) + 1 - n]) / n
-
-
 def plot_curves(logs: dict[int, list[dict[str, float]]], out: Any, title: str) -> None:
-    """Forward progress (m) and return of every training episode versus training steps, per seed
-    (dots) with the rolling mean over :data:`CURVE_WINDOW` episodes (line); PNG to ``out`` (a path
-    or a binary file)."""
+    """The learning curves (:data:`CURVE_COLUMNS` rows per seed): mean forward velocity and reward per
+    step over each rollout versus training steps; PNG to ``out`` (a path or a binary file)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -197,20 +195,16 @@ def plot_curves(logs: dict[int, list[dict[str, float]]], out: Any, title: str) -
         if not log:
             continue
         t = np.array([e["timesteps"] for e in log], dtype=float)
-        for ax, key in zip(axes, ("progress_m", "return"), strict=True):
-            y = np.array([e[key] for e in log], dtype=float)
-            line, = ax.plot(t, _rolling(y, CURVE_WINDOW), label=f"seed {seed}")
-            ax.plot(t, y, ".", ms=2, alpha=0.25, color=line.get_color())
-    axes[0].set_ylabel("forward progress per episode (m)")
-    axes[1].set_ylabel("episode return")
+        for ax, key in zip(axes, ("velocity_m_s", "reward_per_step"), strict=True):
+            ax.plot(t, [e[key] for e in log], ".-", ms=3, label=f"seed {seed}")
+    axes[0].set_ylabel("forward velocity of the centre of mass (m/s)")
+    axes[1].set_ylabel("reward per step")
     for ax in axes:
         ax.set_xlabel("training steps")
         ax.grid(alpha=0.3)
     if any(logs.values()):
         axes[0].legend(fontsize=8)
-    else:
-        axes[0].text(0.5, 0.5, "no episode finished", transform=axes[0].transAxes, ha="center")
-    fig.suptitle(f"{title} (lines: mean of the last {CURVE_WINDOW} episodes)", fontsize=10)
+    fig.suptitle(f"{title}: mean over every env and step of each rollout", fontsize=10)
     fig.savefig(out, format="png", dpi=90)
     plt.close(fig)
 
@@ -289,7 +283,8 @@ def run_sweep(cfg: TrainConfig, seeds: list[int], out: str | os.PathLike, jobs: 
         res = r["result"]
         last = ("" if res["last_progress_m"] is None else
                 f", last {res['last_episodes']} episodes {res['last_progress_m']:.3f} m")
-        log(f"seed {r['seed']}: {res['timesteps']} steps in {res['wall_s']:.1f} s{last}")
+        vel = "" if res["last_velocity_m_s"] is None else f", last rollout {res['last_velocity_m_s']:.4f} m/s"
+        log(f"seed {r['seed']}: {res['timesteps']} steps in {res['wall_s']:.1f} s{vel}{last}")
         if bar is not None:
             bar.update(1)
 
@@ -316,10 +311,11 @@ def run_sweep(cfg: TrainConfig, seeds: list[int], out: str | os.PathLike, jobs: 
         "over_seeds": {
             "last_progress_m": spread(r["last_progress_m"] for r in runs),
             "last_return": spread(r["last_return"] for r in runs),
+            "last_velocity_m_s": spread(r["last_velocity_m_s"] for r in runs),
             "wall_s": spread(r["wall_s"] for r in runs),
         },
-        "what": f"training figures: the last {LAST_EPISODES} training episodes of each seed (exploration noise "
-                "on, on the env it trained on); the plant: tensegrity gap --policy THIS_FOLDER",
+        "what": f"training figures: the last {LAST_EPISODES} training episodes and the last rollout of each seed "
+                "(exploration noise on, on the env it trained on); the plant: tensegrity gap --policy THIS_FOLDER",
         "config": {**{k: v for k, v in dataclasses.asdict(cfg).items() if k != "seed"},
                    "identified": None if cfg.identified is None else os.path.abspath(cfg.identified)},
     }

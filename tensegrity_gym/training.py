@@ -222,6 +222,11 @@ class TrainResult:
     #: ``timesteps`` (steps trained when it ended), ``wall_s`` (since training started),
     #: ``return``, ``progress_m`` (forward distance of the centre of mass) and ``length`` (steps)
     episode_log: list[dict[str, float]] = field(default_factory=list, repr=False)
+    #: the learning curve per rollout (the envs' episodes end together, so finished episodes alone
+    #: come in bursts): one row per rollout with ``timesteps`` (at its end), ``wall_s``,
+    #: ``reward_per_step`` (the env's reward, before normalisation) and ``velocity_m_s`` (mean
+    #: forward velocity of the centre of mass over every env and step of the rollout)
+    rollout_log: list[dict[str, float]] = field(default_factory=list, repr=False)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -405,6 +410,8 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             self.progress: deque[float] = deque(maxlen=20)
             self.episodes = 0
             self.log: list[dict[str, float]] = []
+            self.rollouts: list[dict[str, float]] = []
+            self._roll = [0.0, 0.0, 0]  # forward distance, reward, env steps of the current rollout
             self._t0 = time.perf_counter()
             self.last_checkpoint: int | None = None
             self._dist = np.zeros(cfg.n_envs)
@@ -422,8 +429,12 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
         def _on_step(self) -> bool:
             infos = self.locals["infos"]
             dones = self.locals["dones"]
+            original = getattr(self.training_env, "get_original_reward", None)  # VecNormalize's raw reward
+            self._roll[1] += float(np.sum(original() if original is not None else self.locals["rewards"]))
+            self._roll[2] += len(infos)
             for i, info in enumerate(infos):
                 self._dist[i] += float(info.get("x_velocity", 0.0)) * dt
+                self._roll[0] += float(info.get("x_velocity", 0.0)) * dt
                 if dones[i]:
                     ep = info.get("episode")
                     if ep is not None:
@@ -443,6 +454,13 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
                                               f"{np.mean(self.progress):.3g} m, {self.episodes} episodes",
                                               refresh=False)
             return True
+
+        def _on_rollout_end(self) -> None:
+            dist, reward, n = self._roll
+            if n:
+                self.rollouts.append({"timesteps": int(self.num_timesteps), "wall_s": time.perf_counter() - self._t0,
+                                      "reward_per_step": reward / n, "velocity_m_s": dist / (n * dt)})
+            self._roll = [0.0, 0.0, 0]
 
         def _on_rollout_start(self) -> None:
             # after an update: the policy is complete, keep it (atomically) in case of an interrupt
@@ -560,7 +578,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         mean_progress_m=float(np.mean(prog)) if prog else None,
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
-        model=model, vecnormalize=venv, episode_log=list(callback.log),
+        model=model, vecnormalize=venv, episode_log=list(callback.log), rollout_log=list(callback.rollouts),
     )
 
 

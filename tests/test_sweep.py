@@ -22,6 +22,7 @@ from tensegrity_gym.cli import main
 from tensegrity_gym.models import write_model
 from tensegrity_gym.sweep import (
     CURVE_COLUMNS,
+    EPISODE_COLUMNS,
     LAST_EPISODES,
     RUN_FILES,
     curve_csv,
@@ -47,7 +48,7 @@ def twin(tmp_path_factory) -> Path:
 
 def tiny(twin: Path, seed: int = 0) -> TrainConfig:
     # 16-step episodes: several finish within the 64 steps, so the learning curve has rows
-    return TrainConfig(timesteps=64, seed=seed, identified=str(twin), envs=2, rollout=32, episode_steps=16)
+    return TrainConfig(timesteps=128, seed=seed, identified=str(twin), envs=2, rollout=32, episode_steps=16)
 
 
 def weights(policy: str | Path) -> list[np.ndarray]:
@@ -90,7 +91,7 @@ def test_sweep_writes_one_folder_per_seed_and_a_summary(sweep):
         folder = out / f"seed_{s}"
         assert sorted(p.name for p in folder.iterdir()) == sorted(RUN_FILES)  # no temporary file left
         pol = load_policy(folder / "policy.zip")
-        assert pol.meta["seed"] == s and pol.meta["timesteps"] == run["timesteps"] >= 64
+        assert pol.meta["seed"] == s and pol.meta["timesteps"] == run["timesteps"] == 128
         assert pol.meta["episode_steps"] == 16
         # VecNormalize's pickle holds the statistics the policy file carries
         with open(folder / "vecnormalize.pkl", "rb") as fh:
@@ -98,17 +99,29 @@ def test_sweep_writes_one_folder_per_seed_and_a_summary(sweep):
         np.testing.assert_array_equal(vn.obs_rms.mean, pol.obs_mean)
         np.testing.assert_array_equal(vn.obs_rms.var, pol.obs_var)
         config = json.loads((folder / "config.json").read_text())
-        assert config["seed"] == s and config["timesteps"] == 64 and config["envs"] == 2
+        assert config["seed"] == s and config["timesteps"] == 128 and config["envs"] == 2
         assert config["algorithm_kwargs"]["n_steps"] == 16  # rollout 32 over 2 envs
-        # the learning curve: every finished episode, and the summary's figures are its last rows
-        with open(folder / "progress.csv", newline="") as fh:
+        # every finished episode; the summary's figures are its last rows
+        with open(folder / "episodes.csv", newline="") as fh:
             rows = list(csv.DictReader(fh))
-        assert tuple(rows[0]) == CURVE_COLUMNS
-        assert len(rows) == run["episodes"] >= 4 and all(int(r["length"]) == 16 for r in rows)
+        assert tuple(rows[0]) == EPISODE_COLUMNS
+        assert len(rows) == run["episodes"] == 8 and all(int(r["length"]) == 16 for r in rows)
         t = [int(r["timesteps"]) for r in rows]
         assert t == sorted(t) and t[-1] <= run["timesteps"]
         last = [float(r["progress_m"]) for r in rows][-LAST_EPISODES:]
         assert run["last_progress_m"] == pytest.approx(np.mean(last), rel=1e-12)
+        # the learning curve, one row per rollout: each rollout (16 steps x 2 envs) is exactly one
+        # episode of each env, so its velocity x 16 steps x 20 ms is their mean progress, and its
+        # reward per step their returns over 32 steps (VecMonitor's returns are the raw rewards)
+        with open(folder / "progress.csv", newline="") as fh:
+            curve = list(csv.DictReader(fh))
+        assert tuple(curve[0]) == CURVE_COLUMNS and [int(c["timesteps"]) for c in curve] == [32, 64, 96, 128]
+        for k, c in enumerate(curve):
+            eps = rows[2 * k: 2 * k + 2]
+            assert float(c["velocity_m_s"]) * 16 * 0.02 == pytest.approx(np.mean([float(e["progress_m"]) for e in eps]),
+                                                                         rel=1e-9, abs=1e-12)
+            assert float(c["reward_per_step"]) == pytest.approx(sum(float(e["return"]) for e in eps) / 32, rel=1e-5)
+        assert run["last_velocity_m_s"] == float(curve[-1]["velocity_m_s"])
         assert (folder / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     sp = summary["over_seeds"]["last_progress_m"]
     vals = [r["last_progress_m"] for r in summary["runs"]]
@@ -123,11 +136,11 @@ def test_a_seed_of_the_sweep_is_the_same_policy_as_training_it_alone(sweep, twin
         np.testing.assert_array_equal(x, y)
     assert any(not np.array_equal(x, y) for x, y in zip(weights(out / "seed_3" / "policy.zip"),
                                                         weights(out / "seed_5" / "policy.zip"), strict=True))
-    with open(out / "seed_5" / "progress.csv", newline="") as fh:
+    with open(out / "seed_5" / "episodes.csv", newline="") as fh:
         sweep_rows = [(r["timesteps"], r["return"], r["progress_m"]) for r in csv.DictReader(fh)]
     alone_rows = [(r["timesteps"], r["return"], r["progress_m"]) for r in csv.DictReader(
-        curve_csv(r.episode_log).splitlines())]
-    assert sweep_rows == alone_rows
+        curve_csv(r.episode_log, EPISODE_COLUMNS).splitlines())]
+    assert sweep_rows == alone_rows and len(alone_rows) == 8
 
 
 def test_policies_in_a_sweep_folder(sweep, tmp_path):

@@ -428,11 +428,13 @@ def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, pa
 
 def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
     """Held moments of inertia: a placeholder the twin can step with (1e-3 of the rod's largest
-    identified moment), no standard error, and the list in ``metrics.not_identifiable``."""
+    identified moment, or the difference of the other two if larger, so that the three remain a
+    rigid body's), no standard error, and the list in ``metrics.not_identifiable``."""
     names = model.metrics.setdefault("not_identifiable", [])
     for i, a in held:
         others = [model.inertia[i, b] for b in range(3) if (i, b) not in held]
-        model.inertia[i, a] = 1e-3 * max(max(others, default=1.0), 1e-12)
+        spread = abs(others[0] - others[1]) if len(others) == 2 else 0.0  # keeps the triangle inequality
+        model.inertia[i, a] = max(1e-3 * max(max(others, default=1.0), 1e-12), 1.001 * spread)
         if "inertia" in model.stderr:
             model.stderr["inertia"][i, a] = np.nan
         names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "

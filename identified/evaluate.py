@@ -24,6 +24,7 @@ Used by the fit (its effect search and metrics), ``predict`` and the diagnosis.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -32,6 +33,7 @@ import torch
 from identified.dataset import Dataset
 from identified.engine import SpringRodEngine
 from identified.engine.accelerations import inertial_wrench
+from identified.engine.actuators import tendon_forces
 from identified.engine.engine import StepTerms
 from identified.engine.integration import RodState
 from identified.jsonsafe import finite_or_none
@@ -214,22 +216,40 @@ def push_points(data: Dataset, ch: Chunk, n_ep: int, scheme: str) -> torch.Tenso
                            device=ch.pos.device)
 
 
-def residual_wrench(engine: SpringRodEngine, ch: Chunk, push_point: torch.Tensor | None) -> ResidualWrench:
+def residual_wrench(engine: SpringRodEngine, ch: Chunk, push_point: torch.Tensor | None,
+                    tendon_force: torch.Tensor | None = None) -> ResidualWrench:
     """The model's residual wrench at the recorded instants of ``ch`` (:class:`ResidualWrench`).
 
     With ``push_point`` ``None`` (the central scheme) the engine applies the pushes at the centres
     of mass, and the recorded push torque (``ch.push_torque_body``) is taken out of the torque
-    residual: the engine's dynamics did not see it, the record did.
+    residual: the engine's dynamics did not see it, the record did.  ``tendon_force`` (N, S): the
+    actuators' force on each tendon at those instants (:func:`model_inputs`), ``None``: none.
     """
     p = engine.params
     with torch.no_grad():
-        terms = engine.dynamics(RodState(ch.pos, ch.quat, ch.vel, ch.angvel), ch.rest, ch.push_force, push_point)
+        terms = engine.dynamics(RodState(ch.pos, ch.quat, ch.vel, ch.angvel), ch.rest, ch.push_force, push_point,
+                                tendon_force)
         force = p.mass[:, None] * (ch.acc - terms.lin_acc)
         torque_body = p.inertia * (ch.alpha_body - terms.ang_acc_body)
         if push_point is None:
             torque_body = torque_body - p.control_scale * ch.push_torque_body
         ref_f, ref_t = inertial_wrench(p.mass, p.inertia, p.gravity, ch.acc, ch.alpha_body, ch.angvel_body)
     return ResidualWrench(force, torque_body, ref_f, ref_t, terms)
+
+
+def model_inputs(model: IdentifiedModel, data: Dataset, ch: Chunk) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What a model's engine takes at the instants of ``ch`` (whole episodes of ``data``, from the
+    start): every tendon's rest length -- the model's own for a passive spring, the recorded
+    command for a motor-driven cable -- (N, S), and its actuators' tendon forces (N, S) from the
+    recorded commands (:func:`identified.engine.actuators.tendon_forces`), ``None`` without
+    actuators."""
+    passive = torch.as_tensor([not s.actuated for s in model.topology.springs])
+    rest = torch.where(passive, torch.as_tensor(model.rest_length, dtype=ch.rest.dtype), ch.rest)
+    if not model.actuators:
+        return rest, None
+    n_t = ch.pos.shape[0] // data.n_episodes
+    f = tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, model.topology.spring_names)
+    return rest, torch.as_tensor(f[:, data.n_steps - n_t:].reshape(-1, f.shape[-1]), dtype=ch.pos.dtype)
 
 
 def relative_one_step_errors(models: Sequence[IdentifiedModel | None], data: Dataset,
@@ -256,7 +276,9 @@ def relative_one_step_errors(models: Sequence[IdentifiedModel | None], data: Dat
             if m is None:
                 out.append(None)
                 continue
-            rw = residual_wrench(engine_from_model(m, dtype=torch.float64), ch, point)
+            rest, tendon_force = model_inputs(m, data, ch)
+            rw = residual_wrench(engine_from_model(m, dtype=torch.float64), replace(ch, rest=rest), point,
+                                 tendon_force)
             res = torch.cat((rw.force, rw.torque_body), -1)
             ref = torch.cat((rw.inertial_force, rw.inertial_torque_body), -1)
             for e in effects_from_model(m):

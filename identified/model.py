@@ -41,7 +41,7 @@ class IdentifiedModel:
     topology: Topology
     stiffness: np.ndarray  # (S,) N/m
     damping: np.ndarray  # (S,) N s/m
-    rest_length: np.ndarray  # (S,) nominal rest length (mean recorded), m
+    rest_length: np.ndarray  # (S,) m: identified for passive springs; an actuated cable's mean command
     mass: np.ndarray  # (R,) kg
     inertia: np.ndarray  # (R, 3) kg m^2, rod frame diagonal
     control_scale: float = 1.0
@@ -54,6 +54,9 @@ class IdentifiedModel:
     metrics: dict[str, Any] = field(default_factory=dict)
     source_model: str | None = None
     integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
+    #: MuJoCo tendon actuators: {name, tendon, kind, dynamics, gain, gain_stderr, bias, bias_stderr,
+    #: time_constant, time_constant_stderr} (identified.fit.actuation)
+    actuators: list[dict[str, Any]] = field(default_factory=list)
 
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
@@ -67,8 +70,17 @@ class IdentifiedModel:
             k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j)
             c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j)
             kind = "cable" if s.pull_only else "spring"
-            lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; rest {self.rest_length[j]:.4g} m")
+            rest = (f"rest {self.rest_length[j]:.6g} m (its command, mean)" if s.actuated else
+                    f"rest {self.rest_length[j]:.6g} m" + _pm(se.get("rest_length"), j))
+            lines.append(f"{s.name} ({kind}): K = {k}; c = {c}; {rest}")
         lines.append(f"control scale h = {self.control_scale:.6g}" + _pm(se.get("control_scale"), None))
+        for a in self.actuators:
+            pm = lambda v: "" if v is None else f" ± {v:.2g}"
+            line = (f"actuator {a['name']} on {a['tendon']}: gain {a['gain']:.6g} N{pm(a.get('gain_stderr'))}, "
+                    f"bias {a['bias']:.4g} N{pm(a.get('bias_stderr'))}")
+            if a.get("time_constant") is not None:
+                line += f", time constant {a['time_constant']:.4g} s{pm(a.get('time_constant_stderr'))}"
+            lines.append(line)
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")
         from identified.effects import effect_from_json
@@ -124,12 +136,14 @@ class IdentifiedModel:
                     "damping": float(self.damping[j]),
                     "damping_stderr": err("damping", j),
                     "rest_length": float(self.rest_length[j]),
+                    "rest_length_stderr": err("rest_length", j),
                     "pull_only": bool(s.pull_only),
                     "actuated": bool(s.actuated),
                 }
                 for j, s in enumerate(topo.springs)
             ],
             "control_scale": {"value": float(self.control_scale), "stderr": err("control_scale", None)},
+            "actuators": self.actuators,
             "effects": self.effects,
             "loop": self.loop,
             "metrics": self.metrics,
@@ -176,6 +190,7 @@ class IdentifiedModel:
             sp = [springs_json[s.name] for s in springs]
             stderr: dict[str, np.ndarray] = {}
             for key, src, n in (("stiffness", sp, "stiffness_stderr"), ("damping", sp, "damping_stderr"),
+                                ("rest_length", sp, "rest_length_stderr"),
                                 ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr")):
                 vals = [x.get(n) for x in src]
                 if all(v is not None for v in vals):
@@ -200,6 +215,7 @@ class IdentifiedModel:
                 metrics=dict(obj.get("metrics", {})),
                 source_model=obj.get("source_model"),
                 integrator=str(obj.get("integrator", "euler")),
+                actuators=list(obj.get("actuators", [])),
             )
         except ModelFileError:
             raise

@@ -58,6 +58,7 @@ class Chunk:
     push_force: torch.Tensor
     push_torque_body: torch.Tensor
     row_weight: torch.Tensor | None = None  # (N, R): 0 drops a rod's equations at an instant
+    ctrl: torch.Tensor | None = None  # (N, U): the dataset's ``ctrl`` of step t (None: no actuators)
 
 
 def iter_chunks(
@@ -104,6 +105,7 @@ def iter_chunks(
         q1 = torch.where((q0 * q1).sum(-1, keepdim=True) < 0, -q1, q1)
         return quat_to_matrix(quat_normalize(q0 + q1))
 
+    has_ctrl = data.ctrl.ndim == 3 and data.ctrl.shape[0] == E and data.ctrl.shape[2] > 0
     for ep, ts in spans:
         quat, angvel, vel = cut(data.quat, ep, ts), cut(data.angvel, ep, ts), cut(data.vel, ep, ts)
         rot = quat_to_matrix(quat)
@@ -122,6 +124,7 @@ def iter_chunks(
                 # a push switching at instant t is a jump in the rod's acceleration, across which
                 # the central difference is only first order: those equations are left out
                 row_weight=(cut(data.push_force, ep, ts, -1) == cut(data.push_force, ep, ts)).all(-1).to(dtype),
+                ctrl=0.5 * (cut(data.ctrl, ep, ts, -1) + cut(data.ctrl, ep, ts)) if has_ctrl else None,
             )
             yield chunk, len(range(*ep.indices(E)))
             continue
@@ -137,5 +140,6 @@ def iter_chunks(
             rest=cut(data.rest_length, ep, ts),
             push_force=cut(data.push_force, ep, ts),
             push_torque_body=matrix_apply_transpose(rot, push_torque(ep, ts, 0)),
+            ctrl=cut(data.ctrl, ep, ts) if has_ctrl else None,
         )
         yield chunk, len(range(*ep.indices(E)))

@@ -18,7 +18,9 @@ wrong. :func:`improve` runs rounds of
 
 Every round writes ``DIR/round<k>/`` (``plant.npz`` the recording, ``model.json`` the refitted
 model, ``policy.zip``) and ``DIR/improve.json`` the table (per round: plant progress, twin progress,
-the twin's errors on the policy's states before and after the refit, plant seconds used so far).
+the twin's errors on the policy's states before and after the refit, ``twin_fitted_on_s`` the
+plant seconds the round's twin was fitted on, ``plant_data_s`` the plant seconds used so far, this
+round's recording included).
 """
 
 from __future__ import annotations
@@ -207,6 +209,7 @@ def improve(identified: str, data: str, policy: str, out_dir: str, cfg: ImproveC
         row: dict[str, Any] = {"round": r, "policy": os.path.abspath(pol_path), "model": os.path.abspath(model_path),
                                "seeds": seeds, "plant_progress_m": float(np.mean(plant_prog)),
                                "twin_progress_m": float(np.mean(twin_prog)),
+                               "twin_fitted_on_s": fit_s + plant_s,
                                "plant_progress_per_episode_m": plant_prog.tolist(),
                                "twin_progress_per_episode_m": twin_prog.tolist(),
                                "twin_error_on_policy_states": twin_errors(model, rec)}

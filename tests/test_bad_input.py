@@ -449,6 +449,7 @@ def test_fuzz_bad_flags(files, work, flag):
        lo=st.sampled_from([0.4, -1.0, float("nan"), 3.0]), seed=st.integers(0, 2**31))
 @example(ctrl=0.01, noise=0.01, lo=0.4, seed=0)  # valid: must go through
 @example(ctrl=0.01, noise=0.01, lo=3.0, seed=0)  # an empty healthy range: refused
+@example(ctrl=0.01, noise=2.0, lo=0.4, seed=0)  # reset noise beyond 1: refused
 def test_fuzz_env_arguments(ctrl, noise, lo, seed):
     """Refused up front exactly when a value is out of range (a weight not finite, the reset noise
     outside [0, 1], an empty healthy range); otherwise the env runs with finite observations and

@@ -319,6 +319,16 @@ def test_contact_rods_reported_apart_and_explained_partial(robot):
     near = (depth > -0.01).any(-1)
     assert r["regions"]["near_ground"]["fraction"] == pytest.approx(near.mean(), abs=1e-12)
     assert e["fraction"] == pytest.approx(near.mean(), abs=1e-12)
+    # the residual relative to the recorded force (torque) on those rods, by hand
+    from identified.evaluate import recorded_samples, residual_wrench
+    from identified.twin import engine_from_model
+
+    ch, _, point = recorded_samples(data, "forward")
+    rw = residual_wrench(engine_from_model(model), ch, point)
+    m = torch.as_tensor(near.reshape(-1, near.shape[-1]))
+    for part, res, ref in (("force", rw.force, rw.inertial_force), ("torque", rw.torque_body, rw.inertial_torque_body)):
+        want = (res[m].square().mean().sqrt() / ref[m].square().mean().sqrt()).item()
+        assert e["inside"][part] == pytest.approx(want, rel=1e-9), part
 
 
 def test_whiteness_corrects_for_the_number_of_series():

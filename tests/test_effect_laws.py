@@ -90,3 +90,31 @@ def test_cable_friction_classifies_stick_and_slip_by_its_law(ico):
     q = m * acc + d * rate
     assert torch.equal(stick, q.abs() < F) and 0 < stick.float().mean() < 1
     assert torch.equal(direction, torch.sign(q))
+
+
+def test_implicit_drag_columns_use_the_recorded_end_velocity(ico):
+    """In the fit, the implicit drag's columns are the velocities at the step's end from the
+    recorded accelerations: ``-(v + dt a)`` and ``-R (ω_b + dt α_b)``; the explicit variant's are
+    the velocities at its start."""
+    from types import SimpleNamespace
+
+    from identified.rotation import matrix_apply, quat_to_matrix
+
+    topo = Topology.from_mjcf(ico)
+    rng = np.random.default_rng(5)
+    N, R = 4, topo.n_rods
+    q = torch.as_tensor(rng.normal(size=(N, R, 4)))
+    q = q / q.norm(dim=-1, keepdim=True)
+    t = lambda *shape: torch.as_tensor(rng.normal(size=shape))
+    s = RodState(t(N, R, 3), q, t(N, R, 3), t(N, R, 3))
+    rot = quat_to_matrix(q)
+    ctx = SimpleNamespace(dt=0.01, rot=rot, angvel_body=t(N, R, 3), recorded_lin_acc=t(N, R, 3),
+                          recorded_ang_acc_body=t(N, R, 3))
+    force, torque = make_effect("linear_drag:implicit", topo).features(s, ctx)
+    torch.testing.assert_close(force[..., 0, :], -(s.vel + 0.01 * ctx.recorded_lin_acc))
+    torch.testing.assert_close(torque[..., 1, :],
+                               -matrix_apply(rot, ctx.angvel_body + 0.01 * ctx.recorded_ang_acc_body))
+    assert not force[..., 1, :].any() and not torque[..., 0, :].any()
+    force, torque = make_effect("linear_drag", topo).features(s, ctx)
+    torch.testing.assert_close(force[..., 0, :], -s.vel)
+    torch.testing.assert_close(torque[..., 1, :], -s.angvel)

@@ -76,9 +76,10 @@ def test_open_loop_divergence_by_hand():
     plant = EpisodeSet([0, 1], np.zeros(2), np.zeros(2), np.array([4, 2]), [], [com([0, 1, 2, 3, 4]), com([0, 1, 2])],
                        np.zeros(2, bool))
     twin = EpisodeSet([0, 1], np.zeros(2), np.zeros(2), np.array([4, 2]), [],
-                      [com([0, 1, 2.5, 3.5, 5]), com([0, 1.5, np.nan])], np.array([False, True]))
+                      [com([0, 1, 2.5, 3.5, 5]), com([0, 1.5, 100.0])], np.array([False, True]))
     out = open_loop_divergence(plant, twin, dt)
-    # instant 1: both episodes (0 and 0.5); instant 2: the twin's episode 1 diverged there: episode 0 only
+    # instant 1: both episodes (0 and 0.5); instant 2: the twin's episode 1 diverged there (its last
+    # state is not a state): episode 0 only
     assert out["com_divergence_m"] == pytest.approx([0.0, 0.25, 0.5, 0.5, 1.0])
     assert out["at"]["1s"] == pytest.approx(0.5) and out["at"]["5s"] is None
     assert out["time_to_0.1m_s"] == pytest.approx(0.5) and out["time_to_0.5m_s"] == pytest.approx(2.0)

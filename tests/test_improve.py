@@ -90,6 +90,8 @@ def test_improve_command_runs_rounds(setup, capsys):
     base = 4 * 400 * 0.001
     rec = load_dataset(out / "round1" / "plant.npz")
     assert rows[0]["plant_data_s"] == pytest.approx(base + rec.n_episodes * rec.n_steps * 0.001)
+    assert rows[0]["twin_fitted_on_s"] == pytest.approx(base)
+    assert rows[1]["twin_fitted_on_s"] == pytest.approx(rows[0]["plant_data_s"])
     refit = load_model(out / "round1" / "model.json")
     assert refit.metrics["data"]["episodes"] == 4 + rec.n_episodes
     meta = load_policy(out / "round1" / "policy.zip").meta

@@ -42,7 +42,8 @@ def test_one_step_evidence_cuts_the_one_step_error_without_spoiling_the_free_run
     assert one_step_evidence(2 * ONE_STEP_FLOOR, 0.0, 0.1, 0.1)
     # ... and the free run may not get min_gain worse, nor diverge
     assert one_step_evidence(0.02, 0.0, 0.1, 0.2) and not one_step_evidence(0.02, 0.0, 0.1, 0.2000001)
-    assert not one_step_evidence(0.02, 0.0, 0.1, INF)
+    assert not one_step_evidence(0.02, 0.0, 0.1, INF) and not one_step_evidence(0.02, 0.0, INF, INF)
+    assert one_step_evidence(0.02, 0.0, INF, 5.0)  # a diverging model made finite
 
 
 def test_search_explained_by_rounding_or_a_fivefold_cut():

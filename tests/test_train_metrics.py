@@ -35,7 +35,8 @@ def test_reported_progress_is_x_velocity_times_dt_per_episode(tmp_path):
     vx = [[1.0, 2.0], [3.0, -1.0], [0.5, 4.0], [2.0, 2.0], [-1.0, 1.0]]
     done = [[False, False], [False, True], [True, False], [False, False], [False, True]]
     for v, d in zip(vx, done):
-        infos = [{"x_velocity": v[i], "y_velocity": 100.0 + v[i], "episode": {"r": 10.0 * v[i]}} for i in range(2)]
+        infos = [{"x_velocity": v[i], "y_velocity": 100.0 + v[i], "episode": {"r": 10.0 * v[i], "l": 7}}
+                 for i in range(2)]
         if d[0]:  # an episode end without a Monitor record: counted, no return
             del infos[0]["episode"]
         cb.locals = {"infos": infos, "dones": np.array(d)}
@@ -45,3 +46,6 @@ def test_reported_progress_is_x_velocity_times_dt_per_episode(tmp_path):
     assert list(cb.progress) == pytest.approx(want, rel=1e-12)
     assert list(cb.returns) == [-10.0, 10.0] and cb.episodes == 3
     assert cb._dist.tolist() == pytest.approx([(2.0 - 1.0) * dt, 0.0], rel=1e-12)  # episodes under way
+    # the learning curve's rows: the same progress, the Monitor's return and length where it has them
+    assert [row["progress_m"] for row in cb.log] == pytest.approx(want, rel=1e-12)
+    assert [row["length"] for row in cb.log] == [7, -1, 7]

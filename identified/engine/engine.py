@@ -286,11 +286,14 @@ class SpringRodEngine:
         rest_length: Any,
         push_force: Any | None = None,
         push_point: Any | None = None,
+        tendon_force: Any | None = None,
     ) -> StepTerms:
         """Force and acceleration generation for ``state`` (no integration).
 
         ``rest_length`` (..., S) m; ``push_force`` (..., R, 3) world, N; ``push_point`` (..., R, 3)
-        rod frame (``None`` = COM).
+        rod frame (``None`` = COM); ``tendon_force`` (..., S) N: the actuators' force along each
+        tendon (positive lengthens it, MuJoCo's sign: :mod:`identified.engine.actuators`), which
+        lowers its tension by as much; ``None``: no actuators.
         """
         p = self.params
         state = RodState(*(self._t(x) for x in state))
@@ -301,6 +304,8 @@ class SpringRodEngine:
         ends = endpoint_kinematics(self.graph, pos, quat, vel, angvel, rot=rot)
         geom = spring_geometry(ends)
         tension = spring_tension(geom.length, geom.rate, rest, p.stiffness, p.damping, self.graph.pull_only)
+        if tendon_force is not None:
+            tension = tension - self._t(tendon_force)
         force, torque = rod_wrench(self.graph, spring_end_forces(geom.unit, tension), ends.lever)
         fu = ru = None
         if push_force is not None:
@@ -360,9 +365,11 @@ class SpringRodEngine:
         rest_length: Any,
         push_force: Any | None = None,
         push_point: Any | None = None,
+        tendon_force: Any | None = None,
     ) -> RodState:
         """Advance every rod by ``dt``: ``state`` (..., R, ·), ``rest_length`` (..., S),
-        ``push_force`` (..., R, 3) world or None, ``push_point`` (..., R, 3) rod frame or None (COM).
+        ``push_force`` (..., R, 3) world or None, ``push_point`` (..., R, 3) rod frame or None (COM),
+        ``tendon_force`` (..., S) the actuators' force on each tendon, held over the step, or None.
         Returns the next :class:`RodState`."""
         state = RodState(*(self._t(x) for x in state))
         if self.integrator == "rk4":
@@ -377,11 +384,11 @@ class SpringRodEngine:
                 # the push is held for the step as a WORLD force and torque (as MuJoCo's
                 # xfrc_applied): its point moves with the stage's rotation so the lever stays put
                 point = None if lever is None else matrix_apply_transpose(quat_to_matrix(s.quat), lever)
-                terms = self.dynamics(s, rest, fu, point)
+                terms = self.dynamics(s, rest, fu, point, tendon_force)
                 return terms.lin_acc, terms.ang_acc_body
 
             return runge_kutta4(acc, state, matrix_apply_transpose(rot0, state.angvel), self.dt)
-        terms = self.dynamics(state, rest_length, push_force, push_point)
+        terms = self.dynamics(state, rest_length, push_force, push_point, tendon_force)
         return semi_implicit_euler(state.pos, state.quat, state.vel, terms.ctx.angvel_body,
                                    terms.lin_acc, terms.ang_acc_body, self.dt)
 
@@ -396,8 +403,8 @@ class SpringRodEngine:
             and self._damping_of(e) is None for e in self.effects)
 
     def step_components(self, pos: Vec, quat: tuple, vel: Vec, angvel: Vec, rest_length: torch.Tensor,
-                        push_force: torch.Tensor | None = None, push_point: torch.Tensor | None = None
-                        ) -> tuple[Vec, tuple, Vec, Vec]:
+                        push_force: torch.Tensor | None = None, push_point: torch.Tensor | None = None,
+                        tendon_force: torch.Tensor | None = None) -> tuple[Vec, tuple, Vec, Vec]:
         """:meth:`step` in component form, for an engine that is :attr:`fused`: the state as the
         components of ``pos``, ``quat`` (four), ``vel``, ``angvel`` (WORLD), each (..., R) in the
         engine's dtype; ``rest_length`` (..., S); ``push_force``/``push_point`` (..., R, 3) or None.
@@ -416,6 +423,8 @@ class SpringRodEngine:
             tuple(x[..., :S] for x in point), tuple(x[..., S:] for x in point),
             tuple(x[..., :S] for x in velocity), tuple(x[..., S:] for x in velocity))
         tension = spring_tension(length, rate, rest_length, p.stiffness, p.damping, g.pull_only)
+        if tendon_force is not None:
+            tension = tension - tendon_force
         force, torque = rod_wrench_components(g, spring_end_forces_components(unit, tension), lever)
         if push_force is not None:
             pf, pt = push_wrench_components(rot, vec(push_force), None if push_point is None else vec(push_point),
@@ -438,16 +447,19 @@ class SpringRodEngine:
         rest_lengths: Any,
         push_force: Any | None = None,
         push_point: Any | None = None,
+        tendon_forces: Any | None = None,
     ) -> RodState:
         """Roll ``T`` steps from ``state0`` (..., R, ·).
 
         ``rest_lengths`` (..., T, S); ``push_force`` (..., T, R, 3) or None; ``push_point``
-        (..., T, R, 3) or None.  Returns the states at the ``T + 1`` instants stacked on a time
-        axis: (..., T + 1, R, ·), the first being ``state0``.
+        (..., T, R, 3) or None; ``tendon_forces`` (..., T, S) the actuators' force on each tendon
+        or None.  Returns the states at the ``T + 1`` instants stacked on a time axis:
+        (..., T + 1, R, ·), the first being ``state0``.
         """
         rest = self._t(rest_lengths)
         fu = None if push_force is None else self._t(push_force)
         ru = None if push_point is None else self._t(push_point)
+        ft = None if tendon_forces is None else self._t(tendon_forces)
         state = RodState(*(self._t(x) for x in state0))
         out = [state]
         for t in range(rest.shape[-2]):
@@ -456,6 +468,7 @@ class SpringRodEngine:
                 rest[..., t, :],
                 None if fu is None else fu[..., t, :, :],
                 None if ru is None else ru[..., t, :, :],
+                None if ft is None else ft[..., t, :],
             )
             out.append(state)
         return RodState(*(torch.stack(xs, dim=-3) for xs in zip(*out)))

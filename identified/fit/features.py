@@ -12,6 +12,14 @@ ends and ``u_j`` the unit vector along the spring.  The accelerations ``a`` and 
 the recorded states (:mod:`identified.samples`).  Every term is linear in
 ``(K, c, M, Ixx, Iyy, Izz, h)``, so the unknowns follow by linear least squares.
 
+A passive spring's rest length ``l0`` is not an input but a parameter: its tension while taut is
+``K (l - l_ref) - P`` with ``P = K (l0 - l_ref)`` (``l_ref`` a fixed reference length), linear in
+``(K, P)``; a pull-only cable is taut while ``l > l0`` (``chunk.rest`` holds the fit's current
+estimate of ``l0`` for the passive springs, :func:`identified.fit.identify.identify`).  A MuJoCo
+tendon actuator adds ``-(g act + b)`` to its tendon's tension (:mod:`identified.engine.actuators`),
+linear in its gain ``g`` and bias ``b``, and ``-g dtau (d act / d tau)`` for the Gauss-Newton step of
+a filter's time constant (:mod:`identified.fit.actuation`).
+
 A plant on MuJoCo's implicit integrators (``implicit``, ``implicitfast``) steps with
 ``(M - dt D) qacc = f`` (:mod:`identified.engine.integration`); its equations keep the same form
 with two extra terms that are still linear in the parameters: each damper sees the stretch rate
@@ -26,7 +34,7 @@ The spring geometry and the implicit terms are the engine's own (:mod:`identifie
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -57,10 +65,12 @@ __all__ = ["RodColumns", "chunk_context", "equation_rows", "step_context"]
 
 @dataclass(frozen=True)
 class RodColumns:
-    """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``.
+    """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``,
+    then (when the layout identifies rest lengths) ``P = K l0`` of its springs (D), then the effects'.
 
-    ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs) map
-    to full index -1 and stay zero.  Building the equations in this compact form keeps the work
+    ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs, and
+    the ``P`` slot of an actuated cable, whose rest length is its command) map to full index -1
+    and stay zero.  Building the equations in this compact form keeps the work
     proportional to the graph's degree, not to the total number of parameters.
     """
 
@@ -68,25 +78,55 @@ class RodColumns:
     slot: np.ndarray  # (S, 2) local slot of spring j on the rod at each of its ends (-1 for anchors)
     degree: int
     effect_start: tuple[int, ...] = ()  # first local column of each joint effect
+    preload: bool = False  # the P columns follow h (passive springs' rest lengths identified)
+    #: (S,) a reference length per spring, m: a passive spring's columns are ``l - l_ref`` (K) and
+    #: ``-1`` (``P = K (l0 - l_ref)``) while taut, which keeps K and P apart where ``l`` varies little
+    length_ref: np.ndarray | None = None
+    #: MuJoCo tendon actuators (layout order): the spring each acts on, (U,), and the local slot of
+    #: its columns on the rod at each end of that spring (U, 2; -1 for anchors); the rod's columns
+    #: ``gain`` (W), ``bias`` (W), ``gain x d tau`` (W) start at ``actuator_start``
+    actuator_spring: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    actuator_slot: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    actuator_start: int = 0
+    actuator_width: int = 0
 
     @classmethod
-    def build(cls, topology: Topology, layout: ParameterLayout) -> RodColumns:
+    def build(cls, topology: Topology, layout: ParameterLayout, length_ref: np.ndarray | None = None) -> RodColumns:
+        """The columns of ``layout`` on ``topology``; ``length_ref`` (S,): the reference lengths of
+        the preload columns (0 when not given: ``P = K l0``)."""
         R, S = topology.n_rods, topology.n_springs
         per_rod = [topology.springs_of_rod(i) for i in range(R)]
         D = max(len(x) for x in per_rod)
         widths = [D * e.width if e.kind == "spring" else e.width for e in layout.effects]
-        full = -np.ones((R, 2 * D + 5 + sum(widths)), dtype=np.int64)
+        P = D if layout.rest_lengths else 0
+        U = len(layout.actuators)
+        a_spring = np.array([topology.spring_names.index(next(a.tendon for a in topology.actuators if a.name == n))
+                             for n in layout.actuators], dtype=np.int64)
+        per_rod_act = [[a for a in range(U) if i in topology.springs[a_spring[a]].rods] for i in range(R)]
+        W = max((len(x) for x in per_rod_act), default=0)
+        full = -np.ones((R, 2 * D + 5 + P + 3 * W + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
                 full[i, k], full[i, D + k] = layout.k(j), layout.c(j)
+                if P and not topology.springs[j].actuated:
+                    full[i, 2 * D + 5 + k] = layout.preload(j)
                 for e in range(2):
                     if topology.springs[j].rods[e] == i:
                         slot[j, e] = k
             full[i, 2 * D] = layout.m(i)
             full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
             full[i, 2 * D + 4] = layout.h
-        starts, col = [], 2 * D + 5
+        a0 = 2 * D + 5 + P
+        a_slot = -np.ones((U, 2), dtype=np.int64)
+        for i, acts in enumerate(per_rod_act):
+            for k, a in enumerate(acts):
+                full[i, a0 + k], full[i, a0 + W + k], full[i, a0 + 2 * W + k] = (
+                    layout.gain(a), layout.bias(a), layout.gain_dtau(a))
+                for e in range(2):
+                    if topology.springs[a_spring[a]].rods[e] == i:
+                        a_slot[a, e] = k
+        starts, col = [], a0 + 3 * W
         for k, (eff, w) in enumerate(zip(layout.effects, widths)):
             off = layout.effect_offset(k)
             starts.append(col)
@@ -100,7 +140,10 @@ class RodColumns:
                     full[i, col : col + len(js) * W] = (off + np.array(js, dtype=np.int64)[:, None] * W
                                                         + np.arange(W)).reshape(-1)
             col += w
-        return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts))
+        ref = np.zeros(S) if length_ref is None else np.asarray(length_ref, dtype=float).reshape(S)
+        return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts), preload=bool(P),
+                   length_ref=ref if P else None, actuator_spring=a_spring, actuator_slot=a_slot,
+                   actuator_start=a0, actuator_width=W)
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
         """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
@@ -120,7 +163,8 @@ def equation_rows(
     effects: Sequence[Effect] = (),
     dt: float = 0.0,
 ) -> torch.Tensor:
-    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, 2D + 5 + E).
+    """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, L) with the local
+    columns of :class:`RodColumns`.
 
     Rows 0-2 are translation (world frame), rows 3-5 rotation (rod frame).  The equations are
     homogeneous (``A theta = 0``): the scale is fixed later by an anchor.  ``implicit_dt``: the
@@ -147,18 +191,31 @@ def equation_rows(
     # springs: force per unit K (stretch) and per unit c (rate) on each end, and its torque
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device).view(1, 1, 2, 1)
     u = sign * unit.unsqueeze(-2)  # (N, S, 2, 3): direction of the force on each end
-    f = torch.stack([-stretch[..., None, None] * u, -rate_e[..., None] * u])  # (2, N, S, 2, 3)
+    per_unit = [stretch, rate_e]  # what multiplies K and c in each end's tension
+    starts = [0, D]  # their first local column
+    if columns.preload:  # a passive spring: K l - P while taut (a cable: while longer than its rest)
+        passive = torch.as_tensor(~np.array([s.actuated for s in topology.springs], dtype=bool), device=device)
+        pull = torch.as_tensor(topology.pull_only, device=device)
+        taut = torch.where(pull, length > chunk.rest, True).to(dtype)
+        ref = torch.as_tensor(columns.length_ref, dtype=dtype, device=device)
+        per_unit[0] = torch.where(passive, (length - ref) * taut, stretch)
+        per_unit.append(torch.where(passive, -taut, 0.0))
+        starts.append(2 * D + 5)
+    n_kinds = len(per_unit)
+    f = torch.stack([-(x if x.dim() == 3 else x[..., None])[..., None] * u for x in per_unit])  # (n, N, S, 2, 3)
     rods_e = torch.as_tensor(np.maximum(topology.endpoint_rods, 0), device=device)  # (S, 2)
     rot_e = rot[:, rods_e]  # (N, S, 2, 3, 3)
     tau = _to_body(rot_e, torch.cross(ends.lever.expand_as(f), f, dim=-1))
     on = np.flatnonzero(topology.endpoint_rods.reshape(-1) >= 0)  # ends on a rod (not anchors)
     flat_rod = topology.endpoint_rods.reshape(-1)[on]
     flat_slot = columns.slot.reshape(-1)[on]
-    idx = torch.as_tensor(np.concatenate([flat_rod * L + flat_slot, flat_rod * L + D + flat_slot]), device=device)
+    idx = torch.as_tensor(np.concatenate([flat_rod * L + c0 + flat_slot for c0 in starts]), device=device)
     pick = torch.as_tensor(on, device=device)
-    vals = torch.cat([f, tau], dim=-1).reshape(2, N, -1, 6)[:, :, pick]  # (2, N, ends, 6)
-    vals = torch.cat([vals[0], vals[1]], dim=1).transpose(1, 2)  # (N, 6, 2 * ends)
+    vals = torch.cat([f, tau], dim=-1).reshape(n_kinds, N, -1, 6)[:, :, pick]  # (n, N, ends, 6)
+    vals = torch.cat(tuple(vals), dim=1).transpose(1, 2)  # (N, 6, n * ends)
     A.view(N, 6, R * L).index_copy_(2, idx, vals)
+    if len(columns.actuator_spring):
+        _actuator_columns(A, columns, chunk, u, ends.lever, rot_e, topology.endpoint_rods)
 
     # mass: M (a - g)
     A[:, 0:3, :, 2 * D] = (chunk.acc - gravity).transpose(1, 2)
@@ -185,6 +242,31 @@ def equation_rows(
     if chunk.row_weight is not None:
         A = A * chunk.row_weight[:, :, None, None]
     return A
+
+
+def _actuator_columns(A: torch.Tensor, columns: RodColumns, chunk: Chunk, u: torch.Tensor, lever: torch.Tensor,
+                      rot_e: torch.Tensor, end_rods: np.ndarray) -> None:
+    """Write the MuJoCo tendon actuators' columns into ``A`` (N, 6, R, L).
+
+    An actuator's force ``F = g act + b`` on its tendon (positive: lengthening, MuJoCo's
+    convention; ``g`` its gain times gear, ``b`` its constant bias times gear) acts on the tendon's
+    ends as a tension ``-F``; per unit ``g`` the tension is ``-act``, per unit ``b`` it is ``-1``,
+    and per unit ``g dtau`` it is ``-d act / d tau`` (the Gauss-Newton column of the filter's time
+    constant).  ``chunk.ctrl`` holds the activations (N, U) then their derivatives (N, U)."""
+    U, W, a0 = len(columns.actuator_spring), columns.actuator_width, columns.actuator_start
+    act, dact = chunk.ctrl[:, :U], chunk.ctrl[:, U : 2 * U]
+    js = torch.as_tensor(columns.actuator_spring, device=A.device)
+    for k, x in enumerate((act, torch.ones_like(act), dact)):  # tension per unit parameter: -x
+        f = x[..., None, None] * u[:, js]  # minus (minus tension along u): (N, U, 2, 3)
+        tau = _to_body(rot_e[:, js], torch.cross(lever[:, js], f, dim=-1))
+        vals = torch.cat([f, tau], dim=-1)  # (N, U, 2, 6)
+        for a in range(U):
+            for e in range(2):
+                slot = int(columns.actuator_slot[a, e])
+                if slot < 0:
+                    continue
+                rod = int(end_rods[columns.actuator_spring[a], e])
+                A[:, :, rod, a0 + k * W + slot] += vals[:, a, e]
 
 
 def step_context(topology: Topology, chunk: Chunk, rot: torch.Tensor, ends: Any,

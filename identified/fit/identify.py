@@ -20,8 +20,10 @@ from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
 from identified.effects.base import Effect
+from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.engine.integration import INTEGRATORS, RodState
-from identified.evaluate import recorded_samples, residual_wrench
+from identified.evaluate import model_inputs, recorded_samples, residual_wrench
+from identified.fit.actuation import FILTERS, activation_dataset, step_time_constant
 from identified.fit.checks import (
     adam_convergence,
     apply_checks,
@@ -198,14 +200,38 @@ def identify(
     t0 = time.perf_counter()
     joint = [e for e in effects if e.fit_strategy != "residual"]
     late = [e for e in effects if e.fit_strategy == "residual"]
-    layout = ParameterLayout.for_topology(topology, regressors, joint)
+    forces = [a for a in topology.actuators if a.kind != "rest_length"]
+    use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
+    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act)
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
+    # an actuated cable's rest length is its command (an input): its preload column stays empty
+    passive = np.array([not s.actuated for s in topology.springs], dtype=bool)
+    if regressors == "multiple" or not passive.any():  # tied ("single"): the passive springs' P sets it
+        fixed.update({layout.preload(j): 0.0 for j in np.flatnonzero(~passive)})
+    # passive rest lengths: the fit's own estimate, never the recorded values (the recorded column
+    # of a passive spring is replaced before any feature is built); 0 at first (every cable taut)
+    rest_estimate = np.zeros(topology.n_springs)
+    # MuJoCo tendon actuators: gain and bias linear, a filter's time constant by Gauss-Newton
+    # steps from 20 dt (identified.fit.actuation); a motor has no bias, only filters a time constant
+    act_by_name = {a.name: a for a in topology.actuators}
+    dynamics = [act_by_name[n].dynamics for n in layout.actuators]
+    filters = np.isin(np.array(dynamics, dtype=object), FILTERS).astype(bool)
+    tau = np.where(filters, 20.0 * dataset.dt, 0.0)
+    for a, n in enumerate(layout.actuators):
+        if act_by_name[n].kind == "motor":
+            fixed[layout.bias(a)] = 0.0
+        if not filters[a]:
+            fixed[layout.gain_dtau(a)] = 0.0
+    src = {"data": activation_dataset(dataset, layout.actuators, dynamics, tau) if layout.actuators else dataset}
     fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
-    columns = RodColumns.build(topology, layout)
+    length_ref = mean_lengths(dataset, topology)
+    if regressors == "single":  # one P for all springs: one reference length too
+        length_ref[:] = length_ref.mean()
+    columns = RodColumns.build(topology, layout, length_ref)
     implicit_dt = dataset.dt if integrator == "implicit" else None
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
@@ -213,6 +239,7 @@ def identify(
     def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
+            ch.rest = _with_estimate(ch.rest, passive, rest_estimate)
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 hit = _affected(late, topology, ch)
                 keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
@@ -224,13 +251,13 @@ def identify(
             yield (weak_form(A, n_ep, weak) if weak > 1 else A), n_ep
 
     def rows() -> Iterator[torch.Tensor]:
-        return (A for A, _ in runs(dataset))
+        return (A for A, _ in runs(src["data"]))
 
     # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
     # (and far faster on a shared, loaded machine); torch keeps its threads for the features
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
-            factors = accumulate(with_noise_replicates(runs, dataset, noise_copies), columns, layout.n_full)
+            factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
 
             def solve_holding(f: dict[int, float]) -> Any:
                 """Solve; parameters of an iterative effect the data cannot identify are held
@@ -244,7 +271,59 @@ def identify(
                         f = {**f, **_pinned(joint, layout)}
                 return solve(factors, layout, anchor, f)
 
-            sol = solve_holding(fixed)
+            def solve_separating(f: dict[int, float]) -> Any:
+                """Solve; an actuator's constant bias on a cable that never went slack is the same
+                column as that cable's preload: held at 0 (absorbed into its rest length), noted."""
+                try:
+                    return solve_holding(f)
+                except IdentifiabilityError as err:
+                    hit = [a for a, n in enumerate(layout.actuators) if f"{n}.bias" in err.names
+                           and layout.bias(a) not in f]
+                    if not hit:
+                        raise
+                    for a in hit:
+                        f[layout.bias(a)] = 0.0
+                        absorbed.append(layout.actuators[a])
+                    return solve_separating(f)
+
+            absorbed: list[str] = []
+            sol = solve_separating(fixed)
+            # a passive cable is taut while longer than its rest length: classify the rows by the
+            # estimate and fit again until the rest lengths settle (exact once the classes are)
+            # and step the filters' time constants until they settle too
+            slack = passive & topology.pull_only
+            U = len(layout.actuators)
+            for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
+                new = _rest_from(sol.theta, layout, passive, columns.length_ref)
+                # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
+                # its rows is taut (its columns vanish, and the solve names it as unidentifiable)
+                if sol.cov is not None:
+                    k_i = layout.k(np.arange(topology.n_springs))
+                    k_se = np.sqrt(np.clip(np.diag(sol.cov)[k_i], 0.0, None))
+                    new[slack & ~(sol.theta[k_i] > 3.0 * k_se)] = np.inf
+                change = np.where(new == rest_estimate, 0.0, np.abs(new - rest_estimate))[slack]
+                size = max(np.max(np.abs(new[np.isfinite(new)]), initial=0.0), 1e-12)
+                settled = not slack.any() or bool(np.max(change) <= REST_TOL * size)
+                rest_estimate[passive] = new[passive]
+                if filters.any():
+                    th = sol.theta
+                    tau_new = step_time_constant(tau, th[layout.gain(np.arange(U))], th[layout.gain_dtau(np.arange(U))],
+                                                 dynamics, dataset.dt)
+                    settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
+                    tau = tau_new
+                    src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
+                if settled:
+                    break
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                sol = solve_separating(fixed)
+            tau_se = np.zeros(U)
+            if filters.any():  # the last step's spread, then the fit at the settled time constants
+                g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))
+                tau_se = np.where(filters, np.sqrt(np.clip(np.diag(sol.cov)[d_i], 0, None)) / np.abs(sol.theta[g_i]),
+                                  0.0) if sol.cov is not None else np.full(U, np.nan)
+                fixed.update({layout.gain_dtau(a): 0.0 for a in np.flatnonzero(filters)})
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                sol = solve_separating(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
             sol, notes, held = constrain_inertias(sol, solve_holding,
@@ -253,15 +332,24 @@ def identify(
         else:
             from identified.fit.adam import adam_solve
 
+            absorbed = []
             sol = adam_solve(rows, columns, layout, anchor, fixed)
+            tau_se = np.full(len(layout.actuators), np.nan)  # Adam: the start, not searched
             not_estimable, held = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak), []
             notes = adam_convergence(sol, solve(accumulate(runs(dataset, False), columns, layout.n_full),
                                                 layout, anchor, fixed))
     if bar:
         bar.close()
     elapsed = time.perf_counter() - t0
-    model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed)
+    model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed,
+                      columns.length_ref)
     model.integrator = integrator
+    model.actuators = _actuators_json(layout, sol, act_by_name, dynamics, tau, tau_se, topology)
+    for a in model.actuators:
+        if a["name"] in absorbed:
+            a["bias"], a["bias_stderr"] = 0.0, None
+            a["note"] = (f"its constant bias is not separable from the rest length of '{a['tendon']}' (the cable "
+                         "never went slack in the data): held at 0, the rest length holds it")
     if hold_inertia:  # before the residual stage: its engine divides by every moment
         _mark_unobservable(model, hold_inertia)
     if late and _residual_stage:
@@ -275,13 +363,78 @@ def identify(
     return model
 
 
+#: at most this many reclassifications of passive cables' taut rows; stop when the rest lengths
+#: change by less than REST_TOL (relative)
+REST_ITERATIONS = 25
+REST_TOL = 1e-11
+TAU_TOL = 1e-10  # relative change of a filter's time constant at which the search stops
+
+
+def _actuators_json(layout: ParameterLayout, sol: Solution, by_name: dict, dynamics: Sequence[str],
+                    tau: np.ndarray, tau_se: np.ndarray, topology: Topology) -> list[dict[str, Any]]:
+    """The identified actuators: ``name``, ``tendon``, ``gain`` (force on the tendon per unit
+    activation, N; positive lengthens), ``bias`` (N), their standard errors, ``dynamics`` and
+    ``time_constant`` (s; None without a filter)."""
+    se = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None)) if sol.cov is not None else None
+    out = []
+    for a, n in enumerate(layout.actuators):
+        g, b = layout.gain(a), layout.bias(a)
+        filt = dynamics[a] in FILTERS
+        out.append({"name": n, "tendon": by_name[n].tendon, "kind": by_name[n].kind, "dynamics": dynamics[a],
+                    "gain": float(sol.theta[g]), "gain_stderr": None if se is None else float(se[g]),
+                    "bias": float(sol.theta[b]), "bias_stderr": None if se is None else float(se[b]),
+                    "time_constant": float(tau[a]) if filt else None,
+                    "time_constant_stderr": float(tau_se[a]) if filt else None})
+    return out
+
+
+def _with_estimate(rest: torch.Tensor, passive: np.ndarray, estimate: np.ndarray) -> torch.Tensor:
+    """The chunk's rest lengths (N, S) with every passive spring's column the fit's estimate."""
+    mask = torch.as_tensor(passive, device=rest.device)
+    return torch.where(mask, torch.as_tensor(estimate, dtype=rest.dtype, device=rest.device), rest)
+
+
+def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(S,) every spring's mean length over (up to ``max_instants`` of) the recorded states, m: the
+    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+    E, T = dataset.n_episodes, dataset.n_steps + 1
+    stride = max(1, (E * T) // max_instants)
+    t = lambda x: torch.as_tensor(x.reshape(-1, *x.shape[2:])[::stride], dtype=torch.float64)
+    ends = endpoint_kinematics(topology, t(dataset.pos), t(dataset.quat), t(dataset.vel), t(dataset.angvel))
+    return spring_geometry(ends).length.mean(0).numpy()
+
+
+def _rest_from(theta: np.ndarray, layout: ParameterLayout, passive: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Passive springs' rest lengths ``l0 = l_ref + P / K`` from a solution (NaN where K is 0);
+    0 elsewhere."""
+    S = layout.n_springs
+    k = theta[layout.k(np.arange(S))]
+    p = theta[layout.preload(np.arange(S))]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(passive, np.where(k != 0, ref + p / np.where(k != 0, k, 1.0), np.nan), 0.0)
+
+
+def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, passive: np.ndarray) -> np.ndarray:
+    """Standard error of ``l0 = l_ref + P / K`` by first-order propagation of the (K, P)
+    covariance: ``var l0 = (var P - 2 x cov(K, P) + x² var K) / K²`` with ``x = P / K``; 0 for
+    actuated cables (an input)."""
+    S = layout.n_springs
+    ki, pi = layout.k(np.arange(S)), layout.preload(np.arange(S))
+    k = theta[ki]
+    x = _rest_from(theta, layout, passive, np.zeros(S))
+    var = (cov[pi, pi] - 2 * x * cov[ki, pi] + x**2 * cov[ki, ki]) / np.where(k != 0, k, np.nan) ** 2
+    return np.where(passive, np.sqrt(np.clip(var, 0.0, None)), 0.0)
+
+
 def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
     """Held moments of inertia: a placeholder the twin can step with (1e-3 of the rod's largest
-    identified moment), no standard error, and the list in ``metrics.not_identifiable``."""
+    identified moment, or the difference of the other two if larger, so that the three remain a
+    rigid body's), no standard error, and the list in ``metrics.not_identifiable``."""
     names = model.metrics.setdefault("not_identifiable", [])
     for i, a in held:
         others = [model.inertia[i, b] for b in range(3) if (i, b) not in held]
-        model.inertia[i, a] = 1e-3 * max(max(others, default=1.0), 1e-12)
+        spread = abs(others[0] - others[1]) if len(others) == 2 else 0.0  # keeps the triangle inequality
+        model.inertia[i, a] = max(1e-3 * max(max(others, default=1.0), 1e-12), 1.001 * spread)
         if "inertia" in model.stderr:
             model.stderr["inertia"][i, a] = np.nan
         names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
@@ -332,7 +485,10 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
     groups = np.repeat(np.arange(n_ep), ch.pos.shape[0] // n_ep)
     state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
     with torch.no_grad():
-        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point)
+        rest, tendon_force = model_inputs(model, data, ch)
+        ch.rest = rest.to(ch.pos.device)
+        rw = residual_wrench(engine_from_model(model, dtype=torch.float64, device=device), ch, push_point,
+                             None if tendon_force is None else tendon_force.to(ch.pos.device))
         force, torque = rw.missing_world()
         terms = rw.terms
         ctx = terms.ctx._replace(base_lin_acc=terms.lin_acc, base_ang_acc_body=terms.ang_acc_body)
@@ -385,6 +541,7 @@ def _to_model(
     regressors: str,
     solver: str,
     elapsed: float,
+    length_ref: np.ndarray | None = None,
 ) -> IdentifiedModel:
     S, R = topology.n_springs, topology.n_rods
     th = sol.theta
@@ -393,8 +550,14 @@ def _to_model(
     m_idx = np.array([layout.m(i) for i in range(R)])
     i_idx = np.array([[layout.inertia(i, a) for a in range(3)] for i in range(R)])
     stderr: dict[str, np.ndarray] = {}
+    passive = np.array([not s.actuated for s in topology.springs], dtype=bool)
+    rest = dataset.rest_length.mean(axis=(0, 1))  # an actuated cable's: its mean command
+    if layout.rest_lengths:
+        rest = np.where(passive, _rest_from(th, layout, passive, length_ref), rest)
     if se is not None:
         stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": se[i_idx]}
+        if layout.rest_lengths:
+            stderr["rest_length"] = _rest_stderr(th, sol.cov, layout, passive)
         if has_pushes:
             stderr["control_scale"] = np.array(se[layout.h])
     metrics = {
@@ -426,7 +589,7 @@ def _to_model(
         topology=topology,
         stiffness=th[k_idx],
         damping=th[c_idx],
-        rest_length=dataset.rest_length.mean(axis=(0, 1)),
+        rest_length=rest,
         mass=th[m_idx],
         inertia=th[i_idx],
         control_scale=float(th[layout.h]),

@@ -1,7 +1,10 @@
 """Where each physical parameter sits in the regression's parameter vector.
 
 The full vector is a concatenation of parameter *blocks* (:class:`~identified.effects.base.ParamBlock`):
-the paper's ``K (S), c (S), M (R), I (R x 3: Ixx, Iyy, Izz), h``, then one block group per effect
+the paper's ``K (S), c (S), M (R), I (R x 3: Ixx, Iyy, Izz), h``, with ``rest_lengths=True`` the
+preload ``P = K l0 (S)`` of every spring (a passive spring's tension ``K (l - l0) = K l - P`` is
+linear in ``K`` and ``P``, so its rest length ``l0 = P / K`` is identified; an actuated cable's rest
+length is its command, an input, and its ``P`` column stays empty), then one block group per effect
 fitted jointly with them (:mod:`identified.effects`); offsets follow from the block sizes.
 ``single`` regressors tie all springs to one K and one c and all rods to one M and one I (paper,
 uniform parameters); ``multiple`` keeps one per spring and per rod (paper, non-uniform: 54
@@ -44,20 +47,27 @@ class ParameterLayout:
     spring_names: tuple[str, ...]
     rod_names: tuple[str, ...]
     effects: tuple[Effect, ...] = field(default=())
+    rest_lengths: bool = False  # the preload block P = K l0 is part of the vector
+    actuators: tuple[str, ...] = ()  # MuJoCo tendon actuators: gain, bias, gain x d(time constant)
 
     @classmethod
     def for_topology(cls, topology: Topology, regressors: str = "multiple",
-                     effects: Sequence[Effect] = ()) -> ParameterLayout:
+                     effects: Sequence[Effect] = (), rest_lengths: bool = False,
+                     actuators: bool = False) -> ParameterLayout:
+        """The layout of a topology; ``rest_lengths``: identify passive springs' rest lengths
+        (the preload block); ``actuators``: identify the force law of its MuJoCo tendon actuators."""
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
+        forces = tuple(a.name for a in topology.actuators if a.kind != "rest_length") if actuators else ()
         return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names,
-                   tuple(effects))
+                   tuple(effects), bool(rest_lengths), forces)
 
     # ---------------------------------------------------------------- blocks and offsets
     @property
     def n_base(self) -> int:
-        """Size of the spring-rod blocks ``[K, c, M, I, h]``."""
-        return sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS)
+        """Size of the spring-rod blocks ``[K, c, M, I, h]`` (and ``P`` when rest lengths are identified)."""
+        return (sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS) + self.n_springs * self.rest_lengths
+                + 3 * len(self.actuators))
 
     def effect_offset(self, k: int) -> int:
         """Full-vector index of the first parameter of effect ``k``."""
@@ -85,7 +95,26 @@ class ParameterLayout:
 
     @property
     def h(self) -> int:
-        return self.n_base - 1
+        return 2 * self.n_springs + 4 * self.n_rods
+
+    def preload(self, j: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of spring ``j``'s preload ``P = K l0`` (only with ``rest_lengths``)."""
+        if not self.rest_lengths:
+            raise ValueError("this layout does not identify rest lengths")
+        return self.h + 1 + j
+
+    def gain(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of actuator ``a``'s gain (force on its tendon per unit activation, N)."""
+        return self.h + 1 + self.n_springs * self.rest_lengths + a
+
+    def bias(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of actuator ``a``'s constant bias force on its tendon, N."""
+        return self.gain(a) + len(self.actuators)
+
+    def gain_dtau(self, a: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of ``gain x d tau`` of actuator ``a`` (the Gauss-Newton step of its
+        filter's time constant, :mod:`identified.fit.actuation`)."""
+        return self.gain(a) + 2 * len(self.actuators)
 
     @property
     def signed(self) -> np.ndarray:
@@ -102,6 +131,10 @@ class ParameterLayout:
         names += [f"{r}.mass" for r in self.rod_names]
         names += [f"{r}.inertia_{a}" for r in self.rod_names for a in AXES]
         names += ["control_scale"]
+        if self.rest_lengths:
+            names += [f"{s}.preload" for s in self.spring_names]
+        for kind in ("gain", "bias", "gain_dtau"):
+            names += [f"{a}.{kind}" for a in self.actuators]
         for e in self.effects:
             names += e.param_names(self.rod_names, self.spring_names)
         return names
@@ -114,14 +147,21 @@ class ParameterLayout:
             return np.eye(self.n_full)
         S, R = self.n_springs, self.n_rods
         n_eff = self.n_full - self.n_base
-        G = np.zeros((self.n_full, 7 + n_eff))
+        U = len(self.actuators)
+        n_tied = 7 + self.rest_lengths + 3 * U
+        G = np.zeros((self.n_full, n_tied + n_eff))
         G[0:S, 0] = 1.0  # K
         G[S : 2 * S, 1] = 1.0  # c
         G[2 * S : 2 * S + R, 2] = 1.0  # M
         for a in range(3):
             G[[self.inertia(i, a) for i in range(R)], 3 + a] = 1.0
         G[self.h, 6] = 1.0
-        G[self.n_base:, 7:] = np.eye(n_eff)
+        if self.rest_lengths:
+            G[self.h + 1 : self.h + 1 + S, 7] = 1.0  # P = K l0: one rest length for all springs
+        if U:  # actuators are never tied
+            g0 = self.gain(0)
+            G[g0 : g0 + 3 * U, n_tied - 3 * U :] = np.eye(3 * U)
+        G[self.n_base:, n_tied:] = np.eye(n_eff)
         return G
 
     @property
@@ -129,6 +169,8 @@ class ParameterLayout:
         if self.regressors == "multiple":
             return self.full_names
         base = ["stiffness", "damping", "mass", "inertia_xx", "inertia_yy", "inertia_zz", "control_scale"]
+        base += ["preload"] * self.rest_lengths
+        base += self.full_names[self.h + 1 + self.n_springs * self.rest_lengths : self.n_base]
         return base + self.full_names[self.n_base:]
 
     def describe_free(self, weights: np.ndarray, threshold: float = 0.1) -> list[str]:

@@ -4,11 +4,11 @@ engine's step.
 A recording holds markers at 30-120 Hz with noise and gaps, not rod states at every engine step.
 The path here:
 
-1. each rod's pose in every frame from its visible markers (:mod:`identified.recording.poses`:
-   a rigid fit; for a rod whose markers lie on its axis, the axis and its position only);
-2. a smoothing spline through each pose coordinate over the frames where it was fitted
+1. a smoothing spline through each marker coordinate over the frames where the marker is seen
    (``scipy.interpolate.make_smoothing_spline``, its smoothing chosen by generalised cross
-   validation), which also bridges the gaps;
+   validation), which also bridges the marker's gaps while the rod's other markers are seen;
+2. each rod's pose at every engine step from its smoothed markers (:mod:`identified.recording.poses`:
+   a rigid fit; for a rod whose markers lie on its axis, the axis and its position only);
 3. the smooth poses sampled at the engine's step ``dt``; velocities as the backward differences of
    those samples, angular velocities as the rotation between consecutive samples over ``dt`` --
    so the recorded states step exactly as the engine's semi-implicit Euler steps them
@@ -28,11 +28,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
+from scipy.spatial.transform import Rotation
 
 from identified.dataset import Dataset, DatasetError
 from identified.recording import Recording, RecordingError, check_recording
 from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geometries
-from identified.rotation import matrix_to_quat, quat_multiply, quat_to_matrix
+from identified.rotation import quat_multiply, quat_to_matrix
 from identified.topology import Topology
 
 __all__ = ["MarkerStates", "states_from_recording"]
@@ -56,6 +57,7 @@ class MarkerStates:
     notes: list[str] = field(default_factory=list)
     geometries: list[RodGeometry] = field(default_factory=list)
     frames_used: int = 0
+    starts: list[float] = field(default_factory=list)  # time (s, the recording's) of each take's first state
 
 
 def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
@@ -83,8 +85,9 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
             unobs.append((i, ax))
             notes.append(f"{g.name}: spin about the rod's axis is not observable (its markers lie on the axis): "
                          "axial moment of inertia not identifiable")
-    pieces = []
+    pieces, starts = [], []
     for rows in rec.episodes():
+        rows = _placed_span(rec, rows, geos, col)
         t = rec.time[rows]
         n = int(np.floor((t[-1] - t[0]) / dt + 1e-9))
         if n < 3:
@@ -97,6 +100,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         rest = np.stack([np.interp(grid[1:], t, _filled(rec.rest[rows, rec.rest_names.index(s)], t))
                          for s in topology.spring_names], axis=-1)
         pieces.append((pos[1:], quat[1:], vel, ang, rest))
+        starts.append(float(grid[1]))
     T = min(p[0].shape[0] for p in pieces) - 1
     if T < 1:
         raise RecordingError(f"'{rec.source}': every take is too short to fit")
@@ -114,7 +118,21 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         data.validate()
     except DatasetError as exc:
         raise RecordingError(f"'{rec.source}': the reconstructed states are not usable: {exc}") from None
-    return MarkerStates(data, unobs, notes, geos, rec.n_frames)
+    return MarkerStates(data, unobs, notes, geos, rec.n_frames, starts)
+
+
+def _placed_span(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[str, int]) -> np.ndarray:
+    """The rows of a take from the first frame where every rod is placed to the last such frame:
+    the splines bridge gaps inside, never extrapolate beyond."""
+    ok = np.ones(rows.size, dtype=bool)
+    for g in geos:
+        seen = (~np.isnan(rec.markers[np.ix_(rows, [col[s] for s in g.sites])][..., 0])).sum(-1)
+        ok &= seen >= (2 if g.collinear else 3)
+    if ok.sum() < 2:
+        raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: no two frames of this take place "
+                             "every rod")
+    first, last = np.flatnonzero(ok)[[0, -1]]
+    return rows[first:last + 1]
 
 
 def _filled(x: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -128,7 +146,7 @@ def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray, lam: float | None) -
     """(F, k) values with NaN rows -> (G, k) on ``grid``: a smoothing spline per column."""
     ok = np.isfinite(y).all(-1)
     if ok.sum() < 5:
-        raise RecordingError("fewer than 5 frames place a rod in a take")
+        raise RecordingError("a marker is seen in fewer than 5 frames of the take")
     out = np.empty((grid.size, y.shape[1]))
     for k in range(y.shape[1]):
         out[:, k] = make_smoothing_spline(t[ok], y[ok, k], lam=lam)(grid)
@@ -137,31 +155,28 @@ def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray, lam: float | None) -
 
 def _poses(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[str, int], grid: np.ndarray,
            lam: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each marker's trajectory smoothed over its own visible frames (so one marker's gap is
+    bridged while the rod's other markers are still seen), then each rod fitted rigidly to its
+    smoothed markers at every grid instant."""
     t = rec.time[rows]
     R = len(geos)
     pos = np.empty((grid.size, R, 3))
     quat = np.empty((grid.size, R, 4))
     for i, g in enumerate(geos):
-        pts = rec.markers[np.ix_(rows, [col[s] for s in g.sites])]
-        w = np.ones(len(g.sites))
         try:
-            if g.collinear:
-                point, direction = fit_axis(pts, g.along, w)
-                p = _smooth(t, point, grid, lam)
-                a = _smooth(t, direction, grid, lam)
-                a /= np.linalg.norm(a, axis=-1, keepdims=True)
-                pos[:, i] = p
-                quat[:, i] = _transport(a, g.axis)
-            else:
-                c, rot = fit_rigid(pts, g.offsets, w)
-                q = matrix_to_quat(np.nan_to_num(rot))
-                q[~np.isfinite(c[:, 0])] = np.nan
-                q = _continuous(q)
-                pos[:, i] = _smooth(t, c, grid, lam)
-                qs = _smooth(t, q, grid, lam)
-                quat[:, i] = qs / np.linalg.norm(qs, axis=-1, keepdims=True)
+            pts = np.stack([_smooth(t, rec.markers[rows, col[s]], grid, lam) for s in g.sites], axis=1)
         except RecordingError as exc:
             raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: rod '{g.name}': {exc}") from None
+        w = np.ones(len(g.sites))
+        if g.collinear:
+            point, direction = fit_axis(pts, g.along, w)
+            pos[:, i] = point
+            quat[:, i] = _transport(direction, g.axis)
+        else:
+            c, rot = fit_rigid(pts, g.offsets, w)
+            q = _continuous(Rotation.from_matrix(rot).as_quat()[:, [3, 0, 1, 2]])
+            pos[:, i] = c
+            quat[:, i] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return pos, quat
 
 
@@ -244,6 +259,9 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
     margin = int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))
     model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, contact_margin=margin,
                       **fit_kwargs)
+    model.metrics.setdefault("warnings", []).append(
+        "the standard errors of a fit from a recording treat the states reconstructed from the markers as "
+        "exact; measured on the robot (100 Hz, 1 mm) they are too small by 3-9x: read them as lower bounds")
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes}

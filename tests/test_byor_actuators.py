@@ -1,0 +1,101 @@
+"""MuJoCo tendon actuators in the identification: activations stepped as MuJoCo steps them, gains
+and biases linear, a filter's time constant by Gauss-Newton search; exact on clean data of a
+plant whose rods the spring-rod equations describe exactly (the prism of ``examples/``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+
+import mujoco
+import numpy as np
+import pytest
+
+from identified.engine.actuators import activations
+from identified.fit.identify import ScaleSpec
+from identified.fit.pipeline import fit_model
+from identified.model import IdentifiedModel, load_model, save_model
+from tensegrity_gym.collect import CollectConfig, collect
+
+PRISM = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "prism3.xml")
+
+
+def _prism(actuators: str) -> str:
+    with open(PRISM, encoding="utf-8") as fh:
+        xml = fh.read()
+    out, n = re.subn(r"<actuator>.*?</actuator>", f"<actuator>{actuators}</actuator>", xml, flags=re.DOTALL)
+    assert n == 1
+    return out
+
+
+FILTERED = "".join(
+    f'<general name="w{i}" tendon="vert{i}" dyntype="{dyn}" dynprm="{tau}" gainprm="{g}" ctrlrange="0 1"/>'
+    for i, dyn, tau, g in ((1, "filter", 0.03, -7.0), (2, "filterexact", 0.05, -5.5), (3, "filter", 0.08, -6.5)))
+
+
+def _truth(path: str) -> tuple[mujoco.MjModel, float]:
+    m = mujoco.MjModel.from_xml_path(path)
+    return m, float(sum(m.body_subtreemass[m.body_rootid == b].sum() for b in set(m.body_rootid) if b))
+
+
+@pytest.mark.parametrize("dyn", ["filter", "filterexact", "integrator", "none"])
+def test_activations_step_as_mujoco_steps_them(dyn, tmp_path):
+    xml = _prism(f'<general name="w" tendon="vert1" dyntype="{dyn}" dynprm="0.037" gainprm="-3"/>')
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(1)
+    ctrl = rng.uniform(0, 1, (1, 60, 1))
+    seen = []
+    for t in range(60):
+        seen.append(d.act[0] if m.na else ctrl[0, t, 0])  # the activation the force of step t acts on
+        d.ctrl[0] = ctrl[0, t, 0]
+        mujoco.mj_step(m, d)
+    act, dact = activations(ctrl, m.opt.timestep, [dyn], np.array([0.037]))
+    np.testing.assert_allclose(act[0, :, 0], seen, rtol=1e-13, atol=1e-15)
+    h = 1e-7  # d act / d tau against a central difference
+    up, _ = activations(ctrl, m.opt.timestep, [dyn], np.array([0.037 + h]))
+    dn, _ = activations(ctrl, m.opt.timestep, [dyn], np.array([0.037 - h]))
+    np.testing.assert_allclose(dact, (up - dn) / (2 * h), rtol=1e-5, atol=1e-9)
+
+
+def test_motor_gains_identified_exactly(tmp_path):
+    m, total = _truth(PRISM)
+    data = collect(PRISM, CollectConfig(episodes=2, steps=500, seed=3, push_every=50, push_magnitude=5.0))
+    fit = fit_model(data, PRISM, effects="ground_contact", scale=ScaleSpec(total_mass=total), jobs=1)
+    for a in fit.actuators:
+        i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a["name"])
+        true = m.actuator_gainprm[i, 0] * m.actuator_gear[i, 0]
+        assert a["gain"] == pytest.approx(true, rel=1e-9)
+        assert 0 < a["gain_stderr"] < 1e-9  # a consistent fit: error bars at rounding level
+        assert a["time_constant"] is None and a["bias"] == 0.0
+    tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, s.name) for s in fit.topology.springs]
+    np.testing.assert_allclose(fit.stiffness, m.tendon_stiffness[tid], rtol=1e-9)
+    np.testing.assert_allclose(fit.rest_length, m.tendon_lengthspring[tid, 1], rtol=1e-9)
+    # the fit's own verdict counts the actuators' forces: a description of its data
+    assert fit.metrics["residual"]["relative_one_step"] < 1e-9
+    save_model(tmp_path / "prism.json", fit)
+    back = load_model(tmp_path / "prism.json")
+    assert back.actuators == fit.actuators
+    np.testing.assert_array_equal(back.stderr["rest_length"], fit.stderr["rest_length"])
+    assert "actuator motor1 on vert1: gain -6" in back.summary()
+    old = json.loads((tmp_path / "prism.json").read_text())  # a file written before actuators existed
+    del old["actuators"]
+    for sp in old["springs"]:
+        del sp["rest_length_stderr"]
+    assert IdentifiedModel.from_json(old).actuators == []
+
+
+def test_filter_time_constants_found_by_search(tmp_path):
+    path = tmp_path / "prism_filtered.xml"
+    path.write_text(_prism(FILTERED), encoding="utf-8")
+    m, total = _truth(str(path))
+    data = collect(str(path), CollectConfig(episodes=2, steps=500, seed=3, push_every=50, push_magnitude=5.0))
+    fit = fit_model(data, str(path), effects="ground_contact", scale=ScaleSpec(total_mass=total), jobs=1)
+    assert [a["name"] for a in fit.actuators] == ["w1", "w2", "w3"]
+    for a in fit.actuators:
+        i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a["name"])
+        assert a["gain"] == pytest.approx(m.actuator_gainprm[i, 0], rel=1e-8)
+        assert a["time_constant"] == pytest.approx(m.actuator_dynprm[i, 0], rel=1e-8)
+        assert 0 < a["time_constant_stderr"] < 1e-9

@@ -53,9 +53,13 @@ echo "== 5. train PPO on the identified twin (${STEPS:-the default number of} st
 # shellcheck disable=SC2086  # DEMO_TRAIN_ARGS is a list of options
 timed "train on the twin" $T train --identified "$OUT/robot.json" ${STEPS:+--timesteps "$STEPS"} --seeds 0 \
     --out "$OUT/train" --quiet ${DEMO_TRAIN_ARGS:-}
+gap_json() {
+    $T gap --identified "$OUT/robot.json" --policy "$OUT/train/seed_0/policy.zip" --episodes 3 \
+        --video "$OUT/video" --video-every "$EVERY" --json --quiet > "$OUT/gap.json"
+}
+
 echo "== 6. the gap: the policy on the twin and on the plant, a random policy on the plant; videos"
-timed "gap on the plant (+ videos)" $T gap --identified "$OUT/robot.json" --policy "$OUT/train/seed_0/policy.zip" \
-    --episodes 3 --video "$OUT/video" --video-every "$EVERY" --json --quiet > "$OUT/gap.json"
+timed "gap on the plant (+ videos)" gap_json
 .venv/bin/python - "$OUT/gap.json" <<'PY'
 import json, sys
 g = json.load(open(sys.argv[1]))

@@ -4,6 +4,8 @@ episode, reset when the episode ends)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -32,6 +34,7 @@ def test_reported_progress_is_x_velocity_times_dt_per_episode(tmp_path):
     dt = 0.05
     cfg = TrainConfig(timesteps=100, envs=2)
     cb = _make_callback(cfg, dt, str(tmp_path / "P.zip"), dict, progress=False)
+    cb.model = SimpleNamespace(get_env=lambda: SimpleNamespace())  # an env without VecNormalize
     vx = [[1.0, 2.0], [3.0, -1.0], [0.5, 4.0], [2.0, 2.0], [-1.0, 1.0]]
     done = [[False, False], [False, True], [True, False], [False, False], [False, True]]
     for v, d in zip(vx, done):
@@ -39,7 +42,7 @@ def test_reported_progress_is_x_velocity_times_dt_per_episode(tmp_path):
                  for i in range(2)]
         if d[0]:  # an episode end without a Monitor record: counted, no return
             del infos[0]["episode"]
-        cb.locals = {"infos": infos, "dones": np.array(d)}
+        cb.locals = {"infos": infos, "dones": np.array(d), "rewards": np.array(v)}
         assert cb._on_step() is True
     # env 1 ends at steps 1 and 4, env 0 at step 2, in this order
     want = [(2.0 - 1.0) * dt, (1.0 + 3.0 + 0.5) * dt, (4.0 + 2.0 + 1.0) * dt]

@@ -95,6 +95,9 @@ class Effect(ABC):
     #: a constraint-like law that reads the accelerations under every other force
     #: (``StepContext.base_lin_acc``): the engine adds it after the others
     needs_base_acceleration: ClassVar[bool] = False
+    #: a law that switches at a spring's rest length (``StepContext.rest_length``): the fit
+    #: reclassifies its rows while it identifies passive springs' rest lengths
+    reads_rest_length: ClassVar[bool] = False
     #: whether it has :meth:`wrench_components`, the law in component form the twin's fused step runs
     component_form: ClassVar[bool] = False
     #: the region of the system its force acts in, where it has one (``"near_ground"``): the rods

@@ -22,6 +22,7 @@ class CableSlack(Effect):
     name = "cable_slack"
     description = "compression correction kappa min(L - L0, 0): kappa = -K for a spring that only pulls"
     blocks = (ParamBlock("kappa", "spring", signed=True, unit="N/m"),)
+    reads_rest_length = True
 
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> CableSlack:

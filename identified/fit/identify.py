@@ -287,11 +287,38 @@ def identify(
                     return solve_separating(f)
 
             absorbed: list[str] = []
-            sol = solve_separating(fixed)
+            # a law that switches at a passive spring's rest length (Effect.reads_rest_length) has
+            # empty columns while the estimate is 0 (every cable taut): held at 0 in the first solve,
+            # released once the rest lengths are estimated
+            rest_law = [i for k, e in enumerate(joint) if e.reads_rest_length
+                        for i in range(layout.effect_slice(k).start, layout.effect_slice(k).stop) if i not in fixed]
+            names = layout.full_names
+
+            def solve_classified(f: dict[int, float], hold: Sequence[int] = ()) -> Any:
+                """Solve with ``hold`` at 0; such a parameter whose spring has no row on the other
+                side of the current estimate (an empty column) is held at 0 for this
+                classification only. What the solve holds for good (a bias) is kept in ``f``."""
+                held = {**f, **{i: 0.0 for i in hold}}
+                for _ in range(3):
+                    try:
+                        sol = solve_separating(held)
+                        break
+                    except IdentifiabilityError as err:
+                        hit = [i for i in rest_law if names[i] in err.names and i not in held]
+                        if not hit:
+                            raise
+                        held.update({i: 0.0 for i in hit})
+                else:
+                    sol = solve_separating(held)
+                f.update({i: v for i, v in held.items() if i not in rest_law})
+                return sol
+
+            sol = solve_classified(fixed, hold=rest_law)
             # a passive cable is taut while longer than its rest length: classify the rows by the
             # estimate and fit again until the rest lengths settle (exact once the classes are)
             # and step the filters' time constants until they settle too
-            slack = passive & topology.pull_only
+            # a spring an effect's law switches at its rest length (cable_slack) is reclassified too
+            slack = passive & (topology.pull_only | any(e.reads_rest_length for e in joint))
             U = len(layout.actuators)
             for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
@@ -315,7 +342,7 @@ def identify(
                 if settled:
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
-                sol = solve_separating(fixed)
+                sol = solve_classified(fixed)
             tau_se = np.zeros(U)
             if filters.any():  # the last step's spread, then the fit at the settled time constants
                 g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))

@@ -87,9 +87,8 @@ def one_error(err: str) -> str:
 
 
 # ---------------------------------------------------------------------- 1. honest estimates
-@pytest.mark.xfail(strict=True, reason="KNOWN REGRESSION: passive springs' rest lengths are now identified (a preload column per spring), and the extra columns make this small dataset rank-deficient before the degrees-of-freedom check speaks; the recorded rest lengths were read before")
 def test_no_residual_dof_is_refused_with_how_much_more_data(files, work):
-    """1 x 400 noisy steps, weak form: 72 equations for 72 parameters."""
+    """1 x 400 noisy steps, weak form: 72 equations for 96 free parameters (24 preloads included)."""
     noisy = collect(files["ico"], CollectConfig(episodes=1, steps=400, seed=1, push_every=50, noise_pos=1e-3,
                                                 noise_vel=1e-2, noise_quat=1e-3, noise_angvel=1e-2))
     save_dataset("noisy.npz", noisy)
@@ -102,9 +101,10 @@ def test_no_residual_dof_is_refused_with_how_much_more_data(files, work):
         identify(noisy, Topology.from_mjcf(files["ico"]))
 
 
-@pytest.mark.xfail(strict=True, reason="KNOWN REGRESSION: passive springs' rest lengths are now identified (a preload column per spring), and the extra columns make this small dataset rank-deficient before the error bars are marked; the recorded rest lengths were read before")
 def test_few_dof_marks_error_bars_not_estimable(files, work):
-    tiny = collect(files["ico"], CollectConfig(episodes=3, steps=1, seed=1))
+    # 4 instants: 144 equations for 95 free parameters (24 preloads included): solvable, 49 residual
+    # degrees of freedom, too few for error bars (3 instants leave K and K l0 of some springs apart)
+    tiny = collect(files["ico"], CollectConfig(episodes=4, steps=1, seed=1))
     save_dataset("tiny.npz", tiny)
     rc, out, err = run_cli(["fit", "tiny.npz", "--model", files["ico"], "--out", "F.json"])
     assert rc == 0, err

@@ -157,7 +157,6 @@ def test_bound_heap_applies_on_glibc():
     assert bound_heap() is sys.platform.startswith("linux")
 
 
-@pytest.mark.xfail(strict=True, reason="KNOWN REGRESSION: passive springs' rest lengths are now identified (a preload column per spring), and the paper's simple system (springs to fixed nails) no longer fits: its ratios come out wrong; the recorded rest lengths were read before")
 def test_closed_form_solver_recovers_the_ratios(simple):
     _, topo, tr, _ = simple
     ref = tr.select(episodes=slice(0, 1))
@@ -231,7 +230,6 @@ def _row(data: dict, method: str, **match) -> dict:
     return rows[0]
 
 
-@pytest.mark.xfail(strict=True, reason="KNOWN REGRESSION: passive springs' rest lengths are now identified (a preload column per spring), and the paper's simple system no longer fits to the truth; the recorded rest lengths were read before")
 def test_simple_blackbox_schema_and_ours_recovers_the_truth(tiny, tmp_path):
     data = _run(tmp_path, "simple-blackbox")
     methods = {r["method"] for r in data["rows"]}

@@ -92,23 +92,36 @@ def check_enough_data(sol: Solution, steps: int, weak_window: int = 0, solver: s
     estimable (fewer residual degrees of freedom than parameters), else ``None``.
     """
     free = max(int(sol.free), 1)
+    refuse_too_few_equations(sol.rows, free, steps, weak_window, error_bars=sol.cov is not None)
     dof = residual_dof(sol.rows, free, weak_window)
     effective = dof + free
     need = (1.0 + MIN_DOF_PER_PARAMETER) * free
-    if dof <= 0 or (sol.cov is None and effective < need):
+    if sol.cov is not None and dof < MIN_DOF_PER_PARAMETER * free:
+        return (f"standard errors not estimable: {dof:.0f} residual degrees of freedom for {free} "
+                f"parameters (record at least {math.ceil(need / (effective / max(steps, 1)))} steps)")
+    return None
+
+
+def refuse_too_few_equations(rows: int, free: int, steps: int, weak_window: int = 0,
+                             error_bars: bool = True) -> None:
+    """Raise :class:`InsufficientDataError` (one line: equations, parameters, about how many more
+    steps) when ``rows`` effective equations do not exceed ``free`` parameters -- or, for a solver
+    without error bars (``error_bars=False``), when they are fewer than twice the parameters.
+    Checked before a rank-deficiency is reported: too few rows is the cause to name."""
+    free = max(int(free), 1)
+    dof = residual_dof(rows, free, weak_window)
+    effective = dof + free
+    need = (1.0 + MIN_DOF_PER_PARAMETER) * free
+    if dof <= 0 or (not error_bars and effective < need):
         per_step = effective / max(steps, 1)
         more = math.ceil((need - effective) / per_step) if per_step > 0 else None
         what = (f"about {more} more steps (more --episodes or --steps)" if more is not None
                 else "longer episodes")
         raise InsufficientDataError(
-            f"{sol.rows} equations for {free} free parameters ({dof:.0f} residual degrees of freedom"
+            f"{rows} equations for {free} free parameters ({dof:.0f} residual degrees of freedom"
             + (", weak-form windows overlapping" if weak_window > 1 else "")
             + f"): too few to estimate the parameters or their error bars; record {what}"
         )
-    if sol.cov is not None and dof < MIN_DOF_PER_PARAMETER * free:
-        return (f"standard errors not estimable: {dof:.0f} residual degrees of freedom for {free} "
-                f"parameters (record at least {math.ceil(need / (effective / max(steps, 1)))} steps)")
-    return None
 
 
 def constrain_inertias(

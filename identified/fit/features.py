@@ -66,7 +66,8 @@ __all__ = ["RodColumns", "chunk_context", "equation_rows", "step_context"]
 @dataclass(frozen=True)
 class RodColumns:
     """Per-rod local columns: ``[K of its springs (D), c of its springs (D), M, Ixx, Iyy, Izz, h]``,
-    then (when the layout identifies rest lengths) ``P = K l0`` of its springs (D), then the effects'.
+    then (when the layout identifies rest lengths) ``P = K l0`` of its springs (D) and, when an
+    effect's law reads them, their rest-length steps (D), then the actuators', then the effects'.
 
     ``D`` is the largest number of springs on one rod; unused slots (rods with fewer springs, and
     the ``P`` slot of an actuated cable, whose rest length is its command) map to full index -1
@@ -79,6 +80,9 @@ class RodColumns:
     degree: int
     effect_start: tuple[int, ...] = ()  # first local column of each joint effect
     preload: bool = False  # the P columns follow h (passive springs' rest lengths identified)
+    #: the rest-length step columns (D) follow the P columns: d(law)/d l0 of the joint effect that
+    #: reads the rest length (``Effect.reads_rest_length``), per unit ``q = -kappa dl0``
+    rest_steps: bool = False
     #: (S,) a reference length per spring, m: a passive spring's columns are ``l - l_ref`` (K) and
     #: ``-1`` (``P = K (l0 - l_ref)``) while taut, which keeps K and P apart where ``l`` varies little
     length_ref: np.ndarray | None = None
@@ -99,25 +103,28 @@ class RodColumns:
         D = max(len(x) for x in per_rod)
         widths = [D * e.width if e.kind == "spring" else e.width for e in layout.effects]
         P = D if layout.rest_lengths else 0
+        Q = D if layout.rest_steps else 0
         U = len(layout.actuators)
         a_spring = np.array([topology.spring_names.index(next(a.tendon for a in topology.actuators if a.name == n))
                              for n in layout.actuators], dtype=np.int64)
         per_rod_act = [[a for a in range(U) if i in topology.springs[a_spring[a]].rods] for i in range(R)]
         W = max((len(x) for x in per_rod_act), default=0)
-        full = -np.ones((R, 2 * D + 5 + P + 3 * W + sum(widths)), dtype=np.int64)
+        full = -np.ones((R, 2 * D + 5 + P + Q + 3 * W + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
                 full[i, k], full[i, D + k] = layout.k(j), layout.c(j)
                 if P and not topology.springs[j].actuated:
                     full[i, 2 * D + 5 + k] = layout.preload(j)
+                if Q and not topology.springs[j].actuated:
+                    full[i, 2 * D + 5 + P + k] = layout.rest_step(j)
                 for e in range(2):
                     if topology.springs[j].rods[e] == i:
                         slot[j, e] = k
             full[i, 2 * D] = layout.m(i)
             full[i, 2 * D + 1 : 2 * D + 4] = [layout.inertia(i, a) for a in range(3)]
             full[i, 2 * D + 4] = layout.h
-        a0 = 2 * D + 5 + P
+        a0 = 2 * D + 5 + P + Q
         a_slot = -np.ones((U, 2), dtype=np.int64)
         for i, acts in enumerate(per_rod_act):
             for k, a in enumerate(acts):
@@ -142,7 +149,7 @@ class RodColumns:
             col += w
         ref = np.zeros(S) if length_ref is None else np.asarray(length_ref, dtype=float).reshape(S)
         return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts), preload=bool(P),
-                   length_ref=ref if P else None, actuator_spring=a_spring, actuator_slot=a_slot,
+                   rest_steps=bool(Q), length_ref=ref if P else None, actuator_spring=a_spring, actuator_slot=a_slot,
                    actuator_start=a0, actuator_width=W)
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
@@ -238,6 +245,13 @@ def equation_rows(
         state = RodState(chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
         for eff, c0 in zip(effects, columns.effect_start):
             _effect_columns(A, eff, c0, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
+        if columns.rest_steps:
+            reader = [e for e in effects if e.reads_rest_length]
+            step = _RestStep(reader[0]) if len(reader) == 1 else None
+            if step is None or reader[0].kind != "spring" or reader[0].width != 1:
+                raise ValueError("the fit takes one effect whose law reads a spring's rest length, with one "
+                                 f"parameter per spring; got {[e.name for e in reader]}")
+            _effect_columns(A, step, 2 * D + 5 + D, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
     A = A.permute(0, 2, 1, 3)
     if chunk.row_weight is not None:
         A = A * chunk.row_weight[:, :, None, None]
@@ -300,6 +314,22 @@ def _effect_columns(A: torch.Tensor, eff: Effect, c0: int, state: RodState, ctx:
     W = force.shape[-2]
     A[:, 0:3, :, c0 : c0 + W] -= force.permute(0, 3, 1, 2)
     A[:, 3:6, :, c0 : c0 + W] -= _to_body(rot.unsqueeze(-3), torque).permute(0, 3, 1, 2)
+
+
+class _RestStep:
+    """The Gauss-Newton column of a law that reads each spring's rest length: ``d f / d l0`` of its
+    end features (one parameter per spring), so that ``kappa f(l0 + dl0) = kappa f(l0) + q d f / d l0``
+    with the linear ``q = kappa dl0``; ``q -> 0`` as the rest-length estimate settles."""
+
+    kind = "spring"
+
+    def __init__(self, effect: Effect) -> None:
+        self.effect = effect
+
+    def end_features(self, state: RodState, ctx: StepContext) -> torch.Tensor:
+        rest = ctx.rest_length
+        law = lambda r: self.effect.end_features(state, ctx._replace(rest_length=r))
+        return torch.func.jvp(law, (rest,), (torch.ones_like(rest),))[1]
 
 
 def _to_body(rot: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

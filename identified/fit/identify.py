@@ -29,6 +29,7 @@ from identified.fit.checks import (
     apply_checks,
     check_enough_data,
     constrain_inertias,
+    refuse_too_few_equations,
     widen_for_overlap,
 )
 from identified.fit.classification import iterate_classification
@@ -36,7 +37,14 @@ from identified.fit.derivatives import default_window, weak_form
 from identified.fit.features import RodColumns, chunk_context, equation_rows
 from identified.fit.layout import ParameterLayout
 from identified.fit.noise import with_noise_replicates
-from identified.fit.regression import Anchor, IdentifiabilityError, Solution, accumulate, solve
+from identified.fit.regression import (
+    Anchor,
+    IdentifiabilityError,
+    Solution,
+    accumulate,
+    free_parameters,
+    solve,
+)
 from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
 from identified.samples import iter_chunks
@@ -208,8 +216,11 @@ def identify(
     fixed.update(_pinned(joint, layout))
     # an actuated cable's rest length is its command (an input): its preload column stays empty
     passive = np.array([not s.actuated for s in topology.springs], dtype=bool)
-    if regressors == "multiple" or not passive.any():  # tied ("single"): the passive springs' P sets it
-        fixed.update({layout.preload(j): 0.0 for j in np.flatnonzero(~passive)})
+    fixed.update({layout.preload(j): 0.0 for j in np.flatnonzero(~passive)})
+    if layout.rest_steps:  # a step only where the law that reads the rest length may act
+        reader = next(k for k, e in enumerate(joint) if e.reads_rest_length)
+        acts = passive & ~np.asarray(joint[reader].pinned(), dtype=bool)[: topology.n_springs]
+        fixed.update({layout.rest_step(j): 0.0 for j in np.flatnonzero(~acts)})
     # passive rest lengths: the fit's own estimate, never the recorded values (the recorded column
     # of a passive spring is replaced before any feature is built); 0 at first (every cable taut)
     rest_estimate = np.zeros(topology.n_springs)
@@ -229,8 +240,6 @@ def identify(
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     length_ref = mean_lengths(dataset, topology)
-    if regressors == "single":  # one P for all springs: one reference length too
-        length_ref[:] = length_ref.mean()
     columns = RodColumns.build(topology, layout, length_ref)
     implicit_dt = dataset.dt if integrator == "implicit" else None
 
@@ -292,6 +301,9 @@ def identify(
             # released once the rest lengths are estimated
             rest_law = [i for k, e in enumerate(joint) if e.reads_rest_length
                         for i in range(layout.effect_slice(k).start, layout.effect_slice(k).stop) if i not in fixed]
+            # and so has its rest-length step (the Gauss-Newton column in the estimate)
+            steps = [layout.rest_step(j) for j in range(topology.n_springs)] if layout.rest_steps else []
+            rest_law += [i for i in steps if i not in fixed]
             names = layout.full_names
 
             def solve_classified(f: dict[int, float], hold: Sequence[int] = ()) -> Any:
@@ -313,7 +325,12 @@ def identify(
                 f.update({i: v for i, v in held.items() if i not in rest_law})
                 return sol
 
-            sol = solve_classified(fixed, hold=rest_law)
+            try:
+                sol = solve_classified(fixed, hold=rest_law)
+            except IdentifiabilityError:  # too few equations is the cause to name, when it is one
+                refuse_too_few_equations(sum(factors.rows), free_parameters(layout, anchor, fixed),
+                                         dataset.n_episodes * dataset.n_steps, weak)
+                raise
             # a passive cable is taut while longer than its rest length: classify the rows by the
             # estimate and fit again until the rest lengths settle (exact once the classes are)
             # and step the filters' time constants until they settle too
@@ -341,6 +358,10 @@ def identify(
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
                 if settled:
                     break
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                sol = solve_classified(fixed)
+            if rest_law and layout.rest_steps:  # the settled estimate: its steps held at 0, solved once more
+                fixed.update({i: 0.0 for i in steps})
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
             tau_se = np.zeros(U)

@@ -9,7 +9,9 @@ fitted jointly with them (:mod:`identified.effects`); offsets follow from the bl
 ``single`` regressors tie all springs to one K and one c and all rods to one M and one I (paper,
 uniform parameters); ``multiple`` keeps one per spring and per rod (paper, non-uniform: 54
 parameters + inertias for the icosahedron).  The tie is a 0/1 matrix ``G`` with
-``theta_full = G @ theta_free``; effect parameters are never tied.
+``theta_full = G @ theta_free``; preloads (each spring's rest length is its own geometry, not a
+material parameter: the paper's simple system has springs of 1 m and 1.414 m), actuators and effect
+parameters are never tied.
 """
 
 from __future__ import annotations
@@ -49,25 +51,30 @@ class ParameterLayout:
     effects: tuple[Effect, ...] = field(default=())
     rest_lengths: bool = False  # the preload block P = K l0 is part of the vector
     actuators: tuple[str, ...] = ()  # MuJoCo tendon actuators: gain, bias, gain x d(time constant)
+    #: the rest-length step block (S): a joint effect's law switches at a passive spring's rest length
+    #: (``Effect.reads_rest_length``), and its Gauss-Newton column in that rest length is fitted with it
+    rest_steps: bool = False
 
     @classmethod
     def for_topology(cls, topology: Topology, regressors: str = "multiple",
                      effects: Sequence[Effect] = (), rest_lengths: bool = False,
                      actuators: bool = False) -> ParameterLayout:
         """The layout of a topology; ``rest_lengths``: identify passive springs' rest lengths
-        (the preload block); ``actuators``: identify the force law of its MuJoCo tendon actuators."""
+        (the preload block, and the rest-length step block when an effect's law reads them);
+        ``actuators``: identify the force law of its MuJoCo tendon actuators."""
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
         forces = tuple(a.name for a in topology.actuators if a.kind != "rest_length") if actuators else ()
+        steps = bool(rest_lengths) and any(e.reads_rest_length for e in effects)
         return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names,
-                   tuple(effects), bool(rest_lengths), forces)
+                   tuple(effects), bool(rest_lengths), forces, steps)
 
     # ---------------------------------------------------------------- blocks and offsets
     @property
     def n_base(self) -> int:
         """Size of the spring-rod blocks ``[K, c, M, I, h]`` (and ``P`` when rest lengths are identified)."""
         return (sum(b.size(self.n_rods, self.n_springs) for b in BASE_BLOCKS) + self.n_springs * self.rest_lengths
-                + 3 * len(self.actuators))
+                + 3 * len(self.actuators) + self.n_springs * self.rest_steps)
 
     def effect_offset(self, k: int) -> int:
         """Full-vector index of the first parameter of effect ``k``."""
@@ -116,10 +123,25 @@ class ParameterLayout:
         filter's time constant, :mod:`identified.fit.actuation`)."""
         return self.gain(a) + 2 * len(self.actuators)
 
+    def rest_step(self, j: int | np.ndarray) -> int | np.ndarray:
+        """Full-vector index of spring ``j``'s rest-length step ``q = -kappa dl0`` (only with
+        ``rest_steps``): the Gauss-Newton column of the law that reads the rest length, held at 0
+        once the rest lengths settle."""
+        if not self.rest_steps:
+            raise ValueError("this layout has no rest-length steps")
+        return self.gain(0) + 3 * len(self.actuators) + j
+
     @property
     def signed(self) -> np.ndarray:
         """(n_full,) bool: parameters that may be negative (the rest are physical magnitudes)."""
         out = np.zeros(self.n_full, dtype=bool)
+        if self.rest_lengths:  # P = K (l0 - l_ref): negative where the spring is stretched on average
+            out[self.preload(np.arange(self.n_springs))] = True
+        if self.actuators:  # bias and the time-constant step
+            U = np.arange(len(self.actuators))
+            out[self.bias(U)] = out[self.gain_dtau(U)] = True
+        if self.rest_steps:
+            out[self.rest_step(np.arange(self.n_springs))] = True
         for k, e in enumerate(self.effects):
             out[self.effect_slice(k)] = e.signed_mask()
         return out
@@ -135,6 +157,8 @@ class ParameterLayout:
             names += [f"{s}.preload" for s in self.spring_names]
         for kind in ("gain", "bias", "gain_dtau"):
             names += [f"{a}.{kind}" for a in self.actuators]
+        if self.rest_steps:
+            names += [f"{s}.rest_step" for s in self.spring_names]
         for e in self.effects:
             names += e.param_names(self.rod_names, self.spring_names)
         return names
@@ -148,7 +172,8 @@ class ParameterLayout:
         S, R = self.n_springs, self.n_rods
         n_eff = self.n_full - self.n_base
         U = len(self.actuators)
-        n_tied = 7 + self.rest_lengths + 3 * U
+        n_own = S * self.rest_lengths + 3 * U + S * self.rest_steps  # one column each
+        n_tied = 7 + n_own
         G = np.zeros((self.n_full, n_tied + n_eff))
         G[0:S, 0] = 1.0  # K
         G[S : 2 * S, 1] = 1.0  # c
@@ -156,11 +181,7 @@ class ParameterLayout:
         for a in range(3):
             G[[self.inertia(i, a) for i in range(R)], 3 + a] = 1.0
         G[self.h, 6] = 1.0
-        if self.rest_lengths:
-            G[self.h + 1 : self.h + 1 + S, 7] = 1.0  # P = K l0: one rest length for all springs
-        if U:  # actuators are never tied
-            g0 = self.gain(0)
-            G[g0 : g0 + 3 * U, n_tied - 3 * U :] = np.eye(3 * U)
+        G[self.h + 1 : self.n_base, 7:n_tied] = np.eye(n_own)  # preloads, actuators, rest steps
         G[self.n_base:, n_tied:] = np.eye(n_eff)
         return G
 
@@ -169,8 +190,7 @@ class ParameterLayout:
         if self.regressors == "multiple":
             return self.full_names
         base = ["stiffness", "damping", "mass", "inertia_xx", "inertia_yy", "inertia_zz", "control_scale"]
-        base += ["preload"] * self.rest_lengths
-        base += self.full_names[self.h + 1 + self.n_springs * self.rest_lengths : self.n_base]
+        base += self.full_names[self.h + 1 : self.n_base]  # preloads, actuators, rest steps: untied
         return base + self.full_names[self.n_base:]
 
     def describe_free(self, weights: np.ndarray, threshold: float = 0.1) -> list[str]:

@@ -47,7 +47,7 @@ from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
 from identified.fit.uncertainty import BlockFactors, LinearSolve, covariance
 
-__all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "solve"]
+__all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "free_parameters", "solve"]
 
 EPS = np.finfo(np.float64).eps
 EQUATIONS = 6  # per rod: translation x, y, z (world), rotation x, y, z (rod frame)
@@ -202,6 +202,11 @@ def solve(
         covariance=how,
         errors_in_variables=eiv,
     )
+
+
+def free_parameters(layout: ParameterLayout, anchor: Anchor, fixed: dict[int, float] | None = None) -> int:
+    """How many free parameters a solve with this anchor and these fixed values has."""
+    return int(_constrained(layout, anchor, fixed)[1].shape[1])
 
 
 def _weighted_solve(

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
+from identified.model import inertia_tensor
 
 __all__ = [
     "ADAM_TOLERANCE",
@@ -175,6 +176,12 @@ def physical_warnings(
 ) -> list[str]:
     """One line per violated physical constraint (positive M, I, K; c >= 0; I triangle inequality).
 
+    ``inertia`` holds each rod's principal moments about its centre of mass (the diagonal model's
+    moments are principal by assumption): a positive mass, positive principal moments and their
+    triangle inequalities are together the full physical consistency of a rigid body's ten
+    inertial parameters, the positive definiteness of its pseudo-inertia matrix
+    (:func:`pseudo_inertia`; Wensing, Kim & Slotine 2017).
+
     A thin rod's transverse moments are nearly equal and its axial one small, so the triangle
     inequality is tight: with ``inertia_stderr`` it is reported only when violated by more than
     two standard errors of the difference (a violation within the error bars is not evidence).
@@ -204,6 +211,20 @@ def physical_warnings(
     return out
 
 
+def pseudo_inertia(mass: float, com: np.ndarray, inertia_com: np.ndarray) -> np.ndarray:
+    """(4, 4) the pseudo-inertia matrix ``[[Σ, M c], [M cᵀ, M]]`` of a rigid body about its frame's
+    origin, ``Σ = tr(J_o)/2 E - J_o`` (the second moment of its mass distribution) with ``J_o``
+    the inertia about the origin from ``inertia_com`` (3, 3) about the centre of mass ``com`` (3,);
+    positive definite exactly when some rigid body of positive density has these parameters."""
+    c = np.asarray(com, dtype=float)
+    J_o = np.asarray(inertia_com, dtype=float) + mass * (c @ c * np.eye(3) - np.outer(c, c))
+    P = np.zeros((4, 4))
+    P[:3, :3] = 0.5 * np.trace(J_o) * np.eye(3) - J_o
+    P[:3, 3] = P[3, :3] = mass * c
+    P[3, 3] = mass
+    return P
+
+
 def apply_checks(model, sol: Solution, not_estimable: str | None, held: list[tuple[int, int]],
                  notes: list[str], weak_window: int = 0) -> list[str]:
     """Mark error bars that cannot be estimated (NaN), record the residual degrees of freedom and
@@ -221,6 +242,11 @@ def apply_checks(model, sol: Solution, not_estimable: str | None, held: list[tup
     topo = model.topology
     warnings += physical_warnings(topo.rod_names, topo.spring_names, model.mass, model.inertia,
                                   model.stiffness, model.damping, model.stderr.get("inertia"))
+    if model.full_inertia:  # the smallest eigenvalue of each rod's pseudo-inertia (> 0: a rigid body)
+        J = inertia_tensor(model.inertia, model.inertia_frame)
+        com = np.zeros((topo.n_rods, 3)) if model.com is None else model.com
+        model.metrics["pseudo_inertia_min_eigenvalue"] = [
+            float(np.linalg.eigvalsh(pseudo_inertia(model.mass[i], com[i], J[i]))[0]) for i in range(topo.n_rods)]
     model.metrics.setdefault("data", {})["residual_dof"] = round(
         residual_dof(sol.rows, sol.free, weak_window), 1)
     model.metrics["warnings"] = warnings

@@ -46,7 +46,7 @@ from identified.fit.regression import (
     solve,
 )
 from identified.jsonsafe import finite_or_none
-from identified.model import IdentifiedModel
+from identified.model import IdentifiedModel, rigid_body_from_regression
 from identified.samples import iter_chunks
 from identified.topology import Topology
 from identified.twin import engine_from_model
@@ -54,6 +54,8 @@ from identified.twin import engine_from_model
 __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
+#: a rod's inertial parameters: all ten, the diagonal model, or chosen from the topology
+INERTIA = ("auto", "full", "diagonal")
 #: the fit's strategies an effect may declare (``Effect.fit_strategy``): its columns join the main
 #: regression; the same after a classification search (:mod:`identified.fit.classification`); on the
 #: joint model's residual (:func:`fit_residual_effects`)
@@ -157,6 +159,7 @@ def identify(
     contact_margin: int = 0,
     _classified: bool = False,
     _residual_stage: bool = True,
+    inertia: str = "auto",
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -179,12 +182,19 @@ def identify(
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
+    ``inertia``: ``"full"`` identifies every rod's ten inertial parameters (mass, centre of mass
+    in the rod frame, the full inertia tensor: :mod:`identified.fit.layout`), ``"diagonal"`` takes
+    the rod frame at the centre of mass along the principal axes (the paper's ``M, Ixx, Iyy,
+    Izz``), ``"auto"``: full for a topology with a composite rod (a rod of several bodies, whose
+    centre of mass and axes the frame does not give) unless the integrator is the implicit one.
     """
+    if inertia not in INERTIA:
+        raise ValueError(f"inertia must be one of {', '.join(INERTIA)}, got '{inertia}'")
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
                          chunk_steps, progress, device, noise_copies, effects, hold_inertia, contact_margin,
-                         _classified)
+                         _classified, inertia=inertia)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -195,7 +205,7 @@ def identify(
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
                             bar, device, noise_copies, effects, hold_inertia, contact_margin, _classified=True,
-                            _residual_stage=residual_stage)
+                            _residual_stage=residual_stage, inertia=inertia)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
@@ -210,7 +220,10 @@ def identify(
     late = [e for e in effects if e.fit_strategy == "residual"]
     forces = [a for a in topology.actuators if a.kind != "rest_length"]
     use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
-    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act)
+    if inertia == "auto":
+        inertia = "full" if integrator != "implicit" and any(len(r.bodies) > 1 for r in topology.rods) else "diagonal"
+    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act,
+                                          full_inertia=inertia == "full")
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
@@ -602,8 +615,15 @@ def _to_model(
     rest = dataset.rest_length.mean(axis=(0, 1))  # an actuated cable's: its mean command
     if layout.rest_lengths:
         rest = np.where(passive, _rest_from(th, layout, passive, length_ref), rest)
+    inertia, inertia_se, com, com_se, frame = th[i_idx], None if se is None else se[i_idx], None, None, None
+    if layout.full_inertia:  # the ten parameters -> centre of mass, principal moments and axes
+        cols = np.array([[layout.m(i), *i_idx[i], *(layout.first_moment(i, k) for k in range(6))]
+                         for i in range(R)])
+        com, inertia, frame, com_se, inertia_se = rigid_body_from_regression(th, sol.cov, cols)
     if se is not None:
-        stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": se[i_idx]}
+        stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": inertia_se}
+        if com_se is not None:
+            stderr["com"] = com_se
         if layout.rest_lengths:
             stderr["rest_length"] = _rest_stderr(th, sol.cov, layout, passive)
         if has_pushes:
@@ -639,7 +659,9 @@ def _to_model(
         damping=th[c_idx],
         rest_length=rest,
         mass=th[m_idx],
-        inertia=th[i_idx],
+        inertia=inertia,
+        com=com,
+        inertia_frame=frame,
         control_scale=float(th[layout.h]),
         dt=dataset.dt,
         gravity=dataset.gravity.copy(),

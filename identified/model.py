@@ -81,6 +81,16 @@ class IdentifiedModel:
         J = inertia_tensor(self.inertia, self.inertia_frame)
         return np.einsum("rii->ri", J).copy(), J[:, [0, 0, 1], [1, 2, 2]].copy()
 
+    def set_inertia_about_com(self, diagonal: np.ndarray, products: np.ndarray) -> None:
+        """Set each rod's principal moments and axes from its inertia tensor about the centre of
+        mass, rod frame: ``diagonal`` (R, 3) and ``products`` (R, 3) (as :meth:`inertia_about_com`)."""
+        d, p = np.asarray(diagonal, dtype=float), np.asarray(products, dtype=float)
+        J = np.einsum("ri,ij->rij", d, np.eye(3))
+        J[:, [0, 0, 1], [1, 2, 2]] = J[:, [1, 2, 2], [0, 0, 1]] = p
+        axes = [principal_axes(x) for x in J]
+        self.inertia = np.array([a[0] for a in axes])
+        self.inertia_frame = np.array([matrix_to_quat(a[1]) for a in axes])
+
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
         se = self.stderr

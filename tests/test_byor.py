@@ -63,7 +63,7 @@ def test_the_nested_model_is_not_read_literally() -> None:
     attributes alone do not say."""
     topo = Topology.from_mjcf(LAB["six_bar_nested"])
     rod = topo.rods[0]
-    assert rod.bodies == ("rod_A", "tube_A", "end_A0", "end_A1")
+    assert rod.bodies == ("rod_A", "box_A", "tube_A", "end_A0", "end_A1")
     np.testing.assert_allclose(rod.site_offsets, [[-0.45, 0, 0], [0.45, 0, 0]], atol=1e-12)
     assert rod.length == pytest.approx(0.9)
 

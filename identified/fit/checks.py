@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -163,6 +164,29 @@ def constrain_inertias(
         pinned.update(new)
         sol = resolve({**fixed, **pinned})
     return sol, notes, held
+
+
+def constrain_rigid_bodies(sol: Solution, resolve: Callable[[dict[int, float]], Solution], layout: Any,
+                           fixed: dict[int, float]) -> tuple[Solution, list[str]]:
+    """A rod whose ten fitted inertial parameters are no rigid body's (its inertia about the centre
+    of mass not positive definite, or its principal moments breaking the triangle inequality: its
+    pseudo-inertia not positive definite) is given the diagonal model: its first moment and
+    products held at 0 and the problem solved again; one warning per such rod."""
+    notes = []
+    for i, name in enumerate(layout.rod_names):
+        cols = [layout.m(i), *(layout.inertia(i, a) for a in range(3)), *(layout.first_moment(i, k) for k in range(6))]
+        x = np.asarray(sol.theta)[cols]
+        m, c = x[0], x[4:7] / x[0] if x[0] > 0 else np.zeros(3)
+        J_o = np.diag(x[1:4])
+        J_o[[0, 0, 1], [1, 2, 2]] = J_o[[1, 2, 2], [0, 0, 1]] = x[7:10]
+        J_c = J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
+        if m > 0 and np.linalg.eigvalsh(pseudo_inertia(m, c, J_c))[0] > 0:
+            continue
+        fixed.update({int(j): 0.0 for j in cols[4:]})
+        notes.append(f"{name}: the fitted centre of mass ({', '.join(f'{1e3 * v:.3g}' for v in c)}) mm and inertia "
+                     "tensor are no rigid body's (the data do not determine them): its frame is taken at the centre "
+                     "of mass along the principal axes (constrained fit)")
+    return (resolve(dict(fixed)) if notes else sol), notes
 
 
 def physical_warnings(

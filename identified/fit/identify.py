@@ -29,6 +29,7 @@ from identified.fit.checks import (
     apply_checks,
     check_enough_data,
     constrain_inertias,
+    constrain_rigid_bodies,
     refuse_too_few_equations,
     widen_for_overlap,
 )
@@ -389,6 +390,9 @@ def identify(
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
             sol, notes, held = constrain_inertias(sol, solve_holding,
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
+            if layout.full_inertia:
+                sol, more = constrain_rigid_bodies(sol, solve_holding, layout, fixed)
+                notes += more
             sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve

@@ -82,8 +82,8 @@ def truth(path: str) -> dict[str, np.ndarray]:
     for i in range(m.nu):
         n = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i)
         gains[n] = m.actuator_gainprm[i, 0] * m.actuator_gear[i, 0]
-        taus[n] = m.actuator_dynprm[i, 0] if m.actuator_dyntype[i] in (mujoco.mjtDyn.mjDYN_FILTER,
-                                                                        mujoco.mjtDyn.mjDYN_FILTEREXACT) else np.nan
+        filt = int(m.actuator_dyntype[i]) in (int(mujoco.mjtDyn.mjDYN_FILTER), int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
+        taus[n] = m.actuator_dynprm[i, 0] if filt else np.nan
     out.update(gain=gains, tau=taus)
     return out
 

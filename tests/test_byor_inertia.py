@@ -183,3 +183,12 @@ def test_a_fit_that_is_no_rigid_body_falls_back_to_the_diagonal_model():
     # a consistent solution is returned as it is
     theta[layout.product(1, 0)] = 0.0
     assert constrain_rigid_bodies(Solution(theta, None, [], 1.0, 0, 0), None, layout, {})[1] == []
+
+
+def test_full_inertia_without_cables_to_classify():
+    """Push-pull springs and motors without filters: no rest-length classification to iterate, and the
+    centre of mass and products are still released after the first (diagonal) solve."""
+    xml = _plant().replace('springlength="0 ', 'springlength="')
+    data = collect(xml, CollectConfig(episodes=1, steps=300, seed=4, push_every=50))
+    model = identify(data, Topology.from_mjcf(xml), inertia="full", scale=ScaleSpec(total_mass=0.84))
+    np.testing.assert_allclose(model.com, [c for c, _, _ in INERTIAL.values()], atol=1e-10)

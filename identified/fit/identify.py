@@ -284,15 +284,24 @@ def identify(
 
             def solve_holding(f: dict[int, float]) -> Any:
                 """Solve; parameters of an iterative effect the data cannot identify are held
-                (:meth:`Effect.hold`) and the same rows solved again."""
-                for _ in range(3):
+                (:meth:`Effect.hold`) and the same rows solved again; so are, with the full
+                inertia, the first moments and products of the rods that a rank deficiency
+                touches (those rods get the diagonal model: their rows cannot separate them)."""
+                for _ in range(3 + layout.n_rods):
+                    f = {**f, **{int(j): 0.0 for i in diagonal_rods for j in _inertial_extras(layout, i)}}
                     try:
                         return solve(factors, layout, anchor, f)
                     except IdentifiabilityError as err:
+                        rods = _rods_named(err.names, topology) - diagonal_rods if layout.full_inertia else set()
+                        if rods:
+                            diagonal_rods.update(rods)
+                            continue
                         if not any(e.hold(err.names, topology) for e in iterative):
                             raise
                         f = {**f, **_pinned(joint, layout)}
                 return solve(factors, layout, anchor, f)
+
+            diagonal_rods: set[int] = set()
 
             def solve_separating(f: dict[int, float]) -> Any:
                 """Solve; an actuator's constant bias on a cable that never went slack is the same
@@ -319,6 +328,11 @@ def identify(
             steps = [layout.rest_step(j) for j in range(topology.n_springs)] if layout.rest_steps else []
             rest_law += [i for i in steps if i not in fixed]
             names = layout.full_names
+            # the full inertia's first moments and products are held at 0 in the first solve too (the
+            # diagonal model classifies the cables' taut rows by a sound first estimate of their rest
+            # lengths), then released with the rest lengths' estimate
+            released = [j for i in range(layout.n_rods) for j in _inertial_extras(layout, i)
+                        if j not in fixed] if layout.full_inertia else []
 
             def solve_classified(f: dict[int, float], hold: Sequence[int] = ()) -> Any:
                 """Solve with ``hold`` at 0; such a parameter whose spring has no row on the other
@@ -336,11 +350,11 @@ def identify(
                         held.update({i: 0.0 for i in hit})
                 else:
                     sol = solve_separating(held)
-                f.update({i: v for i, v in held.items() if i not in rest_law})
+                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released})
                 return sol
 
             try:
-                sol = solve_classified(fixed, hold=rest_law)
+                sol = solve_classified(fixed, hold=rest_law + released)
             except IdentifiabilityError:  # too few equations is the cause to name, when it is one
                 refuse_too_few_equations(sum(factors.rows), free_parameters(layout, anchor, fixed),
                                          dataset.n_episodes * dataset.n_steps, weak)
@@ -351,7 +365,7 @@ def identify(
             # a spring an effect's law switches at its rest length (cable_slack) is reclassified too
             slack = passive & (topology.pull_only | any(e.reads_rest_length for e in joint))
             U = len(layout.actuators)
-            for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
+            for it in range(REST_ITERATIONS if (slack.any() or filters.any() or released) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
                 # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
                 # its rows is taut (its columns vanish, and the solve names it as unidentifiable)
@@ -370,7 +384,7 @@ def identify(
                     settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
                     tau = tau_new
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
-                if settled:
+                if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
@@ -391,6 +405,10 @@ def identify(
             sol, notes, held = constrain_inertias(sol, solve_holding,
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
             if layout.full_inertia:
+                notes += [f"{topology.rod_names[i]}: its centre of mass and products of inertia cannot be told "
+                          "apart from its cables in the rows it has (a rod that rests on the ground leaves few): "
+                          "its frame is taken at the centre of mass along the principal axes" for i in
+                          sorted(diagonal_rods)]
                 sol, more = constrain_rigid_bodies(sol, solve_holding, layout, fixed)
                 notes += more
             sol = widen_for_overlap(sol, weak)
@@ -489,6 +507,23 @@ def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, pa
     x = _rest_from(theta, layout, passive, np.zeros(S))
     var = (cov[pi, pi] - 2 * x * cov[ki, pi] + x**2 * cov[ki, ki]) / np.where(k != 0, k, np.nan) ** 2
     return np.where(passive, np.sqrt(np.clip(var, 0.0, None)), 0.0)
+
+
+def _rods_named(names: Sequence[str], topology: Topology) -> set[int]:
+    """The rods that parameters named ``ROD.x`` or ``SPRING.x`` belong to (a spring: its rods)."""
+    out: set[int] = set()
+    for n in names:
+        owner = n.rsplit(".", 1)[0]
+        if owner in topology.rod_names:
+            out.add(topology.rod_names.index(owner))
+        elif owner in topology.spring_names:
+            out.update(r for r in topology.springs[topology.spring_names.index(owner)].rods if r >= 0)
+    return out
+
+
+def _inertial_extras(layout: ParameterLayout, i: int) -> list[int]:
+    """Full-vector indices of rod ``i``'s first moment and products (the full model's extras)."""
+    return [layout.first_moment(i, k) for k in range(6)]
 
 
 def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:

@@ -160,9 +160,9 @@ def test_pseudo_inertia_tells_a_rigid_body_from_none():
             1e-3, integrator="implicit")
 
 
-def test_a_fit_that_is_no_rigid_body_falls_back_to_the_diagonal_model():
-    """Ten parameters whose tensor about the centre of mass is not positive definite: that rod's first
-    moment and products are held at 0 and the problem solved again, with a warning naming it."""
+def test_a_fit_that_is_no_rigid_body_is_constrained_to_one():
+    """Ten parameters whose tensor about the centre of mass is not positive definite: that rod's
+    products are held at 0 and the problem solved again, with a warning naming it."""
     from identified.fit.checks import constrain_rigid_bodies
     from identified.fit.layout import ParameterLayout
     from identified.fit.regression import Solution
@@ -175,11 +175,16 @@ def test_a_fit_that_is_no_rigid_body_falls_back_to_the_diagonal_model():
         theta[[layout.inertia(i, a) for a in range(3)]] = [0.007, 0.0072, 0.0006]
         theta[layout.first_moment(i, 0)] = 0.3 * 0.01
     theta[layout.product(1, 0)] = 0.02  # rod 1: Jxy larger than its moments allow
-    sol = Solution(theta, None, [], 1.0, 0, 0)
+    def resolve(f: dict[int, float]) -> Solution:  # the same "fit" with the held values put in
+        th = theta.copy()
+        th[list(f)] = list(f.values())
+        return Solution(th, None, [], 1.0, 0, 0)
+
     fixed: dict[int, float] = {}
-    out, notes = constrain_rigid_bodies(sol, lambda f: ("solved again", f), layout, fixed)
-    assert out[0] == "solved again" and len(notes) == 1 and notes[0].startswith("bar2:")
-    assert set(fixed) == {layout.first_moment(1, k) for k in range(6)}
+    out, notes, held = constrain_rigid_bodies(Solution(theta, None, [], 1.0, 0, 0), resolve, layout, fixed)
+    assert len(notes) == 1 and notes[0].startswith("bar2:") and held == []
+    assert set(fixed) == {layout.product(1, k) for k in range(3)}  # the centre of mass is kept
+    assert out.theta[layout.product(1, 0)] == 0.0 and out.theta[layout.first_moment(1, 0)] == 0.3 * 0.01
     # a consistent solution is returned as it is
     theta[layout.product(1, 0)] = 0.0
     assert constrain_rigid_bodies(Solution(theta, None, [], 1.0, 0, 0), None, layout, {})[1] == []

@@ -167,26 +167,66 @@ def constrain_inertias(
 
 
 def constrain_rigid_bodies(sol: Solution, resolve: Callable[[dict[int, float]], Solution], layout: Any,
-                           fixed: dict[int, float]) -> tuple[Solution, list[str]]:
-    """A rod whose ten fitted inertial parameters are no rigid body's (its inertia about the centre
-    of mass not positive definite, or its principal moments breaking the triangle inequality: its
-    pseudo-inertia not positive definite) is given the diagonal model: its first moment and
-    products held at 0 and the problem solved again; one warning per such rod."""
-    notes = []
-    for i, name in enumerate(layout.rod_names):
-        cols = [layout.m(i), *(layout.inertia(i, a) for a in range(3)), *(layout.first_moment(i, k) for k in range(6))]
-        x = np.asarray(sol.theta)[cols]
-        m, c = x[0], x[4:7] / x[0] if x[0] > 0 else np.zeros(3)
-        J_o = np.diag(x[1:4])
-        J_o[[0, 0, 1], [1, 2, 2]] = J_o[[1, 2, 2], [0, 0, 1]] = x[7:10]
-        J_c = J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
-        if m > 0 and np.linalg.eigvalsh(pseudo_inertia(m, c, J_c))[0] > 0:
-            continue
-        fixed.update({int(j): 0.0 for j in cols[4:]})
-        notes.append(f"{name}: the fitted centre of mass ({', '.join(f'{1e3 * v:.3g}' for v in c)}) mm and inertia "
-                     "tensor are no rigid body's (the data do not determine them): its frame is taken at the centre "
-                     "of mass along the principal axes (constrained fit)")
-    return (resolve(dict(fixed)) if notes else sol), notes
+                           fixed: dict[int, float]) -> tuple[Solution, list[str], list[tuple[int, int]]]:
+    """Make every rod's ten fitted inertial parameters a rigid body's (its pseudo-inertia positive
+    definite, :func:`pseudo_inertia`), in two steps per rod that is not, each solved again:
+
+    1. its products of inertia held at 0 and its smallest moment about the centre of mass, where
+       it is below the least the triangle inequality allows, held there (a rod whose cables all
+       meet its axis leaves the axial moment to the data's noise): its centre of mass is kept;
+    2. if it is still none, the diagonal model: its first moment held at 0 too.
+
+    ``fixed`` is updated with what is held. Returns the solution, one warning per held rod and the
+    (rod, body axis) of every moment held at a floor (its error bar is not estimable).
+    """
+    notes: list[str] = []
+    held: list[tuple[int, int]] = []
+    level: dict[int, int] = {}
+    for _ in range(4):
+        changed = False
+        for i, name in enumerate(layout.rod_names):
+            m, c, J_c = _rigid_body(sol.theta, layout, i)
+            if m > 0 and np.linalg.eigvalsh(pseudo_inertia(m, c, J_c))[0] > 0:
+                continue
+            step = level.get(i, 0) + 1
+            if step > 2:
+                continue
+            level[i], changed = step, True
+            if step == 1:
+                fixed.update({int(layout.product(i, k)): 0.0 for k in range(3)})
+                d = np.diag(J_c)
+                floor = INERTIA_FLOOR * max(float(d.max()), 1e-12)
+                a = int(np.argmin(d))
+                b, e = [k for k in range(3) if k != a]
+                least = abs(d[b] - d[e]) + 2 * floor  # the smallest moment the triangle inequality allows
+                if not d[a] >= least:
+                    # J_c,aa = J_o,aa - M (|c|^2 - c_a^2): hold J_o,aa where J_c,aa is that least moment
+                    fixed[int(layout.inertia(i, a))] = float(m * (c @ c - c[a] ** 2) + least)
+                    held.append((i, a))
+                notes.append(f"{name}: the fitted inertia tensor is no rigid body's (the data do not determine it): "
+                             f"its products held at 0 and its smallest moment (about {'xyz'[a]}) at the least a rigid "
+                             "body allows (constrained fit)")
+            else:
+                fixed.update({int(layout.first_moment(i, k)): 0.0 for k in range(3)})
+                notes.append(f"{name}: the fitted centre of mass ({', '.join(f'{1e3 * v:.3g}' for v in c)}) mm is no "
+                             "rigid body's either: its frame is taken at the centre of mass along the principal "
+                             "axes (constrained fit)")
+        if not changed:
+            break
+        sol = resolve(dict(fixed))
+    return sol, notes, held
+
+
+def _rigid_body(theta: np.ndarray, layout: Any, i: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Rod ``i``'s mass, centre of mass (3,) and inertia tensor about it (3, 3) from the ten fitted
+    parameters (the parallel-axis theorem)."""
+    x = np.asarray(theta)[[layout.m(i), *(layout.inertia(i, a) for a in range(3)),
+                           *(layout.first_moment(i, k) for k in range(6))]]
+    m = float(x[0])
+    c = x[4:7] / m if m > 0 else np.zeros(3)
+    J_o = np.diag(x[1:4])
+    J_o[[0, 0, 1], [1, 2, 2]] = J_o[[1, 2, 2], [0, 0, 1]] = x[7:10]
+    return m, c, J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
 
 
 def physical_warnings(

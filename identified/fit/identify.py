@@ -161,6 +161,7 @@ def identify(
     _classified: bool = False,
     _residual_stage: bool = True,
     inertia: str = "auto",
+    _release: str | None = None,
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -221,8 +222,28 @@ def identify(
     late = [e for e in effects if e.fit_strategy == "residual"]
     forces = [a for a in topology.actuators if a.kind != "rest_length"]
     use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
-    if inertia == "auto":
+    chosen = inertia == "auto"
+    if chosen:
         inertia = "full" if integrator != "implicit" and any(len(r.bodies) > 1 for r in topology.rods) else "diagonal"
+    if inertia == "full" and _release is None:
+        # the centres of mass and products released after a first diagonal solve, else held from
+        # none; when neither fits (the data cannot separate them), the diagonal model (for "auto")
+        again = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
+                 "integrator": integrator, "scheme": scheme, "chunk_steps": chunk_steps, "progress": progress,
+                 "device": device, "noise_copies": noise_copies, "effects": effects, "hold_inertia": hold_inertia,
+                 "contact_margin": contact_margin, "_classified": _classified, "_residual_stage": _residual_stage}
+        err: IdentifiabilityError | None = None
+        for release in ("after_first", "from_start"):
+            try:
+                return identify(dataset, topology, inertia="full", _release=release, **again)
+            except IdentifiabilityError as exc:
+                err = exc
+        if not chosen:
+            raise err  # type: ignore[misc]
+        model = identify(dataset, topology, inertia="diagonal", **again)
+        model.metrics["warnings"].insert(0, f"the rods' centres of mass and products of inertia were not identified "
+                                            f"(with them {err}): the diagonal model")
+        return model
     layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act,
                                           full_inertia=inertia == "full")
     has_pushes = bool(np.any(dataset.push_force != 0))
@@ -284,24 +305,15 @@ def identify(
 
             def solve_holding(f: dict[int, float]) -> Any:
                 """Solve; parameters of an iterative effect the data cannot identify are held
-                (:meth:`Effect.hold`) and the same rows solved again; so are, with the full
-                inertia, the first moments and products of the rods that a rank deficiency
-                touches (those rods get the diagonal model: their rows cannot separate them)."""
-                for _ in range(3 + layout.n_rods):
-                    f = {**f, **{int(j): 0.0 for i in diagonal_rods for j in _inertial_extras(layout, i)}}
+                (:meth:`Effect.hold`) and the same rows solved again."""
+                for _ in range(3):
                     try:
                         return solve(factors, layout, anchor, f)
                     except IdentifiabilityError as err:
-                        rods = _rods_named(err.names, topology) - diagonal_rods if layout.full_inertia else set()
-                        if rods:
-                            diagonal_rods.update(rods)
-                            continue
                         if not any(e.hold(err.names, topology) for e in iterative):
                             raise
                         f = {**f, **_pinned(joint, layout)}
                 return solve(factors, layout, anchor, f)
-
-            diagonal_rods: set[int] = set()
 
             def solve_separating(f: dict[int, float]) -> Any:
                 """Solve; an actuator's constant bias on a cable that never went slack is the same
@@ -332,7 +344,7 @@ def identify(
             # diagonal model classifies the cables' taut rows by a sound first estimate of their rest
             # lengths), then released with the rest lengths' estimate
             released = [j for i in range(layout.n_rods) for j in _inertial_extras(layout, i)
-                        if j not in fixed] if layout.full_inertia else []
+                        if j not in fixed] if layout.full_inertia and _release == "after_first" else []
 
             def solve_classified(f: dict[int, float], hold: Sequence[int] = ()) -> Any:
                 """Solve with ``hold`` at 0; such a parameter whose spring has no row on the other
@@ -402,15 +414,13 @@ def identify(
                 sol = solve_separating(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
+            rigid: list[str] = []
+            if layout.full_inertia:  # first: a rod that is no rigid body gets the diagonal model
+                sol, rigid, held_rigid = constrain_rigid_bodies(sol, solve_holding, layout, fixed)
             sol, notes, held = constrain_inertias(sol, solve_holding,
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
-            if layout.full_inertia:
-                notes += [f"{topology.rod_names[i]}: its centre of mass and products of inertia cannot be told "
-                          "apart from its cables in the rows it has (a rod that rests on the ground leaves few): "
-                          "its frame is taken at the centre of mass along the principal axes" for i in
-                          sorted(diagonal_rods)]
-                sol, more = constrain_rigid_bodies(sol, solve_holding, layout, fixed)
-                notes += more
+            notes = rigid + notes
+            held = held_rigid + held if layout.full_inertia else held
             sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve
@@ -507,18 +517,6 @@ def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, pa
     x = _rest_from(theta, layout, passive, np.zeros(S))
     var = (cov[pi, pi] - 2 * x * cov[ki, pi] + x**2 * cov[ki, ki]) / np.where(k != 0, k, np.nan) ** 2
     return np.where(passive, np.sqrt(np.clip(var, 0.0, None)), 0.0)
-
-
-def _rods_named(names: Sequence[str], topology: Topology) -> set[int]:
-    """The rods that parameters named ``ROD.x`` or ``SPRING.x`` belong to (a spring: its rods)."""
-    out: set[int] = set()
-    for n in names:
-        owner = n.rsplit(".", 1)[0]
-        if owner in topology.rod_names:
-            out.add(topology.rod_names.index(owner))
-        elif owner in topology.spring_names:
-            out.update(r for r in topology.springs[topology.spring_names.index(owner)].rods if r >= 0)
-    return out
 
 
 def _inertial_extras(layout: ParameterLayout, i: int) -> list[int]:

@@ -12,8 +12,9 @@ One step (paper, Fig. "architecture"):
    MuJoCo's RK4 (``integrator="rk4"``).
 
 Parameters are physical quantities (:class:`SpringRodParams`): stiffness ``K`` (S,), damping
-``c`` (S,), mass ``M`` (R,), inertia ``(Ixx, Iyy, Izz)`` (R, 3), control scale ``h`` (), gravity
-(3,).  Any of them may carry leading batch dimensions that broadcast with the state's (one set of
+``c`` (S,), mass ``M`` (R,), inertia ``(Ixx, Iyy, Izz)`` (R, 3) about the centre of mass, control
+scale ``h`` (), gravity (3,); optionally each rod's centre of mass in its frame ``com`` (R, 3) and
+products of inertia (R, 3) (a rod frame off the centre of mass or turned from the principal axes).  Any of them may carry leading batch dimensions that broadcast with the state's (one set of
 parameters per environment), and any may ``requires_grad`` for gradient-based refinement.
 
 Effects are forces the spring-rod model lacks (ground contact, drag, ...): callables

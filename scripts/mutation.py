@@ -41,8 +41,8 @@ TESTS = {
 #: (group, file, original text, mutated text, what the bug would be[, its tests: default the group's])
 MUTANTS = [
     # ------------------------------------------------------------------ bad input (guards)
-    ("bad-input", "identified/fit/checks.py", "    if dof <= 0 or (sol.cov is None",
-     "    if dof < -1e9 or (sol.cov is None", "a fit without residual degrees of freedom is accepted"),
+    ("bad-input", "identified/fit/checks.py", "    if dof <= 0 or (not error_bars",
+     "    if dof < -1e9 or (not error_bars", "a fit without residual degrees of freedom is accepted"),
     ("bad-input", "identified/fit/checks.py", "dof < MIN_DOF_PER_PARAMETER * free:", "dof < 0:",
      "error bars of a nearly exact fit printed as if estimable"),
     ("bad-input", "identified/fit/checks.py", "np.full(np.shape(v), np.nan) for k, v", "v for k, v",

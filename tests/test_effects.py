@@ -264,7 +264,7 @@ def test_each_effects_wrench_force_and_torque_is_its_law_by_hand(ico, name):
 def test_ground_contacts_wrench_force_and_torque_is_its_law_by_hand(tmp_path):
     """Ground contact overrides ``wrench``: its force and torque are the contact forces at the
     end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f, plus
-    the torsional and rolling friction torques (against the spin about the normal and the rolling).
+    the torsional and rolling friction torques (against the spin about the normal and the rolling)."""
     path = tmp_path / "robot.xml"
     write_model(path, "ico", preset="robot")
     theta = np.array([2000.0, 40.0, 1.0, 5.0, 0.9, 5.0, 0.7, 0.6, 0.05, 0.02, 0.004, 0.7])

@@ -406,6 +406,14 @@ class GroundContact(Effect):
                                 tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
         return self._cache[key]
 
+    def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
+        """Each rod's contact point, the lever from its centre of mass (..., R, 3) world: the centre
+        of its end sphere in contact (the mean of both when both are; 0 when none is), the point
+        the law's forces act at.  The diagnosis and the torques' fit take torques about it."""
+        c = self.contacts(state, ctx)
+        active = c["active"].to(state.pos.dtype)  # (..., R, 2)
+        return (active.unsqueeze(-1) * c["lever"]).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
+
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
         _, depth = self._end_spheres(state, ctx.rot)
@@ -485,10 +493,7 @@ def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, 
     ``[μ_t, μ_r, ω_s]``, the standard errors of ``μ_t``, ``μ_r`` (cluster-robust over ``groups``,
     the episode of each instant; none for a coefficient at its bound), the explained variance of
     that torque and the fitted torques on the rows ``sel`` (rows, 3)."""
-    c = eff.contacts(state, ctx)
-    active = c["active"].to(force.dtype)  # (N, R, 2)
-    point = (active.unsqueeze(-1) * c["lever"]).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
-    about = torque - torch.linalg.cross(point, force)
+    about = torque - torch.linalg.cross(eff.contact_point(state, ctx), force)
     n = eff._geom(state.pos)[2]
     y = about[sel].reshape(-1).numpy()
     fn = (force[sel] * n).sum(-1).clamp_min(0.0)

@@ -126,7 +126,8 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
 
 class GroundContact(Effect):
     name = "ground_contact"
-    description = "rod capsules on a ground plane: constraint-like normal force and saturating friction"
+    description = ("rod capsules on a ground plane: constraint-like normal force, saturating friction, and "
+                   "torsional and rolling friction torques")
     blocks = (
         ParamBlock("kappa", "global", mass_scaled=False, unit="1/s^2"),
         ParamBlock("beta_n", "global", mass_scaled=False, unit="1/s"),

@@ -237,6 +237,16 @@ def _hand_wrench(eff, topo: Topology, s: RodState, rest: np.ndarray, ctx) -> tup
             f = local[..., e, 0, None] * n + local[..., e, 1, None] * along + local[..., e, 2, None] * across
             force += f
             torque += np.cross(lever, f)
+        # torsional and rolling friction: against the spin about the normal and the rolling, each
+        # saturating at mu f_n (f_n the rod's total normal force) over the angular speed omega_slip
+        mu_t, mu_r, w_s = eff.values[9:12]
+        fn = local[..., :, 0].sum(-1)
+        w = s.angvel.numpy()
+        w_n = w @ n
+        w_t = w - w_n[..., None] * n
+        t = np.linalg.norm(w_t, axis=-1)
+        torque += -(mu_t * fn * np.tanh(w_n / w_s))[..., None] * n
+        torque += -(mu_r * fn * np.tanh(t / w_s) / np.maximum(t, 1e-300))[..., None] * w_t
         return force, torque
     raise AssertionError(f"no hand law for {eff.name}")
 
@@ -277,10 +287,11 @@ def test_each_effects_wrench_force_and_torque_is_its_law_by_hand(ico, name):
 
 def test_ground_contacts_wrench_force_and_torque_is_its_law_by_hand(tmp_path):
     """Ground contact overrides ``wrench``: its force and torque are the contact forces at the
-    end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f."""
+    end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f, plus
+    the torsional and rolling friction torques (against the spin about the normal and the rolling)."""
     path = tmp_path / "robot.xml"
     write_model(path, "ico", preset="robot")
-    theta = np.array([2000.0, 40.0, 1.0, 5.0, 0.9, 5.0, 0.7, 0.6, 0.05])
+    theta = np.array([2000.0, 40.0, 1.0, 5.0, 0.9, 5.0, 0.7, 0.6, 0.05, 0.02, 0.004, 0.7])
     eff, topo, s, rest, ctx = _wrench_case(path, "ground_contact", lambda e: theta)
     f, tau = eff.wrench(s, ctx)
     f_hand, tau_hand = _hand_wrench(eff, topo, s, rest, ctx)

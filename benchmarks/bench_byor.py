@@ -1,7 +1,7 @@
 """Bring your own robot: the three lab-style models of ``examples/`` through collect and fit, against
 the truth the plant holds.
 
-    python benchmarks/bench_byor.py [--episodes 10] [--steps 1000] [--effects auto]
+    python benchmarks/bench_byor.py [--episodes 10] [--steps 1000] [--effects auto] [--models prism3,...]
 
 For each model (a 3-bar prism with motor actuators; a 6-bar of composite rods with an electronics
 box 6 cm off the axis; a 6-bar of nested bodies with filtered general actuators): collect
@@ -15,10 +15,11 @@ the model's elements:
 * ``K``, ``c``: stiffness and damping of every tendon, relative;
 * ``l0``: rest length of every passive tendon (not driven by a rest-length motor), relative;
 * ``M``: mass of every rod (all its bodies), relative;
-* ``com mm``: distance of the fitted centre of mass from the true one, rod frame, mm (the
-  spring-rod model puts it at the rod frame's origin);
+* ``com mm``: distance of the fitted centre of mass from the true one, rod frame, mm (a fit with
+  the diagonal model puts it at the rod frame's origin; composite rods get all ten inertial
+  parameters);
 * ``I_t``: the two transverse (largest) principal moments of inertia about the centre of mass,
-  relative (the fitted diagonal about the frame's origin, sorted, against the true principal ones);
+  relative (the fitted principal moments, sorted, against the true ones);
 * ``gain``, ``tau``: every MuJoCo actuator's force per unit activation and filter time constant,
   relative;
 * ``effects``: what ``--effects`` found; ``residual``: the fit's own verdict, ``metrics.residual``
@@ -81,8 +82,8 @@ def truth(path: str) -> dict[str, np.ndarray]:
     for i in range(m.nu):
         n = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i)
         gains[n] = m.actuator_gainprm[i, 0] * m.actuator_gear[i, 0]
-        taus[n] = m.actuator_dynprm[i, 0] if m.actuator_dyntype[i] in (mujoco.mjtDyn.mjDYN_FILTER,
-                                                                        mujoco.mjtDyn.mjDYN_FILTEREXACT) else np.nan
+        filt = int(m.actuator_dyntype[i]) in (int(mujoco.mjtDyn.mjDYN_FILTER), int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
+        taus[n] = m.actuator_dynprm[i, 0] if filt else np.nan
     out.update(gain=gains, tau=taus)
     return out
 
@@ -108,10 +109,11 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=10)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--effects", default="auto")
+    ap.add_argument("--models", default=",".join(MODELS), help="comma-separated subset of " + ", ".join(MODELS))
     args = ap.parse_args()
     cols = ("collect s", "fit s", "K", "c", "l0", "M", "com mm", "I_t", "gain", "tau", "residual")
     print(f"{'model':19s}" + "".join(f"{c:>10s}" for c in cols) + "  effects")
-    for name in MODELS:
+    for name in args.models.split(","):
         path = os.path.join(EXAMPLES, f"{name}.xml")
         t = truth(path)
         t0 = time.perf_counter()
@@ -129,7 +131,8 @@ def main() -> None:
             os.unlink(wrong)
         t2 = time.perf_counter()
         rel = lambda est, true: float(np.max(np.abs(np.asarray(est) - true) / np.abs(true))) if np.size(true) else np.nan
-        com_mm = 1e3 * float(np.max(np.linalg.norm(t["com"], axis=1)))  # fitted com: the frame's origin
+        com_fit = np.zeros_like(t["com"]) if model.com is None else model.com  # None: the frame's origin
+        com_mm = 1e3 * float(np.max(np.linalg.norm(com_fit - t["com"], axis=1)))
         I_fit = np.sort(model.inertia, axis=1)[:, 1:]
         acts = {a["name"]: a for a in model.actuators}
         gains = [(acts[n]["gain"], g) for n, g in t["gain"].items() if n in acts]

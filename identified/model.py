@@ -7,6 +7,13 @@ needs (rod attachment points, which sites each spring joins), so that the twin s
 ``dt`` and ``gravity`` the conditions of the data, ``integrator`` the engine's velocity update that
 matches the plant (``euler``, ``implicit`` or ``rk4``), and ``scale`` how the global scale was fixed.
 Every value carries its standard error where the fit gives one (``*_stderr``).
+
+A rod's inertia: ``mass``, ``com`` (its centre of mass in the rod frame, m), ``inertia`` (its
+principal moments about the centre of mass, kg m²) and ``inertia_frame`` (the principal axes as a
+unit quaternion w-x-y-z from the rod frame, as MuJoCo's ``body_iquat``; each axis is the one
+closest to the rod-frame axis of the same index, so a frame along the principal axes gives the
+identity and the moments in x, y, z order).  A model without ``com``/``inertia_frame`` (the
+diagonal model) has the rod frame at the centre of mass along the principal axes.
 """
 
 from __future__ import annotations
@@ -21,10 +28,11 @@ import numpy as np
 from identified.dataset import atomic_write
 from identified.effects import known_names
 from identified.jsonsafe import json_safe
+from identified.rotation import matrix_to_quat, quat_to_matrix
 from identified.topology import Rod, Spring, Topology
 
-__all__ = ["IdentifiedModel", "ModelFileError", "check_effect_objects", "load_model", "save_model",
-           "validate_fields"]
+__all__ = ["IdentifiedModel", "ModelFileError", "check_effect_objects", "inertia_tensor", "load_model",
+           "principal_axes", "rigid_body_from_regression", "save_model", "validate_fields"]
 
 FORMAT = "tensegrity-identified/1"
 INTEGRATORS = ("euler", "implicit", "rk4")  # as identified.engine.integration.INTEGRATORS
@@ -43,7 +51,7 @@ class IdentifiedModel:
     damping: np.ndarray  # (S,) N s/m
     rest_length: np.ndarray  # (S,) m: identified for passive springs; an actuated cable's mean command
     mass: np.ndarray  # (R,) kg
-    inertia: np.ndarray  # (R, 3) kg m^2, rod frame diagonal
+    inertia: np.ndarray  # (R, 3) kg m^2, principal moments about the centre of mass (module docstring)
     control_scale: float = 1.0
     dt: float = 1e-3
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
@@ -57,6 +65,31 @@ class IdentifiedModel:
     #: MuJoCo tendon actuators: {name, tendon, kind, dynamics, gain, gain_stderr, bias, bias_stderr,
     #: time_constant, time_constant_stderr} (identified.fit.actuation)
     actuators: list[dict[str, Any]] = field(default_factory=list)
+    #: (R, 3) m: each rod's centre of mass in its frame; None: at the origin
+    com: np.ndarray | None = None
+    #: (R, 4) w-x-y-z: the principal axes of ``inertia`` in the rod frame; None: the rod frame's axes
+    inertia_frame: np.ndarray | None = None
+
+    @property
+    def full_inertia(self) -> bool:
+        """Whether a rod's centre of mass or principal axes differ from its frame's."""
+        return self.com is not None or self.inertia_frame is not None
+
+    def inertia_about_com(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each rod's inertia tensor about its centre of mass in the rod frame: the diagonal (R, 3)
+        and the products ``(Jxy, Jxz, Jyz)`` (R, 3), kg m² (the engine's parameters)."""
+        J = inertia_tensor(self.inertia, self.inertia_frame)
+        return np.einsum("rii->ri", J).copy(), J[:, [0, 0, 1], [1, 2, 2]].copy()
+
+    def set_inertia_about_com(self, diagonal: np.ndarray, products: np.ndarray) -> None:
+        """Set each rod's principal moments and axes from its inertia tensor about the centre of
+        mass, rod frame: ``diagonal`` (R, 3) and ``products`` (R, 3) (as :meth:`inertia_about_com`)."""
+        d, p = np.asarray(diagonal, dtype=float), np.asarray(products, dtype=float)
+        J = np.einsum("ri,ij->rij", d, np.eye(3))
+        J[:, [0, 0, 1], [1, 2, 2]] = J[:, [1, 2, 2], [0, 0, 1]] = p
+        axes = [principal_axes(x) for x in J]
+        self.inertia = np.array([a[0] for a in axes])
+        self.inertia_frame = np.array([matrix_to_quat(a[1]) for a in axes])
 
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
@@ -65,7 +98,14 @@ class IdentifiedModel:
         for i, r in enumerate(self.topology.rods):
             m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i)
             inert = ", ".join(f"{x:.4g}" for x in self.inertia[i])
-            lines.append(f"{r.name}: M = {m}; I = ({inert}) kg m^2")
+            line = f"{r.name}: M = {m}; I = ({inert}) kg m^2"
+            if self.full_inertia:
+                c = np.zeros(3) if self.com is None else self.com[i]
+                angle = 0.0 if self.inertia_frame is None else np.degrees(
+                    2 * np.arccos(min(1.0, abs(float(self.inertia_frame[i][0])))))
+                line += (f" (principal, axes turned {angle:.2f} deg from the rod frame); "
+                         f"centre of mass ({', '.join(f'{1e3 * x:.2f}' for x in c)}) mm in the rod frame")
+            lines.append(line)
         for j, s in enumerate(self.topology.springs):
             k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j)
             c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j)
@@ -125,6 +165,10 @@ class IdentifiedModel:
                     "mass_stderr": err("mass", i),
                     "inertia": self.inertia[i].tolist(),
                     "inertia_stderr": err("inertia", i),
+                    "inertia_frame": ([1.0, 0.0, 0.0, 0.0] if self.inertia_frame is None
+                                      else np.asarray(self.inertia_frame[i], dtype=float).tolist()),
+                    "com": [0.0, 0.0, 0.0] if self.com is None else np.asarray(self.com[i], dtype=float).tolist(),
+                    "com_stderr": err("com", i),
                 }
                 for i, r in enumerate(topo.rods)
             ],
@@ -191,7 +235,8 @@ class IdentifiedModel:
             stderr: dict[str, np.ndarray] = {}
             for key, src, n in (("stiffness", sp, "stiffness_stderr"), ("damping", sp, "damping_stderr"),
                                 ("rest_length", sp, "rest_length_stderr"),
-                                ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr")):
+                                ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr"),
+                                ("com", obj["rods"], "com_stderr")):
                 vals = [x.get(n) for x in src]
                 if all(v is not None for v in vals):
                     stderr[key] = np.array(vals, dtype=float)
@@ -217,6 +262,13 @@ class IdentifiedModel:
                 integrator=str(obj.get("integrator", "euler")),
                 actuators=list(obj.get("actuators", [])),
             )
+            com = np.array([r.get("com", [0.0, 0.0, 0.0]) for r in obj["rods"]], dtype=float).reshape(-1, 3)
+            frame = np.array([r.get("inertia_frame", [1.0, 0.0, 0.0, 0.0]) for r in obj["rods"]],
+                             dtype=float).reshape(-1, 4)
+            if np.any(com != 0):
+                model.com = com
+            if np.any(frame != np.array([1.0, 0.0, 0.0, 0.0])):
+                model.inertia_frame = frame
         except ModelFileError:
             raise
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
@@ -234,6 +286,12 @@ class IdentifiedModel:
                 raise ModelFileError(f"'{key}' has shape {arr.shape}, expected {shape}")
             if not np.all(np.isfinite(arr)):
                 raise ModelFileError(f"'{key}' holds a non-finite value")
+        for key, width in (("com", 3), ("inertia_frame", 4)):
+            arr = getattr(self, key)
+            if arr is not None and (arr.shape != (R, width) or not np.all(np.isfinite(arr))):
+                raise ModelFileError(f"'{key}' must be {width} finite numbers per rod, got shape {arr.shape}")
+        if self.inertia_frame is not None and np.any(np.abs(np.linalg.norm(self.inertia_frame, axis=1) - 1) > 1e-6):
+            raise ModelFileError("'inertia_frame' must be unit quaternions (w, x, y, z)")
         if self.integrator not in INTEGRATORS:
             raise ModelFileError(f"'integrator' is '{self.integrator}', expected one of {', '.join(INTEGRATORS)}")
         if np.any(self.mass <= 0) or np.any(self.inertia[:, :2] <= 0):
@@ -328,3 +386,71 @@ def check_effect_objects(effects: list) -> None:
         if not callable(e):
             raise ValueError(  # noqa: TRY004 (bad input: one ValueError line)
                 f"effects[{k}] = {e!r} is not an effect (a callable (state, ctx) -> (force, torque))")
+
+
+# ---------------------------------------------------------------------- rigid-body inertia
+def inertia_tensor(moments: np.ndarray, frame: np.ndarray | None) -> np.ndarray:
+    """(R, 3, 3) inertia tensors in the rod frame from principal ``moments`` (R, 3) along the axes
+    ``frame`` (R, 4) w-x-y-z (``None``: the rod frame's axes)."""
+    moments = np.asarray(moments, dtype=float)
+    if frame is None:
+        return np.einsum("ri,ij->rij", moments, np.eye(3))
+    Q = quat_to_matrix(np.asarray(frame, dtype=float))
+    return np.einsum("rij,rj,rkj->rik", Q, moments, Q)
+
+
+def principal_axes(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The principal moments (3,) and axes (a rotation, its columns the axes in the rod frame, 3x3)
+    of a symmetric inertia tensor ``J`` (3, 3); axis ``k`` is the eigenvector closest to the rod
+    frame's axis ``k`` (turned to point the same way), so a diagonal ``J`` keeps its order."""
+    lam, V = np.linalg.eigh(0.5 * (J + J.T))
+    perms = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+    best = max(perms, key=lambda p: sum(abs(V[a, p[a]]) for a in range(3)))
+    Q, lam = V[:, best].copy(), lam[list(best)]
+    Q *= np.where(np.diag(Q) < 0, -1.0, 1.0)
+    if np.linalg.det(Q) < 0:  # a proper rotation: turn the axis least aligned with its own
+        k = int(np.argmin(np.abs(np.diag(Q))))
+        Q[:, k] = -Q[:, k]
+    return lam, Q
+
+
+def _com_and_tensor(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centre of mass (3,) and inertia tensor about it (3, 3, rod frame) from the ten inertial
+    parameters ``[M, Ixx, Iyy, Izz, Mcx, Mcy, Mcz, Jxy, Jxz, Jyz]`` about the rod frame's origin
+    (the parallel-axis theorem: ``J_c = J_o - M (|c|² E - c cᵀ)``)."""
+    m, d, h, p = x[0], x[1:4], x[4:7], x[7:10]
+    J_o = np.diag(d) + np.array([[0, p[0], p[1]], [p[0], 0, p[2]], [p[1], p[2], 0]])
+    c = h / m
+    return c, J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
+
+
+def rigid_body_from_regression(theta: np.ndarray, cov: np.ndarray | None, cols: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Each rod's centre of mass (R, 3), principal moments (R, 3) and axes (R, 4 w-x-y-z) from
+    the regression's ten parameters per rod (``cols`` (R, 10): their full-vector indices in the
+    order of :func:`_com_and_tensor`), with standard errors (R, 3) each propagated to first order
+    from ``cov`` (the moments' derivative at fixed axes: exact to first order, also for nearly
+    equal moments); ``None`` without a covariance."""
+    R = cols.shape[0]
+    com, moments, frame = np.zeros((R, 3)), np.zeros((R, 3)), np.zeros((R, 4))
+    com_se = moments_se = None
+    if cov is not None:
+        com_se, moments_se = np.zeros((R, 3)), np.zeros((R, 3))
+    for i in range(R):
+        x = np.asarray(theta[cols[i]], dtype=float)
+        c, J = _com_and_tensor(x)
+        lam, Q = principal_axes(J)
+        com[i], moments[i], frame[i] = c, lam, matrix_to_quat(Q)
+        if cov is None:
+            continue
+
+        def g(y: np.ndarray, Q: np.ndarray = Q) -> np.ndarray:
+            cy, Jy = _com_and_tensor(y)
+            return np.concatenate([cy, np.einsum("ji,jk,ki->i", Q, Jy, Q)])
+
+        steps = 1e-6 * np.maximum(np.abs(x), 1e-6 * max(np.max(np.abs(x)), 1e-300))
+        jac = np.stack([(g(x + e) - g(x - e)) / (2 * h) for h, e in zip(steps, np.diag(steps))], axis=1)
+        C = np.asarray(cov)[np.ix_(cols[i], cols[i])]
+        var = np.clip(np.einsum("ij,jk,ik->i", jac, C, jac), 0.0, None)
+        com_se[i], moments_se[i] = np.sqrt(var[:3]), np.sqrt(var[3:])
+    return com, moments, frame, com_se, moments_se

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from identified.effects import Effect, effect_from_json
@@ -22,10 +23,18 @@ __all__ = ["effects_from_model", "engine_from_model", "params_from_model"]
 
 def params_from_model(model: IdentifiedModel, dtype: torch.dtype = torch.float64,
                       device: torch.device | str = "cpu") -> SpringRodParams:
-    """The model's stiffness, damping, mass, inertia, control scale and gravity as engine parameters."""
+    """The model's stiffness, damping, mass, inertia, control scale and gravity as engine
+    parameters; a model with centres of mass off the rod frames' origins or turned principal axes
+    gives the engine its ``com`` and the inertia tensor about the centre of mass (diagonal and
+    ``inertia_products``, rod frame)."""
     topo = model.topology
+    inertia, com, products = model.inertia, None, None
+    if model.full_inertia:
+        inertia, products = model.inertia_about_com()
+        com = np.zeros((topo.n_rods, 3)) if model.com is None else model.com
     return SpringRodParams.from_values(
-        model.stiffness, model.damping, model.mass, model.inertia, model.control_scale, model.gravity,
+        model.stiffness, model.damping, model.mass, inertia, model.control_scale, model.gravity,
+        com=com, inertia_products=products,
         n_rods=topo.n_rods, n_springs=topo.n_springs, dtype=dtype, device=device,
     )
 

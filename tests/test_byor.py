@@ -63,7 +63,7 @@ def test_the_nested_model_is_not_read_literally() -> None:
     attributes alone do not say."""
     topo = Topology.from_mjcf(LAB["six_bar_nested"])
     rod = topo.rods[0]
-    assert rod.bodies == ("rod_A", "tube_A", "end_A0", "end_A1")
+    assert rod.bodies == ("rod_A", "box_A", "tube_A", "end_A0", "end_A1")
     np.testing.assert_allclose(rod.site_offsets, [[-0.45, 0, 0], [0.45, 0, 0]], atol=1e-12)
     assert rod.length == pytest.approx(0.9)
 
@@ -268,7 +268,7 @@ def test_fit_strict_flags_a_model_that_cannot_describe_its_data(tmp_path) -> Non
 def test_tensegrity_v0_on_the_twin(tmp_path) -> None:
     """Tensegrity-v0 with backend="identified": the shipped robot model on its MJCF passes the
     checkers, starts from the plant's reset state for the same seed, and derives its health range
-    from the MJCF; an MJCF whose MuJoCo actuators the model lacks is refused in one line."""
+    from the MJCF; an MJCF with a MuJoCo actuator the model lacks is refused in one line."""
     from gymnasium.utils.env_checker import check_env
 
     from tensegrity_gym.backends.identified_backend import default_model_path
@@ -294,8 +294,10 @@ def test_tensegrity_v0_on_the_twin(tmp_path) -> None:
     data = collect(LAB["prism3"], CollectConfig(episodes=2, steps=300, seed=0, push_every=20, push_magnitude=10.0))
     prism = tmp_path / "prism.json"
     save_model(prism, fit_model(data, LAB["prism3"]))
-    with pytest.raises(ValueError, match=r"has MuJoCo actuators \['motor1', 'motor2', 'motor3'\]"):
-        gym.make("Tensegrity-v0", xml_file=LAB["prism3"], backend="identified", model=str(prism))
+    extra = _read(LAB["prism3"]).replace("</actuator>", '<motor name="extra" tendon="top12" gear="-1" '
+                                         'ctrlrange="0 1"/></actuator>')
+    with pytest.raises(ValueError, match=r"has MuJoCo actuators \['extra'\], which the identified model does not"):
+        gym.make("Tensegrity-v0", xml_file=extra, backend="identified", model=str(prism))
 
 
 def test_env_with_motors_and_actuators_together() -> None:

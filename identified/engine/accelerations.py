@@ -10,6 +10,17 @@ the rod's linear and angular accelerations follow (eq. 3 and its 3D form eq. 4):
 * in the ROD frame with the diagonal inertia ``I = diag(Ixx, Iyy, Izz)``:
   ``w_b = Rᵀ w``, ``τ_b = Rᵀ τ``, ``α_b = I⁻¹ (τ_b - w_b × (I w_b))``.
 
+A rod's state is its body frame (the free joint's frame), which need not be its centre of mass.
+With the centre of mass at ``c`` in the rod frame and the full inertia tensor ``J`` about it (rod
+frame: the diagonal ``I`` and the products ``(Jxy, Jxz, Jyz)``), the torque ``τ`` about the frame's
+origin and the origin's acceleration follow from Newton-Euler about the centre of mass:
+
+* ``τ_c = Rᵀ τ - c × Rᵀ F`` (the torque about the centre of mass, rod frame; gravity has none);
+* ``α_b = J⁻¹ (τ_c - w_b × J w_b)``;
+* ``a = F / M + g - R (α_b × c + w_b × (w_b × c))`` (the origin's acceleration, world).
+
+With ``c = 0`` and no products this is the diagonal model above, term by term.
+
 The paper's eq. 4 writes ``α = R I⁻¹ Rᵀ τ``; the gyroscopic term ``w_b × (I w_b)`` (Euler's
 equations) is added here because it is exact physics and MuJoCo includes it.  ``h`` is the paper's
 control force scalar (it scales the applied push ``f_u``, acting at the rod-frame point ``r_u``).
@@ -25,10 +36,10 @@ from __future__ import annotations
 import torch
 
 from identified.engine.forces import SpringGraph, as_graph
-from identified.engine.smallmat import Mat, Vec, mat, mtv, mv, unvec, vcross, vec
+from identified.engine.smallmat import Mat, Vec, mat, minverse, mtv, mv, unvec, vadd, vcross, vec, vsub
 from identified.topology import Topology
 
-__all__ = ["inertial_wrench", "push_wrench", "push_wrench_components", "rod_accelerations",
+__all__ = ["inertia_matrix", "inertial_wrench", "push_wrench", "push_wrench_components", "rod_accelerations",
            "rod_accelerations_components", "rod_wrench", "rod_wrench_components"]
 
 
@@ -102,28 +113,57 @@ def rod_accelerations(
     mass: torch.Tensor,
     inertia: torch.Tensor,
     gravity: torch.Tensor,
+    com: torch.Tensor | None = None,
+    products: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Eqs. 3-4: linear acceleration (world) and angular acceleration (ROD frame) of every rod.
 
-    ``force`` (..., R, 3) and ``torque`` (..., R, 3): everything but gravity, world frame; ``rot``
-    (..., R, 3, 3); ``angvel_body`` (..., R, 3) = ``Rᵀ w``; ``mass`` (R,) or (..., R);
-    ``inertia`` (R, 3) or (..., R, 3) rod-frame diagonal; ``gravity`` (3,) or (..., 3).
-    Returns ``a = (F + M g) / M`` (..., R, 3) and ``α_b = I⁻¹ (Rᵀ τ - w_b × I w_b)`` (..., R, 3);
-    the formulas are :func:`rod_accelerations_components`.
+    ``force`` (..., R, 3) and ``torque`` (..., R, 3): everything but gravity, world frame, the
+    torque about the rod frame's origin; ``rot`` (..., R, 3, 3); ``angvel_body`` (..., R, 3) =
+    ``Rᵀ w``; ``mass`` (R,) or (..., R); ``inertia`` (R, 3) or (..., R, 3) the rod-frame diagonal
+    of the inertia about the centre of mass; ``gravity`` (3,) or (..., 3); ``com`` (R, 3) or
+    (..., R, 3) the centre of mass in the rod frame and ``products`` (R, 3) or (..., R, 3) the
+    inertia's off-diagonal entries ``(Jxy, Jxz, Jyz)`` (rod frame), ``None``: 0 (module docstring).
+    Returns the origin's ``a`` (..., R, 3) and ``α_b`` (..., R, 3); the formulas are
+    :func:`rod_accelerations_components`.
     """
     lin, ang = rod_accelerations_components(vec(force), vec(torque), mat(rot), vec(angvel_body), mass,
-                                            vec(inertia), tuple(gravity.unsqueeze(-2).unbind(-1)))
+                                            vec(inertia), tuple(gravity.unsqueeze(-2).unbind(-1)),
+                                            None if com is None else vec(com),
+                                            None if products is None else vec(products))
     return unvec(lin), unvec(ang)
 
 
+def inertia_matrix(inertia: Vec, products: Vec | None) -> Mat:
+    """The symmetric inertia tensor (rod frame) from its diagonal and products ``(Jxy, Jxz, Jyz)``
+    (``None``: a diagonal tensor), component form."""
+    ixx, iyy, izz = inertia
+    if products is None:
+        z = torch.zeros_like(ixx)
+        return (ixx, z, z, z, iyy, z, z, z, izz)
+    jxy, jxz, jyz = products
+    return (ixx, jxy, jxz, jxy, iyy, jyz, jxz, jyz, izz)
+
+
 def rod_accelerations_components(force: Vec, torque: Vec, rot: Mat, angvel_body: Vec, mass: torch.Tensor,
-                                 inertia: Vec, gravity: Vec) -> tuple[Vec, Vec]:
+                                 inertia: Vec, gravity: Vec, com: Vec | None = None,
+                                 products: Vec | None = None) -> tuple[Vec, Vec]:
     """Component form of :func:`rod_accelerations`: every argument's components (..., R) (or
-    broadcastable: ``gravity`` (..., 1), ``mass`` and ``inertia`` (R,))."""
+    broadcastable: ``gravity`` (..., 1), ``mass``, ``inertia``, ``com`` and ``products`` (R,)).
+    Without ``com`` and ``products`` the diagonal model's short form (the same numbers)."""
     lin = tuple((f + mass * g) / mass for f, g in zip(force, gravity))
     tau_b = mtv(rot, torque)
-    gyro = vcross(angvel_body, tuple(i * w for i, w in zip(inertia, angvel_body)))
-    return lin, tuple((t - gy) / i for t, gy, i in zip(tau_b, gyro, inertia))
+    if com is None and products is None:
+        gyro = vcross(angvel_body, tuple(i * w for i, w in zip(inertia, angvel_body)))
+        return lin, tuple((t - gy) / i for t, gy, i in zip(tau_b, gyro, inertia))
+    w = angvel_body
+    if com is not None:  # the torque about the centre of mass
+        tau_b = vsub(tau_b, vcross(com, mtv(rot, force)))
+    J = inertia_matrix(inertia, products)
+    alpha = mv(minverse(J), vsub(tau_b, vcross(w, mv(J, w))))
+    if com is not None:  # the origin's acceleration from the centre of mass's
+        lin = vsub(lin, mv(rot, vadd(vcross(alpha, com), vcross(w, vcross(w, com)))))
+    return lin, alpha
 
 
 def push_wrench_components(rot: Mat, push_force: Vec, push_point: Vec | None,

@@ -13,17 +13,21 @@ MuJoCo's Euler integrator steps it (``mj_Euler`` -> ``mj_advance``), from ``act_
 
 :func:`activations` also returns ``d act / d tau`` (the fit's Gauss-Newton column for the time
 constant, :mod:`identified.fit.actuation`); :func:`tendon_forces` gives every tendon's actuator
-force over a record, which the engine takes as an input of each step (``tendon_force``).
+force over a record, which the engine takes as an input of each step (``tendon_force``);
+:class:`ActuatorBank` steps the same law on torch tensors, one physics step at a time (the twin).
+The activation's rate ``k`` is :func:`filter_rates`' for both.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import torch
 
-__all__ = ["DYNAMICS", "FILTERS", "activations", "tendon_forces"]
+__all__ = ["DYNAMICS", "FILTERS", "ActuatorBank", "activations", "filter_rates", "tendon_forces"]
 
 DYNAMICS = ("none", "filter", "filterexact", "integrator")
 #: activation dynamics with a time constant
@@ -36,16 +40,9 @@ def activations(ctrl: np.ndarray, dt: float, dynamics: Sequence[str], tau: np.nd
     E, T, U = ctrl.shape
     act, dact = np.zeros_like(ctrl), np.zeros_like(ctrl)
     a, s = np.zeros((E, U)), np.zeros((E, U))
-    tau = np.asarray(tau, dtype=float)
     kinds = np.array(list(dynamics), dtype=object)
-    unknown = [k for k in kinds if k not in DYNAMICS]
-    if unknown:
-        raise ValueError(f"activation dynamics '{unknown[0]}' is not one of {', '.join(DYNAMICS)}")
     none, integ = kinds == "none", kinds == "integrator"
-    filt, exact = kinds == "filter", kinds == "filterexact"
-    safe = np.where(filt | exact, tau, 1.0)
-    k = np.where(filt, dt / safe, 0.0) + np.where(exact, 1.0 - np.exp(-dt / safe), 0.0)  # act += k (ctrl - act)
-    dk = np.where(filt, -dt / safe**2, 0.0) + np.where(exact, -np.exp(-dt / safe) * dt / safe**2, 0.0)  # dk/dtau
+    k, dk = filter_rates(dynamics, tau, dt)
     for t in range(T):
         c = ctrl[:, t]
         act[:, t] = np.where(none, c, a)
@@ -53,6 +50,73 @@ def activations(ctrl: np.ndarray, dt: float, dynamics: Sequence[str], tau: np.nd
         s = s * (1.0 - k) + dk * (c - a)
         a = np.where(integ, a + dt * c, a + k * (c - a))
     return act, dact
+
+
+def filter_rates(dynamics: Sequence[str], tau: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each actuator's rate ``k`` in ``act += k (ctrl - act)`` (U,) and ``dk / dtau`` (U,): ``dt /
+    tau`` (filter), ``1 - exp(-dt / tau)`` (filterexact), 0 without a filter. ValueError naming an
+    unknown kind of dynamics."""
+    tau = np.asarray(tau, dtype=float)
+    kinds = np.array(list(dynamics), dtype=object)
+    unknown = [k for k in kinds if k not in DYNAMICS]
+    if unknown:
+        raise ValueError(f"activation dynamics '{unknown[0]}' is not one of {', '.join(DYNAMICS)}")
+    filt, exact = kinds == "filter", kinds == "filterexact"
+    safe = np.where(filt | exact, tau, 1.0)
+    k = np.where(filt, dt / safe, 0.0) + np.where(exact, 1.0 - np.exp(-dt / safe), 0.0)
+    dk = np.where(filt, -dt / safe**2, 0.0) + np.where(exact, -np.exp(-dt / safe) * dt / safe**2, 0.0)
+    return k, dk
+
+
+@dataclass(frozen=True)
+class ActuatorBank:
+    """Identified tendon actuators as tensors: their force on the tendons and their activation,
+    one physics step at a time, as :func:`activations` and :func:`tendon_forces` (module docstring).
+
+    Build with :meth:`from_json` from the model's ``actuators`` (layout order: ``names``). States
+    and commands are (..., U) tensors; the force of a step acts on the activation at its start.
+    """
+
+    names: tuple[str, ...]
+    spread: torch.Tensor  # (U, S): actuator u's gain in its tendon's column
+    bias: torch.Tensor  # (S,): the constant biases, summed per tendon
+    rate: torch.Tensor  # (U,) k of a filter, 0 otherwise
+    direct: torch.Tensor  # (U,) bool: no dynamics (the force acts on the command itself)
+    integrator: torch.Tensor  # (U,) bool
+    dt: float
+
+    @classmethod
+    def from_json(cls, actuators: Sequence[Mapping[str, Any]], tendon_names: Sequence[str], dt: float,
+                  dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> ActuatorBank:
+        """From identified actuators ``{name, tendon, dynamics, gain, bias, time_constant}``;
+        ValueError naming an actuator on a tendon that is not in ``tendon_names``."""
+        U, S = len(actuators), len(tendon_names)
+        spread, bias = np.zeros((U, S)), np.zeros(S)
+        for u, a in enumerate(actuators):
+            if a["tendon"] not in tendon_names:
+                raise ValueError(f"actuator '{a['name']}' acts on tendon '{a['tendon']}', which the model does not have")
+            j = list(tendon_names).index(a["tendon"])
+            spread[u, j] = float(a["gain"])
+            bias[j] += float(a.get("bias") or 0.0)
+        dyn = [a.get("dynamics", "none") for a in actuators]
+        k, _ = filter_rates(dyn, np.array([a.get("time_constant") or 0.0 for a in actuators], dtype=float), dt)
+        t = lambda x, dt_=dtype: torch.as_tensor(x, dtype=dt_, device=device)
+        return cls(tuple(a["name"] for a in actuators), t(spread), t(bias), t(k),
+                   t(np.array([d == "none" for d in dyn], dtype=bool), torch.bool),
+                   t(np.array([d == "integrator" for d in dyn], dtype=bool), torch.bool), float(dt))
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def force(self, ctrl: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """(..., S) every tendon's actuator force ``Σ (g act + b)`` (positive lengthens it)."""
+        return torch.where(self.direct, ctrl, act) @ self.spread + self.bias
+
+    def step(self, ctrl: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """The activations after one step under the commands ``ctrl`` (..., U)."""
+        return torch.where(self.integrator, act + self.dt * ctrl,
+                           torch.where(self.direct, ctrl, act + self.rate * (ctrl - act)))
 
 
 def tendon_forces(ctrl: np.ndarray, dt: float, ctrl_names: Sequence[str], actuators: Sequence[Mapping[str, Any]],

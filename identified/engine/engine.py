@@ -80,9 +80,12 @@ class SpringRodParams:
     """Physical parameters of a spring-rod system, as tensors.
 
     ``stiffness`` (..., S) N/m, ``damping`` (..., S) N s/m, ``mass`` (..., R) kg, ``inertia``
-    (..., R, 3) kg m² (rod-frame diagonal), ``control_scale`` (...) the control force scalar ``h``,
-    ``gravity`` (..., 3) m/s².  Build from plain numbers with :meth:`from_values`; make some or all
-    trainable with :meth:`requires_grad_`.
+    (..., R, 3) kg m² (rod-frame diagonal of the inertia about the centre of mass),
+    ``control_scale`` (...) the control force scalar ``h``, ``gravity`` (..., 3) m/s²; optional
+    (``None``: 0, the rod frame at the centre of mass along its principal axes): ``com`` (..., R, 3)
+    m, the centre of mass in the rod frame, and ``inertia_products`` (..., R, 3) kg m², the inertia's
+    off-diagonal entries ``(Jxy, Jxz, Jyz)`` (:mod:`identified.engine.accelerations`).  Build from
+    plain numbers with :meth:`from_values`; make some or all trainable with :meth:`requires_grad_`.
     """
 
     stiffness: torch.Tensor
@@ -91,8 +94,12 @@ class SpringRodParams:
     inertia: torch.Tensor
     control_scale: torch.Tensor
     gravity: torch.Tensor
+    com: torch.Tensor | None = None
+    inertia_products: torch.Tensor | None = None
 
     NAMES = ("stiffness", "damping", "mass", "inertia", "control_scale", "gravity")
+    #: per-rod parameters that may be absent (``None``)
+    OPTIONAL = ("com", "inertia_products")
 
     @classmethod
     def from_values(
@@ -104,6 +111,8 @@ class SpringRodParams:
         control_scale: Any = 1.0,
         gravity: Any = _GRAVITY,
         *,
+        com: Any = None,
+        inertia_products: Any = None,
         n_rods: int | None = None,
         n_springs: int | None = None,
         dtype: torch.dtype = torch.float64,
@@ -117,7 +126,8 @@ class SpringRodParams:
                 return x.to(dtype=dtype, device=device)
             return torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)
 
-        p = cls(t(stiffness), t(damping), t(mass), t(inertia), t(control_scale), t(gravity))
+        p = cls(t(stiffness), t(damping), t(mass), t(inertia), t(control_scale), t(gravity),
+                None if com is None else t(com), None if inertia_products is None else t(inertia_products))
         if n_springs is not None:
             p.stiffness = p.stiffness.expand(n_springs).clone() if p.stiffness.ndim == 0 else p.stiffness
             p.damping = p.damping.expand(n_springs).clone() if p.damping.ndim == 0 else p.damping
@@ -133,6 +143,7 @@ class SpringRodParams:
         """Raise ValueError if a parameter's trailing shape does not fit ``n_rods``/``n_springs``."""
         want = {"stiffness": (n_springs,), "damping": (n_springs,), "mass": (n_rods,),
                 "inertia": (n_rods, 3), "control_scale": (), "gravity": (3,)}
+        want.update({n: (n_rods, 3) for n in self.OPTIONAL if getattr(self, n) is not None})
         for name, shape in want.items():
             got = tuple(getattr(self, name).shape)
             tail = got[len(got) - len(shape):] if shape else ()
@@ -142,23 +153,26 @@ class SpringRodParams:
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> SpringRodParams:
         """Convert every tensor (a no-op, keeping autograd leaves, where nothing changes)."""
-        return replace(self, **{n: getattr(self, n).to(dtype=dtype, device=device) for n in self.NAMES})
+        return replace(self, **{n: v.to(dtype=dtype, device=device) for n, v in self.as_dict().items()})
 
     def requires_grad_(self, requires_grad: bool = True, names: Sequence[str] | None = None) -> SpringRodParams:
         """Mark the named parameters (default: all) as trainable, in place; returns ``self``."""
-        for n in names or self.NAMES:
+        for n in names or self.as_dict():
             getattr(self, n).requires_grad_(requires_grad)
         return self
 
     def parameters(self) -> list[torch.Tensor]:
         """The tensors that require gradients (for a torch optimiser)."""
-        return [getattr(self, n) for n in self.NAMES if getattr(self, n).requires_grad]
+        return [v for v in self.as_dict().values() if v.requires_grad]
 
     def detach(self) -> SpringRodParams:
-        return replace(self, **{n: getattr(self, n).detach() for n in self.NAMES})
+        return replace(self, **{n: v.detach() for n, v in self.as_dict().items()})
 
     def as_dict(self) -> dict[str, torch.Tensor]:
-        return {n: getattr(self, n) for n in self.NAMES}
+        """Every parameter that is set (the optional ones only when not ``None``)."""
+        out = {n: getattr(self, n) for n in self.NAMES}
+        out.update({n: getattr(self, n) for n in self.OPTIONAL if getattr(self, n) is not None})
+        return out
 
 
 class StepContext(NamedTuple):
@@ -257,6 +271,9 @@ class SpringRodEngine:
             params = SpringRodParams.from_values(**dict(params), n_rods=self.graph.n_rods,
                                                  n_springs=self.graph.n_springs, dtype=dtype, device=self.device)
         params.validate(self.graph.n_rods, self.graph.n_springs)
+        if integrator == "implicit" and any(getattr(params, n) is not None for n in params.OPTIONAL):
+            raise ValueError("the implicit integrator takes rods with their centre of mass at the frame's origin "
+                             "and a diagonal inertia (no 'com', no 'inertia_products'); use 'euler' or 'rk4'")
         self.params = params.to(dtype, self.device)
         self.dt = float(dt)
         self.effects = list(effects)
@@ -325,14 +342,14 @@ class SpringRodEngine:
             if et is not None:
                 torque = torque + et
         lin_acc, ang_acc_b = self._implicit_damping(
-            *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity))
+            *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity, p.com, p.inertia_products))
         if late:  # constraint-like effects see the accelerations under every other force
             ctx = ctx._replace(base_lin_acc=lin_acc, base_ang_acc_body=ang_acc_b)
             for effect in late:
                 ef, et = effect(state, ctx)
                 force, torque = force + ef, torque + et
             lin_acc, ang_acc_b = self._implicit_damping(
-                *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity))
+                *rod_accelerations(force, torque, rot, w_b, p.mass, p.inertia, p.gravity, p.com, p.inertia_products))
         if self.integrator == "implicit":
             lin_acc, ang_acc_b = implicit_accelerations(self.graph, geom.unit, ends.lever, rot, w_b, lin_acc,
                                                         ang_acc_b, p.mass, p.inertia, p.damping, self.dt)
@@ -432,12 +449,16 @@ class SpringRodEngine:
             force = vadd(force, pf)
             torque = torque if pt is None else vadd(torque, pt)
         inertia, gravity = vec(p.inertia), tuple(p.gravity.unsqueeze(-2).unbind(-1))
-        lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity)
+        com = None if p.com is None else vec(p.com)
+        products = None if p.inertia_products is None else vec(p.inertia_products)
+        lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity, com,
+                                                          products)
         if self.effects:  # constraint-like effects see the accelerations under every other force
             for effect in self.effects:
                 ef, et = effect.wrench_components(pos, vel, angvel, rot, lin_acc, ang_acc_b, p.mass, inertia)
                 force, torque = vadd(force, ef), vadd(torque, et)
-            lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity)
+            lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity,
+                                                              com, products)
         return semi_implicit_euler_components(pos, quat, vel, w_b, lin_acc, ang_acc_b, self.dt)
 
     # ------------------------------------------------------------------ many steps

@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
+from identified.model import inertia_tensor
 
 __all__ = [
     "ADAM_TOLERANCE",
@@ -164,6 +166,69 @@ def constrain_inertias(
     return sol, notes, held
 
 
+def constrain_rigid_bodies(sol: Solution, resolve: Callable[[dict[int, float]], Solution], layout: Any,
+                           fixed: dict[int, float]) -> tuple[Solution, list[str], list[tuple[int, int]]]:
+    """Make every rod's ten fitted inertial parameters a rigid body's (its pseudo-inertia positive
+    definite, :func:`pseudo_inertia`), in two steps per rod that is not, each solved again:
+
+    1. its products of inertia held at 0 and its smallest moment about the centre of mass, where
+       it is below the least the triangle inequality allows, held there (a rod whose cables all
+       meet its axis leaves the axial moment to the data's noise): its centre of mass is kept;
+    2. if it is still none, the diagonal model: its first moment held at 0 too.
+
+    ``fixed`` is updated with what is held. Returns the solution, one warning per held rod and the
+    (rod, body axis) of every moment held at a floor (its error bar is not estimable).
+    """
+    notes: list[str] = []
+    held: list[tuple[int, int]] = []
+    level: dict[int, int] = {}
+    for _ in range(4):
+        changed = False
+        for i, name in enumerate(layout.rod_names):
+            m, c, J_c = _rigid_body(sol.theta, layout, i)
+            if m > 0 and np.linalg.eigvalsh(pseudo_inertia(m, c, J_c))[0] > 0:
+                continue
+            step = level.get(i, 0) + 1
+            if step > 2:
+                continue
+            level[i], changed = step, True
+            if step == 1:
+                fixed.update({int(layout.product(i, k)): 0.0 for k in range(3)})
+                d = np.diag(J_c)
+                floor = INERTIA_FLOOR * max(float(d.max()), 1e-12)
+                a = int(np.argmin(d))
+                b, e = [k for k in range(3) if k != a]
+                least = abs(d[b] - d[e]) + 2 * floor  # the smallest moment the triangle inequality allows
+                if not d[a] >= least:
+                    # J_c,aa = J_o,aa - M (|c|^2 - c_a^2): hold J_o,aa where J_c,aa is that least moment
+                    fixed[int(layout.inertia(i, a))] = float(m * (c @ c - c[a] ** 2) + least)
+                    held.append((i, a))
+                notes.append(f"{name}: the fitted inertia tensor is no rigid body's (the data do not determine it): "
+                             f"its products held at 0 and its smallest moment (about {'xyz'[a]}) at the least a rigid "
+                             "body allows (constrained fit)")
+            else:
+                fixed.update({int(layout.first_moment(i, k)): 0.0 for k in range(3)})
+                notes.append(f"{name}: the fitted centre of mass ({', '.join(f'{1e3 * v:.3g}' for v in c)}) mm is no "
+                             "rigid body's either: its frame is taken at the centre of mass along the principal "
+                             "axes (constrained fit)")
+        if not changed:
+            break
+        sol = resolve(dict(fixed))
+    return sol, notes, held
+
+
+def _rigid_body(theta: np.ndarray, layout: Any, i: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """Rod ``i``'s mass, centre of mass (3,) and inertia tensor about it (3, 3) from the ten fitted
+    parameters (the parallel-axis theorem)."""
+    x = np.asarray(theta)[[layout.m(i), *(layout.inertia(i, a) for a in range(3)),
+                           *(layout.first_moment(i, k) for k in range(6))]]
+    m = float(x[0])
+    c = x[4:7] / m if m > 0 else np.zeros(3)
+    J_o = np.diag(x[1:4])
+    J_o[[0, 0, 1], [1, 2, 2]] = J_o[[1, 2, 2], [0, 0, 1]] = x[7:10]
+    return m, c, J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
+
+
 def physical_warnings(
     rod_names: list[str] | tuple[str, ...],
     spring_names: list[str] | tuple[str, ...],
@@ -174,6 +239,12 @@ def physical_warnings(
     inertia_stderr: np.ndarray | None = None,
 ) -> list[str]:
     """One line per violated physical constraint (positive M, I, K; c >= 0; I triangle inequality).
+
+    ``inertia`` holds each rod's principal moments about its centre of mass (the diagonal model's
+    moments are principal by assumption): a positive mass, positive principal moments and their
+    triangle inequalities are together the full physical consistency of a rigid body's ten
+    inertial parameters, the positive definiteness of its pseudo-inertia matrix
+    (:func:`pseudo_inertia`; Wensing, Kim & Slotine 2017).
 
     A thin rod's transverse moments are nearly equal and its axial one small, so the triangle
     inequality is tight: with ``inertia_stderr`` it is reported only when violated by more than
@@ -204,6 +275,20 @@ def physical_warnings(
     return out
 
 
+def pseudo_inertia(mass: float, com: np.ndarray, inertia_com: np.ndarray) -> np.ndarray:
+    """(4, 4) the pseudo-inertia matrix ``[[Σ, M c], [M cᵀ, M]]`` of a rigid body about its frame's
+    origin, ``Σ = tr(J_o)/2 E - J_o`` (the second moment of its mass distribution) with ``J_o``
+    the inertia about the origin from ``inertia_com`` (3, 3) about the centre of mass ``com`` (3,);
+    positive definite exactly when some rigid body of positive density has these parameters."""
+    c = np.asarray(com, dtype=float)
+    J_o = np.asarray(inertia_com, dtype=float) + mass * (c @ c * np.eye(3) - np.outer(c, c))
+    P = np.zeros((4, 4))
+    P[:3, :3] = 0.5 * np.trace(J_o) * np.eye(3) - J_o
+    P[:3, 3] = P[3, :3] = mass * c
+    P[3, 3] = mass
+    return P
+
+
 def apply_checks(model, sol: Solution, not_estimable: str | None, held: list[tuple[int, int]],
                  notes: list[str], weak_window: int = 0) -> list[str]:
     """Mark error bars that cannot be estimated (NaN), record the residual degrees of freedom and
@@ -221,6 +306,11 @@ def apply_checks(model, sol: Solution, not_estimable: str | None, held: list[tup
     topo = model.topology
     warnings += physical_warnings(topo.rod_names, topo.spring_names, model.mass, model.inertia,
                                   model.stiffness, model.damping, model.stderr.get("inertia"))
+    if model.full_inertia:  # the smallest eigenvalue of each rod's pseudo-inertia (> 0: a rigid body)
+        J = inertia_tensor(model.inertia, model.inertia_frame)
+        com = np.zeros((topo.n_rods, 3)) if model.com is None else model.com
+        model.metrics["pseudo_inertia_min_eigenvalue"] = [
+            float(np.linalg.eigvalsh(pseudo_inertia(model.mass[i], com[i], J[i]))[0]) for i in range(topo.n_rods)]
     model.metrics.setdefault("data", {})["residual_dof"] = round(
         residual_dof(sol.rows, sol.free, weak_window), 1)
     model.metrics["warnings"] = warnings

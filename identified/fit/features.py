@@ -56,7 +56,7 @@ from identified.engine.integration import (
     spring_rate_rows,
 )
 from identified.fit.layout import ParameterLayout
-from identified.rotation import matrix_apply_transpose, quat_to_matrix
+from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_matrix
 from identified.samples import Chunk
 from identified.topology import Topology
 
@@ -93,6 +93,9 @@ class RodColumns:
     actuator_slot: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     actuator_start: int = 0
     actuator_width: int = 0
+    #: the rod's first moment ``M c`` (3) and products of inertia (3) start here (-1: the layout
+    #: has no full inertia)
+    inertial_start: int = -1
 
     @classmethod
     def build(cls, topology: Topology, layout: ParameterLayout, length_ref: np.ndarray | None = None) -> RodColumns:
@@ -109,7 +112,8 @@ class RodColumns:
                              for n in layout.actuators], dtype=np.int64)
         per_rod_act = [[a for a in range(U) if i in topology.springs[a_spring[a]].rods] for i in range(R)]
         W = max((len(x) for x in per_rod_act), default=0)
-        full = -np.ones((R, 2 * D + 5 + P + Q + 3 * W + sum(widths)), dtype=np.int64)
+        F = 6 if layout.full_inertia else 0
+        full = -np.ones((R, 2 * D + 5 + P + Q + 3 * W + F + sum(widths)), dtype=np.int64)
         slot = -np.ones((S, 2), dtype=np.int64)
         for i, js in enumerate(per_rod):
             for k, j in enumerate(js):
@@ -133,7 +137,10 @@ class RodColumns:
                 for e in range(2):
                     if topology.springs[a_spring[a]].rods[e] == i:
                         a_slot[a, e] = k
-        starts, col = [], a0 + 3 * W
+        if F:
+            for i in range(R):
+                full[i, a0 + 3 * W : a0 + 3 * W + F] = [layout.first_moment(i, k) for k in range(F)]
+        starts, col = [], a0 + 3 * W + F
         for k, (eff, w) in enumerate(zip(layout.effects, widths)):
             off = layout.effect_offset(k)
             starts.append(col)
@@ -150,7 +157,7 @@ class RodColumns:
         ref = np.zeros(S) if length_ref is None else np.asarray(length_ref, dtype=float).reshape(S)
         return cls(full=full, slot=slot, degree=D, effect_start=tuple(starts), preload=bool(P),
                    rest_steps=bool(Q), length_ref=ref if P else None, actuator_spring=a_spring, actuator_slot=a_slot,
-                   actuator_start=a0, actuator_width=W)
+                   actuator_start=a0, actuator_width=W, inertial_start=a0 + 3 * W if F else -1)
 
     def block_columns(self, rod: int, rotation: bool) -> np.ndarray:
         """Local columns used by the translation (M) or rotation (I) rows of a rod, padding dropped."""
@@ -232,6 +239,11 @@ def equation_rows(
     A[:, 3:6, :, 2 * D + 1] = torch.stack([alpha[..., 0], wz * wx, -wx * wy], 1)
     A[:, 3:6, :, 2 * D + 2] = torch.stack([-wy * wz, alpha[..., 1], wx * wy], 1)
     A[:, 3:6, :, 2 * D + 3] = torch.stack([wy * wz, -wz * wx, alpha[..., 2]], 1)
+    if columns.inertial_start >= 0:
+        if implicit_dt:
+            raise ValueError("a rod's centre of mass and products of inertia are identified for the euler and "
+                             "rk4 integrators, not the implicit one")
+        _full_inertia_columns(A, columns.inertial_start, rot, chunk.acc - gravity, alpha, chunk.angvel_body)
     if implicit_dt:  # + dt G(I) a_b, column k with I = e_k
         eye = torch.eye(3, dtype=dtype, device=device)
         w, a, basis = torch.broadcast_tensors(chunk.angvel_body.unsqueeze(-2), alpha.unsqueeze(-2), eye)
@@ -281,6 +293,38 @@ def _actuator_columns(A: torch.Tensor, columns: RodColumns, chunk: Chunk, u: tor
                     continue
                 rod = int(end_rods[columns.actuator_spring[a], e])
                 A[:, :, rod, a0 + k * W + slot] += vals[:, a, e]
+
+
+def _full_inertia_columns(A: torch.Tensor, c0: int, rot: torch.Tensor, acc_g: torch.Tensor, alpha: torch.Tensor,
+                          w: torch.Tensor) -> None:
+    """Write each rod's first-moment and product-of-inertia columns into ``A`` (N, 6, R, L).
+
+    Newton-Euler about the rod frame's origin with the centre of mass at ``c`` (rod frame), the
+    terms linear in ``M c`` and in the inertia's products (layout module docstring):
+
+    * translation (world): ``+ R (α_b × Mc + w_b × (w_b × Mc))``;
+    * rotation (rod frame): ``+ Mc × Rᵀ (a - g)`` and ``+ J_p α_b + w_b × (J_p w_b)`` for each
+      product ``p`` (``J_p`` the symmetric unit matrix of entry ``xy``, ``xz`` or ``yz``).
+
+    ``acc_g`` (N, R, 3) is ``a - g`` of the origin (world), ``alpha`` and ``w`` (N, R, 3) rod frame.
+    """
+    eye = torch.eye(3, dtype=A.dtype, device=A.device)
+    a_b = matrix_apply_transpose(rot, acc_g)
+    for k in range(3):
+        e = eye[k].expand_as(w)
+        lin = matrix_apply(rot, torch.cross(alpha, e, dim=-1) + torch.cross(w, torch.cross(w, e, dim=-1), dim=-1))
+        A[:, 0:3, :, c0 + k] = lin.transpose(1, 2)
+        A[:, 3:6, :, c0 + k] = torch.cross(e, a_b, dim=-1).transpose(1, 2)
+    for k, (p, q) in enumerate(((0, 1), (0, 2), (1, 2))):
+        J_alpha, J_w = _unit_product(alpha, p, q), _unit_product(w, p, q)
+        A[:, 3:6, :, c0 + 3 + k] = (J_alpha + torch.cross(w, J_w, dim=-1)).transpose(1, 2)
+
+
+def _unit_product(v: torch.Tensor, p: int, q: int) -> torch.Tensor:
+    """``E v`` for the symmetric unit matrix ``E`` of entry ``(p, q)`` (ones at (p, q) and (q, p))."""
+    out = torch.zeros_like(v)
+    out[..., p], out[..., q] = v[..., q], v[..., p]
+    return out
 
 
 def step_context(topology: Topology, chunk: Chunk, rot: torch.Tensor, ends: Any,

@@ -29,6 +29,7 @@ from identified.fit.checks import (
     apply_checks,
     check_enough_data,
     constrain_inertias,
+    constrain_rigid_bodies,
     refuse_too_few_equations,
     widen_for_overlap,
 )
@@ -46,7 +47,7 @@ from identified.fit.regression import (
     solve,
 )
 from identified.jsonsafe import finite_or_none
-from identified.model import IdentifiedModel
+from identified.model import IdentifiedModel, rigid_body_from_regression
 from identified.samples import iter_chunks
 from identified.topology import Topology
 from identified.twin import engine_from_model
@@ -54,6 +55,8 @@ from identified.twin import engine_from_model
 __all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
+#: a rod's inertial parameters: all ten, the diagonal model, or chosen from the topology
+INERTIA = ("auto", "full", "diagonal")
 #: the fit's strategies an effect may declare (``Effect.fit_strategy``): its columns join the main
 #: regression; the same after a classification search (:mod:`identified.fit.classification`); on the
 #: joint model's residual (:func:`fit_residual_effects`)
@@ -157,6 +160,8 @@ def identify(
     contact_margin: int = 0,
     _classified: bool = False,
     _residual_stage: bool = True,
+    inertia: str = "auto",
+    _release: str | None = None,
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -179,12 +184,19 @@ def identify(
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
     noise measure the rows' noise for the errors-in-variables fit (:mod:`identified.fit.noise`,
     :mod:`identified.fit.regression`); 0 fits as if the states were exact.
+    ``inertia``: ``"full"`` identifies every rod's ten inertial parameters (mass, centre of mass
+    in the rod frame, the full inertia tensor: :mod:`identified.fit.layout`), ``"diagonal"`` takes
+    the rod frame at the centre of mass along the principal axes (the paper's ``M, Ixx, Iyy,
+    Izz``), ``"auto"``: full for a topology with a composite rod (a rod of several bodies, whose
+    centre of mass and axes the frame does not give) unless the integrator is the implicit one.
     """
+    if inertia not in INERTIA:
+        raise ValueError(f"inertia must be one of {', '.join(INERTIA)}, got '{inertia}'")
     if integrator == "auto":
         integrator, scores = select_integrator(dataset, topology, regressors, scale, weak_window, device)
         model = identify(dataset, topology, regressors, scale, solver, weak_window, integrator, scheme,
                          chunk_steps, progress, device, noise_copies, effects, hold_inertia, contact_margin,
-                         _classified)
+                         _classified, inertia=inertia)
         model.metrics["integrator_selection"] = scores
         return model
     if integrator not in INTEGRATORS:
@@ -195,7 +207,7 @@ def identify(
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
                             bar, device, noise_copies, effects, hold_inertia, contact_margin, _classified=True,
-                            _residual_stage=residual_stage)
+                            _residual_stage=residual_stage, inertia=inertia)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
@@ -210,7 +222,30 @@ def identify(
     late = [e for e in effects if e.fit_strategy == "residual"]
     forces = [a for a in topology.actuators if a.kind != "rest_length"]
     use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
-    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act)
+    chosen = inertia == "auto"
+    if chosen:
+        inertia = "full" if integrator != "implicit" and any(len(r.bodies) > 1 for r in topology.rods) else "diagonal"
+    if inertia == "full" and _release is None:
+        # the centres of mass and products released after a first diagonal solve, else held from
+        # none; when neither fits (the data cannot separate them), the diagonal model (for "auto")
+        again = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
+                 "integrator": integrator, "scheme": scheme, "chunk_steps": chunk_steps, "progress": progress,
+                 "device": device, "noise_copies": noise_copies, "effects": effects, "hold_inertia": hold_inertia,
+                 "contact_margin": contact_margin, "_classified": _classified, "_residual_stage": _residual_stage}
+        err: IdentifiabilityError | None = None
+        for release in ("after_first", "from_start"):
+            try:
+                return identify(dataset, topology, inertia="full", _release=release, **again)
+            except IdentifiabilityError as exc:
+                err = exc
+        if not chosen:
+            raise err  # type: ignore[misc]
+        model = identify(dataset, topology, inertia="diagonal", **again)
+        model.metrics["warnings"].insert(0, f"the rods' centres of mass and products of inertia were not identified "
+                                            f"(with them {err}): the diagonal model")
+        return model
+    layout = ParameterLayout.for_topology(topology, regressors, joint, rest_lengths=True, actuators=use_act,
+                                          full_inertia=inertia == "full")
     has_pushes = bool(np.any(dataset.push_force != 0))
     anchor, fixed, scale_desc = resolve_anchor(layout, scale, has_pushes)
     fixed.update(_pinned(joint, layout))
@@ -305,6 +340,11 @@ def identify(
             steps = [layout.rest_step(j) for j in range(topology.n_springs)] if layout.rest_steps else []
             rest_law += [i for i in steps if i not in fixed]
             names = layout.full_names
+            # the full inertia's first moments and products are held at 0 in the first solve too (the
+            # diagonal model classifies the cables' taut rows by a sound first estimate of their rest
+            # lengths), then released with the rest lengths' estimate
+            released = [j for i in range(layout.n_rods) for j in _inertial_extras(layout, i)
+                        if j not in fixed] if layout.full_inertia and _release == "after_first" else []
 
             def solve_classified(f: dict[int, float], hold: Sequence[int] = ()) -> Any:
                 """Solve with ``hold`` at 0; such a parameter whose spring has no row on the other
@@ -324,13 +364,13 @@ def identify(
                         unseen.extend(hit)
                 else:
                     sol = solve_separating(held)
-                f.update({i: v for i, v in held.items() if i not in rest_law})
+                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released})
                 return sol
 
             unseen: list[int] = []  # held by the last classification: no row on the other side
 
             try:
-                sol = solve_classified(fixed, hold=rest_law)
+                sol = solve_classified(fixed, hold=rest_law + released)
             except IdentifiabilityError:  # too few equations is the cause to name, when it is one
                 refuse_too_few_equations(sum(factors.rows), free_parameters(layout, anchor, fixed),
                                          dataset.n_episodes * dataset.n_steps, weak)
@@ -341,7 +381,7 @@ def identify(
             # a spring an effect's law switches at its rest length (cable_slack) is reclassified too
             slack = passive & (topology.pull_only | any(e.reads_rest_length for e in joint))
             U = len(layout.actuators)
-            for _ in range(REST_ITERATIONS if (slack.any() or filters.any()) else 0):
+            for it in range(REST_ITERATIONS if (slack.any() or filters.any() or released) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
                 # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
                 # its rows is taut (its columns vanish, and the solve names it as unidentifiable)
@@ -365,7 +405,7 @@ def identify(
                     settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
                     tau = tau_new
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
-                if settled:
+                if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
@@ -383,8 +423,13 @@ def identify(
                 sol = solve_separating(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
+            rigid: list[str] = []
+            if layout.full_inertia:  # first: a rod that is no rigid body gets the diagonal model
+                sol, rigid, held_rigid = constrain_rigid_bodies(sol, solve_holding, layout, fixed)
             sol, notes, held = constrain_inertias(sol, solve_holding,
                                                   layout.inertia, layout.n_rods, layout.rod_names, fixed)
+            notes = rigid + notes
+            held = held_rigid + held if layout.full_inertia else held
             sol = widen_for_overlap(sol, weak)
         else:
             from identified.fit.adam import adam_solve
@@ -483,6 +528,11 @@ def _rest_stderr(theta: np.ndarray, cov: np.ndarray, layout: ParameterLayout, pa
     x = _rest_from(theta, layout, passive, np.zeros(S))
     var = (cov[pi, pi] - 2 * x * cov[ki, pi] + x**2 * cov[ki, ki]) / np.where(k != 0, k, np.nan) ** 2
     return np.where(passive, np.sqrt(np.clip(var, 0.0, None)), 0.0)
+
+
+def _inertial_extras(layout: ParameterLayout, i: int) -> list[int]:
+    """Full-vector indices of rod ``i``'s first moment and products (the full model's extras)."""
+    return [layout.first_moment(i, k) for k in range(6)]
 
 
 def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) -> None:
@@ -629,8 +679,15 @@ def _to_model(
     rest = dataset.rest_length.mean(axis=(0, 1))  # an actuated cable's: its mean command
     if layout.rest_lengths:
         rest = np.where(passive, _rest_from(th, layout, passive, length_ref), rest)
+    inertia, inertia_se, com, com_se, frame = th[i_idx], None if se is None else se[i_idx], None, None, None
+    if layout.full_inertia:  # the ten parameters -> centre of mass, principal moments and axes
+        cols = np.array([[layout.m(i), *i_idx[i], *(layout.first_moment(i, k) for k in range(6))]
+                         for i in range(R)])
+        com, inertia, frame, com_se, inertia_se = rigid_body_from_regression(th, sol.cov, cols)
     if se is not None:
-        stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": se[i_idx]}
+        stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": inertia_se}
+        if com_se is not None:
+            stderr["com"] = com_se
         if layout.rest_lengths:
             stderr["rest_length"] = _rest_stderr(th, sol.cov, layout, passive)
         if has_pushes:
@@ -666,7 +723,9 @@ def _to_model(
         damping=th[c_idx],
         rest_length=rest,
         mass=th[m_idx],
-        inertia=th[i_idx],
+        inertia=inertia,
+        com=com,
+        inertia_frame=frame,
         control_scale=float(th[layout.h]),
         dt=dataset.dt,
         gravity=dataset.gravity.copy(),

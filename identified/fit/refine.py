@@ -228,6 +228,8 @@ def refine(
         stderr={},  # the regression's error bars no longer apply
         metrics=dict(model.metrics),
     )
+    if model.full_inertia:  # the refined diagonal about the centre of mass, with the products it held
+        out.set_inertia_about_com(out.inertia, p.inertia_products.detach().numpy() * lam)
     out.metrics["refine"] = {
         "horizon": horizon, "windows": int(ep.size), "loss_before": before, "loss_after": after,
         "cost": "output-error maximum likelihood (noise-weighted, free initial states)" if noisy

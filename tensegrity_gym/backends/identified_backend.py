@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from identified.engine import Effect
+from identified.engine.actuators import ActuatorBank
 from identified.mjcf import nominal_pose, parse_mjcf, read_mjcf_text, spring_lengths
 from identified.model import IdentifiedModel, check_effect_objects, load_model, validate_fields
 from identified.state import RodState
@@ -206,10 +207,7 @@ class IdentifiedBackend(Backend):
         self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
         topo_mjcf = Topology.from_mjcf(self.mjcf)
         self.ground = topo_mjcf.ground
-        forces = [a.name for a in topo_mjcf.actuators if a.kind != "rest_length"]
-        if forces:
-            raise ValueError(f"the MJCF '{self.mjcf_source}' has MuJoCo actuators {forces}, which the identified "
-                             "model does not hold: the twin cannot step them")
+        self._actuators(topo_mjcf, dtype, device)
         if parse_mjcf(self.mjcf).find("keyframe/key[@name='nominal']") is not None:
             self._nominal = nominal_pose(self.mjcf, self.rod_names)
         else:  # a lab's model: the pose the plant stands in (a keyframe, or settled from qpos0)
@@ -227,11 +225,45 @@ class IdentifiedBackend(Backend):
         self._nominal_rest = rest
         self.num_threads, self.compile = num_threads, compile  # the batched env takes the same
         self.physics = TwinPhysics(self.engine, self.motor, act, batch=None, num_threads=num_threads,
-                                   compile=compile)
+                                   compile=compile, actuators=self.actuator_bank)
         self._cache: RodState | None = None
         self._last_finite: RodState | None = None
         self._drawn: RodState | None = None
         self.reset(self._nominal, self._nominal_rest)
+
+    def _actuators(self, topo_mjcf: Topology, dtype: torch.dtype, device: torch.device | str) -> None:
+        """The MJCF's tendon actuators, stepped with the identified model's force law (``actuators``
+        of the model: gain, bias, dynamics, time constant), in the MJCF's order (the plant's)."""
+        mine = [a for a in topo_mjcf.actuators if a.kind != "rest_length"]
+        fitted = {a["name"]: a for a in self.model.actuators}
+        missing = [a.name for a in mine if a.name not in fitted]
+        if missing:
+            raise ValueError(f"the MJCF '{self.mjcf_source}' has MuJoCo actuators {missing}, which the identified "
+                             "model does not hold (fit it on data with their commands): the twin cannot step them")
+        self.actuator_names = tuple(a.name for a in mine)
+        self.actuator_bank = ActuatorBank.from_json([fitted[a.name] for a in mine], self.tendon_names,
+                                                    float(self.model.dt), dtype, device)
+        rng = [a.ctrlrange or (-np.inf, np.inf) for a in mine]
+        self._ctrl_bounds = (np.array([r[0] for r in rng], dtype=float), np.array([r[1] for r in rng], dtype=float))
+
+    def ctrl_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high), each (U,): the actuators' ``ctrlrange``; ValueError naming one without."""
+        bad = [n for n, lo, hi in zip(self.actuator_names, *self._ctrl_bounds) if not (np.isfinite(lo)
+                                                                                      and np.isfinite(hi))]
+        if bad:
+            raise ValueError(f"actuator '{bad[0]}' has no ctrlrange: give it ctrlrange=\"low high\" "
+                             "so that commands can be scaled onto it")
+        return self._ctrl_bounds[0].copy(), self._ctrl_bounds[1].copy()
+
+    def set_ctrl(self, ctrl: np.ndarray) -> None:
+        """The (U,) actuator commands, held until changed, clipped into ``ctrlrange`` (as MuJoCo
+        clamps a ctrl-limited actuator's command)."""
+        u = check_targets(ctrl, len(self.actuator_names))
+        self.physics.set_ctrl(np.clip(u, *self._ctrl_bounds))
+
+    def actuator_state(self) -> np.ndarray:
+        """(U,) each actuator's activation, or its command where it has no dynamics."""
+        return self.physics.actuator_state_numpy()
 
     # ------------------------------------------------------------------ metadata
     @property

@@ -33,6 +33,11 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
   substeps agree to rounding (tests/test_twin_speed.py).
 
+MuJoCo tendon actuators (``actuators``, an :class:`identified.engine.actuators.ActuatorBank` of the
+identified model's): every substep their force on the tendons (gain times activation plus bias)
+goes into the engine step (``tendon_force``) and their activations then follow the held commands
+(:meth:`TwinPhysics.set_ctrl`) as MuJoCo's Euler integrator steps them.
+
 Divergence: a copy whose state stops being finite is marked (:attr:`TwinPhysics.diverged`) and
 reads as NaN until it is reset.
 """
@@ -51,6 +56,7 @@ import numpy as np
 import torch
 
 from identified.engine import SpringRodEngine, SpringRodParams
+from identified.engine.actuators import ActuatorBank
 from identified.state import RodState
 from identified.threads import torch_threads
 from tensegrity_gym.cables import MotorSpec, motor_step
@@ -111,12 +117,13 @@ class TwinPhysics:
             component form (ground contact) their parameters as (N, 1, P), and every copy a rest
             offset per spring and a motor speed; all start at the engine's values and change with
             :meth:`set_parameters`. The engine is copied: the one passed in is left as it is.
+        actuators: the identified MuJoCo tendon actuators (module docstring), ``None``: none.
     """
 
     def __init__(self, engine: SpringRodEngine, motor: MotorSpec, actuated_index: np.ndarray,
                  batch: int | None = None, chunk_size: int | None = None,
                  num_threads: int | str | None = "auto", compile: bool | str = "auto",
-                 per_env: bool = False) -> None:
+                 per_env: bool = False, actuators: ActuatorBank | None = None) -> None:
         if batch is not None and (int(batch) != batch or batch < 1):
             raise ValueError(f"batch must be an integer >= 1 or None, got {batch}")
         if chunk_size is not None and (int(chunk_size) != chunk_size or chunk_size < 1 or batch is None):
@@ -155,6 +162,10 @@ class TwinPhysics:
         self.rest_act = self.rest[..., self._act].clone()  # the motors' state, (*B, A)
         self.target = self.rest_act.clone()
         self.diverged = torch.zeros(self.shape, dtype=torch.bool, device=dev)
+        self.actuators = actuators if actuators is not None and actuators.n else None
+        U = 0 if self.actuators is None else self.actuators.n
+        self.ctrl = torch.zeros(self.shape + (U,), dtype=dt, device=dev)  # held commands (*B, U)
+        self.act = torch.zeros(self.shape + (U,), dtype=dt, device=dev)  # activations (*B, U)
         self._substep: Callable[..., tuple[torch.Tensor, ...]] = self._eager_substep
         self._compiled_substep: Callable[..., tuple[torch.Tensor, ...]] | None = None
         self._first_call = True
@@ -187,7 +198,19 @@ class TwinPhysics:
         ra = self.rest[i][..., self._act]
         self.rest_act[i] = ra
         self.target[i] = ra
+        self.ctrl[i] = 0.0  # as mj_resetData: no command, activations at rest
+        self.act[i] = 0.0
         self.diverged[i] = False
+
+    def set_ctrl(self, ctrl: Any, index: Any = None) -> None:
+        """The actuators' commands (*B, U), held until changed."""
+        self.ctrl[self._index(index)] = self.tensor(ctrl)
+
+    def actuator_state_numpy(self) -> np.ndarray:
+        """(*B, U) what each actuator's force acts on now: its activation, or its command where it
+        has no dynamics."""
+        a = self.act if self.actuators is None else torch.where(self.actuators.direct, self.ctrl, self.act)
+        return a.detach().to("cpu", torch.float64, copy=True).numpy()
 
     def set_targets(self, target: Any, index: Any = None) -> None:
         """Motor targets (*B, A) in metres (clipped into the motor bounds)."""
@@ -251,48 +274,59 @@ class TwinPhysics:
         pf = None if push_force is None else self.tensor(push_force)
         pp = None if push_point is None else self.tensor(push_point)
         c, n = self.chunk_size, int(n_substeps)
+        acts = self.actuators is not None
         with torch_threads(self.num_threads), torch.no_grad():
             if c is None:
-                state, rest, rest_act = self._advance(n, self.state, self.rest, self.rest_act, self.target, pf, pp)
+                state, rest, rest_act, act = self._advance(n, self.state, self.rest, self.rest_act, self.target, pf,
+                                                           pp, self.act if acts else None, self.ctrl)
             else:
                 parts = []
                 for a in range(0, self.batch, c):  # type: ignore[arg-type]
                     sl = slice(a, a + c)
                     block = RodState(*(x[sl] for x in self.state))
                     parts.append(self._advance(n, block, self.rest[sl], self.rest_act[sl], self.target[sl],
-                                               None if pf is None else pf[sl], None if pp is None else pp[sl]))
+                                               None if pf is None else pf[sl], None if pp is None else pp[sl],
+                                               self.act[sl] if acts else None, self.ctrl[sl]))
                 state = RodState(*(torch.cat([p[0][k] for p in parts]) for k in range(4)))
                 rest = torch.cat([p[1] for p in parts])
                 rest_act = torch.cat([p[2] for p in parts])
+                act = torch.cat([p[3] for p in parts]) if acts else None
             finite = torch.isfinite(torch.cat(tuple(state), dim=-1)).flatten(-2).all(-1)
+        if act is not None:
+            self.act = act
         self.state = state
         self.rest = rest.clone() if rest is rest_act else rest  # two tensors: reset writes both
         self.rest_act = rest_act
         self.diverged = self.diverged | ~finite
 
     def _advance(self, n: int, state: RodState, rest: torch.Tensor, rest_act: torch.Tensor,
-                 target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
-                 ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
+                 target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None,
+                 act: torch.Tensor | None = None, ctrl: torch.Tensor | None = None
+                 ) -> tuple[RodState, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``n`` substeps (motors, then one engine step) of a block of copies. The substeps work on
         the state's components (:mod:`identified.engine.smallmat`: one contiguous tensor (*B, R)
-        per coordinate), split once before and stacked once after."""
+        per coordinate), split once before and stacked once after. ``act``/``ctrl``: the block's
+        actuator activations and commands (``act`` ``None``: no actuators)."""
         comps = _split(state)
         if self._first_call:
             self._first_call = False
             if self.compiled:
-                return self._compile_and_advance(n, comps, rest, rest_act, target, pf, pp)
+                return self._compile_and_advance(n, comps, rest, rest_act, target, pf, pp, act, ctrl)
         sub = self._substep
-        x, r, ra = comps, rest, rest_act
+        x, r, ra, a = comps, rest, rest_act, act
         try:
             for _ in range(n):
-                x, r, ra = sub(x, r, ra, target, pf, pp)
+                if act is None:
+                    x, r, ra = sub(x, r, ra, target, pf, pp)
+                else:
+                    x, r, ra, a = sub(x, r, ra, target, pf, pp, a, ctrl)
         except Exception as exc:
             if sub is self._eager_substep:
                 raise
             # a later compilation (a push, a new block shape) failed: eager from the same inputs
             self._fall_back(exc)
-            return self._advance(n, state, rest, rest_act, target, pf, pp)
-        return _stack(x), r, ra
+            return self._advance(n, state, rest, rest_act, target, pf, pp, act, ctrl)
+        return _stack(x), r, ra, a
 
     def _fall_back(self, exc: Exception) -> None:
         """Stop compiling (warn once) and step eagerly from now on."""
@@ -303,42 +337,55 @@ class TwinPhysics:
                       "runs eagerly (compile=False silences this)", stacklevel=5)
 
     def _eager_substep(self, state: tuple, rest: torch.Tensor, rest_act: torch.Tensor, target: torch.Tensor,
-                       pf: torch.Tensor | None, pp: torch.Tensor | None) -> tuple[tuple, torch.Tensor, torch.Tensor]:
+                       pf: torch.Tensor | None, pp: torch.Tensor | None, act: torch.Tensor | None = None,
+                       ctrl: torch.Tensor | None = None) -> tuple:
         """One substep: the motors move the actuated rest lengths, then one engine step
         (:meth:`~identified.engine.SpringRodEngine.step_components` when the engine is fused, else
-        :meth:`~identified.engine.SpringRodEngine.step` on the stacked state). ``state`` and the
-        result: the components of (pos, quat, vel, angvel), each (*B, R)."""
+        :meth:`~identified.engine.SpringRodEngine.step` on the stacked state) with the actuators'
+        tendon forces, then the actuators' activations follow ``ctrl``. ``state`` and the result:
+        the components of (pos, quat, vel, angvel), each (*B, R); with ``act`` the result ends
+        with the new activations."""
         e = self.engine
         if self.motor.n:
             rest_act = motor_step(rest_act, target, self._speed, e.dt, self._lo, self._hi)
             rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)
         springs = rest if self._rest_offset is None else rest + self._rest_offset
+        force = None if act is None else self.actuators.force(ctrl, act)  # type: ignore[union-attr]
         if self._fused:
-            return e.step_components(*state, springs, pf, pp), rest, rest_act
-        return _split(e.step(_stack(state), springs, pf, pp)), rest, rest_act
+            x = e.step_components(*state, springs, pf, pp, force)
+        else:
+            x = _split(e.step(_stack(state), springs, pf, pp, force))
+        if act is None:
+            return x, rest, rest_act
+        return x, rest, rest_act, self.actuators.step(ctrl, act)  # type: ignore[union-attr]
 
     def _compile_and_advance(self, n: int, comps: tuple, rest: torch.Tensor, rest_act: torch.Tensor,
-                             target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None
-                             ) -> tuple[RodState, torch.Tensor, torch.Tensor]:
+                             target: torch.Tensor, pf: torch.Tensor | None, pp: torch.Tensor | None,
+                             act: torch.Tensor | None = None, ctrl: torch.Tensor | None = None
+                             ) -> tuple[RodState, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The first step with ``compile``: compile the substep (timed), check it runs, keep it;
         on any failure warn once and stay eager."""
+        extra = () if act is None else (act, ctrl)
         # one eager substep first: effects fill their lazy caches (geometry, parameter tensors)
         # eagerly, so the compiled substep reads them as constants and stays ONE graph (a cache
         # filled inside the traced call is numpy work that breaks the graph)
-        self._eager_substep(comps, rest, rest_act, target, pf, pp)
+        self._eager_substep(comps, rest, rest_act, target, pf, pp, *extra)
         t0 = time.perf_counter()
         try:
             fn = torch.compile(self._eager_substep, dynamic=False, options=self._inductor_options())
-            out = fn(comps, rest, rest_act, target, pf, pp)
+            out = fn(comps, rest, rest_act, target, pf, pp, *extra)
         except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
             self._fall_back(exc)
-            return self._advance(n, _stack(comps), rest, rest_act, target, pf, pp)
+            return self._advance(n, _stack(comps), rest, rest_act, target, pf, pp, act, ctrl)
         self.compile_seconds = time.perf_counter() - t0
         self._substep = self._compiled_substep = fn
-        x, rest, rest_act = out
+        x, rest, rest_act, a = (*out, None) if act is None else out
         for _ in range(n - 1):
-            x, rest, rest_act = fn(x, rest, rest_act, target, pf, pp)
-        return _stack(x), rest, rest_act
+            if act is None:
+                x, rest, rest_act = fn(x, rest, rest_act, target, pf, pp)
+            else:
+                x, rest, rest_act, a = fn(x, rest, rest_act, target, pf, pp, a, ctrl)
+        return _stack(x), rest, rest_act, a
 
     def _inductor_options(self) -> dict[str, Any]:
         """Inductor settings for the substep. On a CPU, a C++ wrapper (``cpp_wrapper``): the

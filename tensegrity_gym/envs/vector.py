@@ -141,6 +141,9 @@ class TensegrityIcoVectorEnv(VectorEnv):
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
 
         backend = IdentifiedBackend(model, **(backend_kwargs or {}))
+        if backend.actuator_names:
+            raise ValueError(f"the batched twin steps rest-length motors only, not the MJCF's MuJoCo actuators "
+                             f"{list(backend.actuator_names)}: use the single twin env (gym.make)")
         self.env = TensegrityIcoEnv(backend=backend, **env_kwargs)  # validates the arguments
         e = self.env
         self.backend = backend

@@ -1,0 +1,199 @@
+"""Full rigid-body inertia: each rod's mass, centre of mass (rod frame) and inertia tensor, identified
+linearly in the ten standard parameters, and stepped by the engine.
+
+The plant is the prism of ``examples/`` without its floor, its bars given a centre of mass off the
+frame's origin and a full inertia tensor (``<inertial fullinertia>``) and attachment sites off their
+axes (so that every moment shows in the data), on MuJoCo's Euler integrator: the regression's
+equations are the plant's exact discretisation, so clean data give every parameter to rounding.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from identified import Topology
+from identified.engine import SpringRodEngine, SpringRodParams
+from identified.engine.actuators import tendon_forces
+from identified.fit.checks import pseudo_inertia
+from identified.fit.identify import ScaleSpec, identify
+from identified.model import IdentifiedModel, inertia_tensor, principal_axes
+from identified.twin import params_from_model
+from tensegrity_gym.collect import CollectConfig, collect
+
+PRISM = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "prism3.xml")
+#: per bar: centre of mass (rod frame), mass, inertia about it (xx yy zz xy xz yz), rod frame
+INERTIAL = {"bar1": ((0.03, -0.01, 0.05), 0.25, (0.0070, 0.0072, 0.0006, 0.0001, -0.00005, 0.00008)),
+            "bar2": ((-0.02, 0.015, -0.04), 0.28, (0.0080, 0.0075, 0.0007, -0.0002, 0.00006, 0.0001)),
+            "bar3": ((0.01, 0.02, 0.03), 0.31, (0.0085, 0.0090, 0.0008, 0.00015, 0.0001, -0.00007))}
+
+
+def _plant() -> str:
+    with open(PRISM, encoding="utf-8") as fh:
+        xml = fh.read()
+    xml, n = re.subn(r'<geom name="floor"[^>]*/>', "", xml)
+    assert n == 1
+    for b, (c, m, j) in INERTIAL.items():
+        inertial = (f'<inertial pos="{" ".join(map(str, c))}" mass="{m}" fullinertia="{" ".join(map(str, j))}"/>')
+        for end, pos in (("bot", "0.02 0 -0.2897"), ("top", "0 0.02 0.2897")):
+            old = f'<site name="{b}_{end}" pos="0 0 {"-" if end == "bot" else ""}0.2897"/>'
+            assert old in xml
+            xml = xml.replace(old, (inertial if end == "bot" else "") + f'<site name="{b}_{end}" pos="{pos}"/>')
+    return xml
+
+
+def _tensor(j: tuple) -> np.ndarray:
+    return np.array([[j[0], j[3], j[4]], [j[3], j[1], j[5]], [j[4], j[5], j[2]]])
+
+
+@pytest.fixture(scope="module")
+def plant_and_data():
+    xml = _plant()
+    data = collect(xml, CollectConfig(episodes=2, steps=300, seed=3, push_every=50))
+    return xml, data
+
+
+def test_ten_inertial_parameters_recovered_to_rounding(plant_and_data):
+    xml, data = plant_and_data
+    topo = Topology.from_mjcf(xml)
+    model = identify(data, topo, inertia="full", scale=ScaleSpec(total_mass=0.84))
+    for i, (c, m, j) in enumerate(INERTIAL.values()):
+        assert model.mass[i] == pytest.approx(m, rel=1e-10)
+        np.testing.assert_allclose(model.com[i], c, atol=1e-10)
+        J = inertia_tensor(model.inertia[i:i + 1], model.inertia_frame[i:i + 1])[0]
+        np.testing.assert_allclose(J, _tensor(j), atol=1e-10 * 0.009)
+        np.testing.assert_allclose(model.inertia[i], principal_axes(_tensor(j))[0], rtol=1e-9)
+        # error bars are at rounding and cover the truth
+        se_c, se_i = model.stderr["com"][i], model.stderr["inertia"][i]
+        assert np.all(se_c < 1e-12) and np.all(se_i < 1e-12)
+        assert np.all(np.abs(model.com[i] - c) <= 5 * se_c + 1e-13)  # + rounding of the data
+    assert all(e > 0 for e in model.metrics["pseudo_inertia_min_eigenvalue"])
+    assert not [w for w in model.metrics["warnings"] if "inertia" in w]
+    # the JSON carries them; a round trip steps the same engine
+    obj = json.loads(json.dumps(model.to_json()))
+    assert obj["rods"][0]["com"] == pytest.approx(list(INERTIAL["bar1"][0]), abs=1e-10)
+    assert len(obj["rods"][0]["inertia_frame"]) == 4 and obj["rods"][0]["com_stderr"] is not None
+    back = IdentifiedModel.from_json(obj)
+    for a, b in zip(params_from_model(back).as_dict().values(), params_from_model(model).as_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-15)
+
+
+def test_diagonal_fit_is_the_special_case(plant_and_data):
+    """The diagonal model leaves the com and products out; on this plant it cannot describe the
+    data and its own residual says so, the full one at rounding."""
+    xml, data = plant_and_data
+    topo = Topology.from_mjcf(xml)
+    diag = identify(data, topo, inertia="diagonal", scale=ScaleSpec(total_mass=0.84))
+    assert diag.com is None and diag.inertia_frame is None and not diag.full_inertia
+    assert "com" not in diag.stderr
+    assert diag.to_json()["rods"][0]["com"] == [0.0, 0.0, 0.0]
+    assert diag.metrics["equation_residual_rms"]["rotation"] > 1e3 * identify(
+        data, topo, inertia="full", scale=ScaleSpec(total_mass=0.84)).metrics["equation_residual_rms"]["rotation"]
+    with pytest.raises(ValueError, match="inertia must be one of"):
+        identify(data, topo, inertia="principal")
+
+
+def test_engine_steps_an_off_centre_rod_as_mujoco(plant_and_data):
+    """The engine, given the plant's true parameters (centre of mass, inertia tensor about it), follows
+    the plant's own states over 200 steps: one place for the physics of an off-centre rod."""
+    xml, data = plant_and_data
+    m = mujoco.MjModel.from_xml_string(xml)
+    topo = Topology.from_mjcf(xml)
+    tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, n) for n in topo.spring_names]
+    J = np.stack([_tensor(j) for _, _, j in INERTIAL.values()])
+    params = SpringRodParams.from_values(
+        m.tendon_stiffness[tid], m.tendon_damping[tid], [x[1] for x in INERTIAL.values()],
+        np.einsum("rii->ri", J), 1.0, m.opt.gravity, com=[x[0] for x in INERTIAL.values()],
+        inertia_products=J[:, [0, 0, 1], [1, 2, 2]], n_rods=3, n_springs=9)
+    engine = SpringRodEngine(topo, params, m.opt.timestep)
+    acts = [{"name": f"motor{k}", "tendon": f"vert{k}", "dynamics": "none", "gain": -6.0, "bias": 0.0}
+            for k in (1, 2, 3)]
+    T = 200
+    force = tendon_forces(data.ctrl[:1, :T], data.dt, data.actuator_names, acts, topo.spring_names)[0]
+    s0 = [x[0, 0] for x in (data.pos, data.quat, data.vel, data.angvel)]
+    out = engine.rollout(engine.state(*s0), data.rest_length[0, :T], data.push_force[0, :T], data.push_point[0, :T],
+                         force)
+    err = np.abs(out.pos.numpy() - data.pos[0, :T + 1]).max()
+    assert err < 1e-9
+    assert np.abs(out.angvel.numpy() - data.angvel[0, :T + 1]).max() < 1e-7
+    # and the same engine with the centre of mass forgotten does not
+    flat = SpringRodEngine(topo, SpringRodParams.from_values(params.stiffness, params.damping, params.mass,
+                                                             params.inertia, 1.0, m.opt.gravity), m.opt.timestep)
+    off = flat.rollout(flat.state(*s0), data.rest_length[0, :T], data.push_force[0, :T], data.push_point[0, :T], force)
+    assert np.abs(off.pos.numpy() - data.pos[0, :T + 1]).max() > 1e3 * max(err, 1e-12)
+
+
+def test_component_form_agrees_with_the_tensor_form():
+    """The twin's fused step (component form) and ``step`` give the same state with a com offset."""
+    topo = Topology.from_mjcf(_plant())
+    rng = np.random.default_rng(0)
+    J = np.stack([_tensor(j) for _, _, j in INERTIAL.values()])
+    params = SpringRodParams.from_values(rng.uniform(200, 300, 9), rng.uniform(2, 3, 9), [0.25, 0.28, 0.31],
+                                         np.einsum("rii->ri", J), com=[x[0] for x in INERTIAL.values()],
+                                         inertia_products=J[:, [0, 0, 1], [1, 2, 2]], n_rods=3, n_springs=9)
+    engine = SpringRodEngine(topo, params, 1e-3)
+    q = rng.normal(size=(4, 3, 4))
+    s = engine.state(rng.normal(size=(4, 3, 3)), q / np.linalg.norm(q, axis=-1, keepdims=True),
+                     rng.normal(size=(4, 3, 3)), rng.normal(size=(4, 3, 3)))
+    rest = torch.full((4, 9), 0.3, dtype=torch.float64)
+    a = engine.step(s, rest)
+    b = engine.step_components(*(tuple(x.unbind(-1)) for x in s), rest)
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, torch.stack(y, -1), rtol=1e-12, atol=1e-12)
+
+
+def test_pseudo_inertia_tells_a_rigid_body_from_none():
+    """Positive principal moments that keep the triangle inequality: a positive-definite pseudo-inertia;
+    moments that break it: not."""
+    c = np.array([0.01, -0.02, 0.03])
+    assert np.linalg.eigvalsh(pseudo_inertia(0.3, c, np.diag([0.007, 0.0072, 0.0006])))[0] > 0
+    assert np.linalg.eigvalsh(pseudo_inertia(0.3, c, np.diag([0.007, 0.0072, 0.0001])))[0] < 0  # 0.0072 > 0.007 + 0.0001
+    with pytest.raises(ValueError, match="implicit integrator"):
+        SpringRodEngine(Topology.from_mjcf(_plant()), SpringRodParams.from_values(
+            np.ones(9), np.ones(9), np.ones(3), np.ones((3, 3)), com=np.zeros((3, 3)), n_rods=3, n_springs=9),
+            1e-3, integrator="implicit")
+
+
+def test_a_fit_that_is_no_rigid_body_is_constrained_to_one():
+    """Ten parameters whose tensor about the centre of mass is not positive definite: that rod's
+    products are held at 0 and the problem solved again, with a warning naming it."""
+    from identified.fit.checks import constrain_rigid_bodies
+    from identified.fit.layout import ParameterLayout
+    from identified.fit.regression import Solution
+
+    topo = Topology.from_mjcf(_plant())
+    layout = ParameterLayout.for_topology(topo, full_inertia=True)
+    theta = np.zeros(layout.n_full)
+    for i in range(3):
+        theta[layout.m(i)] = 0.3
+        theta[[layout.inertia(i, a) for a in range(3)]] = [0.007, 0.0072, 0.0006]
+        theta[layout.first_moment(i, 0)] = 0.3 * 0.01
+    theta[layout.product(1, 0)] = 0.02  # rod 1: Jxy larger than its moments allow
+    def resolve(f: dict[int, float]) -> Solution:  # the same "fit" with the held values put in
+        th = theta.copy()
+        th[list(f)] = list(f.values())
+        return Solution(th, None, [], 1.0, 0, 0)
+
+    fixed: dict[int, float] = {}
+    out, notes, held = constrain_rigid_bodies(Solution(theta, None, [], 1.0, 0, 0), resolve, layout, fixed)
+    assert len(notes) == 1 and notes[0].startswith("bar2:") and held == []
+    assert set(fixed) == {layout.product(1, k) for k in range(3)}  # the centre of mass is kept
+    assert out.theta[layout.product(1, 0)] == 0.0 and out.theta[layout.first_moment(1, 0)] == 0.3 * 0.01
+    # a consistent solution is returned as it is
+    theta[layout.product(1, 0)] = 0.0
+    assert constrain_rigid_bodies(Solution(theta, None, [], 1.0, 0, 0), None, layout, {})[1] == []
+
+
+def test_full_inertia_without_cables_to_classify():
+    """Push-pull springs and motors without filters: no rest-length classification to iterate, and the
+    centre of mass and products are still released after the first (diagonal) solve."""
+    xml = _plant().replace('springlength="0 ', 'springlength="')
+    data = collect(xml, CollectConfig(episodes=1, steps=300, seed=4, push_every=50))
+    model = identify(data, Topology.from_mjcf(xml), inertia="full", scale=ScaleSpec(total_mass=0.84))
+    np.testing.assert_allclose(model.com, [c for c, _, _ in INERTIAL.values()], atol=1e-10)

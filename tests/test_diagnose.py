@@ -400,3 +400,17 @@ def test_one_step_summary_by_hand(viscous_result, plants):
     assert reg["fraction"] == pytest.approx(fast.mean(), abs=1e-12)
     assert reg["force_rms_in"] == pytest.approx(np.sqrt((fn[fast] ** 2).mean()), rel=1e-9)
     assert reg["force_rms_out"] == pytest.approx(np.sqrt((fn[~fast] ** 2).mean()), rel=1e-9)
+
+
+def test_candidate_scores_hold_the_total_mass():
+    """The parameter changes a candidate's score may use keep the total mass (else the model's own
+    parameters, scaled, would explain any residual): every direction adds nothing to the sum of
+    the masses, the rest move freely, and only the scale direction is lost (rank n - 1)."""
+    from identified.diagnose.residual import _mass_total_held
+
+    m_idx = np.array([2, 4, 5])
+    Z = _mass_total_held(7, m_idx)
+    assert Z.shape == (7, 6) and np.linalg.matrix_rank(Z) == 6
+    np.testing.assert_array_equal(Z[m_idx].sum(axis=0), np.zeros(6))
+    np.testing.assert_array_equal(Z[[0, 1, 3, 6]], np.eye(6)[[0, 1, 3, 5]])
+    np.testing.assert_array_equal(Z[:, 2], [0, 0, 1, 0, 0, -1, 0])

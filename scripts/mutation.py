@@ -209,8 +209,9 @@ MUTANTS = [
      "        return np.stack([stick, slip, stick | slip], 1)", "held parameters swapped (never slipped / stuck)"),
     ("effects", "identified/effects/cable_friction.py", "        return bool(np.all(self._never_stuck))",
      "        return bool(np.any(self._never_stuck))", "inert when one cable never sticks"),
-    ("effects", "identified/effects/cable_friction.py", "        return torch.where(slip, F * sign, r.clamp(-F, F))",
-     "        return torch.where(slip, F * sign, r)", "sticking force not bounded"),
+    # (the final clamp of the sticking force is a no-op after the last pass's update: not a mutant)
+    ("effects", "identified/effects/cable_friction.py", "            release = slip & (sign * q < F)",
+     "            release = slip & (q.abs() < F)", "a slipping cable sticks again whatever way the stick law pulls"),
     # ------------------------------------------------------------------ twin physics
     ("twin", "tensegrity_gym/backends/twin_physics.py",
      "rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)",

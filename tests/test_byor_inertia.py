@@ -197,3 +197,19 @@ def test_full_inertia_without_cables_to_classify():
     data = collect(xml, CollectConfig(episodes=1, steps=300, seed=4, push_every=50))
     model = identify(data, Topology.from_mjcf(xml), inertia="full", scale=ScaleSpec(total_mass=0.84))
     np.testing.assert_allclose(model.com, [c for c, _, _ in INERTIAL.values()], atol=1e-10)
+
+
+def test_auto_gives_composite_rods_the_full_model():
+    """``inertia="auto"``: all ten parameters for a topology with composite rods (several bodies),
+    the diagonal model for rods of one body."""
+    with open(os.path.join(os.path.dirname(PRISM), "six_bar_composite.xml"), encoding="utf-8") as fh:
+        composite = re.sub(r'<geom name="ground"[^>]*/>', "", fh.read())  # in the air: no contact to model
+    for xml, full in ((composite, True), (re.sub(r'<geom name="floor"[^>]*/>', "", _read_prism()), False)):
+        data = collect(xml, CollectConfig(episodes=1, steps=300, seed=1, push_every=50))
+        model = identify(data, Topology.from_mjcf(xml), scale=ScaleSpec(total_mass=1.0))
+        assert model.full_inertia is full and (model.com is not None) is full
+
+
+def _read_prism() -> str:
+    with open(PRISM, encoding="utf-8") as fh:
+        return fh.read()

@@ -41,8 +41,8 @@ TESTS = {
 #: (group, file, original text, mutated text, what the bug would be[, its tests: default the group's])
 MUTANTS = [
     # ------------------------------------------------------------------ bad input (guards)
-    ("bad-input", "identified/fit/checks.py", "    if dof <= 0 or (sol.cov is None",
-     "    if dof < -1e9 or (sol.cov is None", "a fit without residual degrees of freedom is accepted"),
+    ("bad-input", "identified/fit/checks.py", "    if dof <= 0 or (not error_bars",
+     "    if dof < -1e9 or (not error_bars", "a fit without residual degrees of freedom is accepted"),
     ("bad-input", "identified/fit/checks.py", "dof < MIN_DOF_PER_PARAMETER * free:", "dof < 0:",
      "error bars of a nearly exact fit printed as if estimable"),
     ("bad-input", "identified/fit/checks.py", "np.full(np.shape(v), np.nan) for k, v", "v for k, v",
@@ -209,8 +209,9 @@ MUTANTS = [
      "        return np.stack([stick, slip, stick | slip], 1)", "held parameters swapped (never slipped / stuck)"),
     ("effects", "identified/effects/cable_friction.py", "        return bool(np.all(self._never_stuck))",
      "        return bool(np.any(self._never_stuck))", "inert when one cable never sticks"),
-    ("effects", "identified/effects/cable_friction.py", "        return torch.where(slip, F * sign, r.clamp(-F, F))",
-     "        return torch.where(slip, F * sign, r)", "sticking force not bounded"),
+    # (the final clamp of the sticking force is a no-op after the last pass's update: not a mutant)
+    ("effects", "identified/effects/cable_friction.py", "            release = slip & (sign * q < F)",
+     "            release = slip & (q.abs() < F)", "a slipping cable sticks again whatever way the stick law pulls"),
     # ------------------------------------------------------------------ twin physics
     ("twin", "tensegrity_gym/backends/twin_physics.py",
      "rest = rest_act if self._all_actuated else rest.index_copy(-1, self._act, rest_act)",

@@ -15,7 +15,8 @@ What is drawn (every width a half-width; ``0`` leaves that quantity at the ident
 ``inertia``         each rod's ``I`` (all three moments) times ``1 + U(-w, w)``
 ``rest_offset``     each cable's rest length plus ``U(-w, w)`` m: the spool's calibration
 ``contact``         per ground-contact parameter (``kappa``, ``beta_n``, ``gamma_n``, ``beta_a``,
-                    ``gamma_a``, ``beta_p``, ``gamma_p``, ``mu``, ``epsilon``): times ``1 + U(-w, w)``
+                    ``gamma_a``, ``beta_p``, ``gamma_p``, ``mu``, ``epsilon``, ``mu_torsion``,
+                    ``mu_rolling``, ``omega_slip``): times ``1 + U(-w, w)``
 ``motor_speed``     the cable motors' speed times ``1 + U(-w, w)`` (one factor per env)
 ``latency``         the command takes effect after ``k`` control steps, ``k`` uniform in
                     ``0..latency`` (drawn per env and episode)
@@ -39,7 +40,12 @@ from the plant's MJCF:
   relative width of each contact parameter, between :data:`CONTACT_FLOOR` and 0.5; the
   dimensionless gains ``gamma_*`` (near 1: the contact cancels what pushes the rod into the
   ground) at most :data:`GAMMA_MAX`. The friction coefficient ``mu`` and the regulariser
-  ``epsilon``, scanned without a standard error, get the same width;
+  ``epsilon``, scanned without a standard error, get the same width. The contact torques
+  (torsional and rolling friction, ``mu_torsion``, ``mu_rolling``, and their saturation speed
+  ``omega_slip``) are fitted on the residual torque about the contact point and explain a fraction
+  ``EV_t`` of it (``torque_explained_variance``): their width is ``CONTACT_FACTOR sqrt(1 - EV_t)``
+  the same way (or 3 standard errors), between the floor and 0.5. A coefficient the fit holds at 0
+  (the data show none) stays 0: a relative width cannot move it;
 * observation noise: what the twin gets wrong over one control period. Velocities: its one-step
   error (``metrics.one_step_rms``, one physics step, on the fit's data) grown as a random walk
   over the control period (``sqrt(frame_skip)``); positions and orientations, whose one-step
@@ -87,7 +93,10 @@ __all__ = [
     "resolve_randomization",
 ]
 
-CONTACT_PARAMETERS = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p", "mu", "epsilon")
+CONTACT_PARAMETERS = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p", "mu", "epsilon",
+                      "mu_torsion", "mu_rolling", "omega_slip")
+#: the contact torques' parameters (their width comes from the torque's unexplained variance)
+CONTACT_TORQUE_PARAMETERS = ("mu_torsion", "mu_rolling", "omega_slip")
 OBS_GROUPS = ("pos", "rot", "vel", "angvel", "rest")
 #: the contact's unexplained relative amplitude is multiplied by this to give a parameter's width
 CONTACT_FACTOR = 4.0
@@ -206,7 +215,7 @@ class Randomization:
 @dataclass
 class Draw:
     """One env's draw: relative factors (``stiffness``, ``damping`` (S,), ``mass``, ``inertia``
-    (R,), ``contact`` (9,) in :data:`CONTACT_PARAMETERS` order, ``motor_speed``), the cables' rest
+    (R,), ``contact`` (12,) in :data:`CONTACT_PARAMETERS` order, ``motor_speed``), the cables' rest
     offsets (S,) m and the latency in control steps."""
 
     stiffness: np.ndarray
@@ -248,16 +257,25 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
     metrics = getattr(model, "metrics", None) or {}
     contact = next((e for e in getattr(model, "effects", []) if e.get("name") == "ground_contact"), None)
     if contact is not None and contact.get("parameters"):
-        ev = (metrics.get("residual_stage", {}) or {}).get("ground_contact", {}).get("explained_variance")
-        unexplained = math.sqrt(max(0.0, 1.0 - float(ev))) if ev is not None else None
-        notes["contact_explained_variance"] = ev
-        base = CONTACT_FLOOR if unexplained is None else max(CONTACT_FACTOR * unexplained, CONTACT_FLOOR)
+        stage = (metrics.get("residual_stage", {}) or {}).get("ground_contact", {}) or {}
+
+        def base_width(key: str) -> float:
+            ev = stage.get(key)
+            notes[f"contact_{key}"] = ev
+            if ev is None:
+                return CONTACT_FLOOR
+            return max(CONTACT_FACTOR * math.sqrt(max(0.0, 1.0 - float(ev))), CONTACT_FLOOR)
+
+        force_base, torque_base = base_width("explained_variance"), base_width("torque_explained_variance")
         widths = {}
         vals, ses = contact["parameters"], contact.get("stderr") or {}
         for name in CONTACT_PARAMETERS:
+            if name not in vals:  # a model file written before the contact torques: none to draw
+                continue
             v, s = vals.get(name), ses.get(name)
             rel = 3.0 * abs(float(s) / float(v)) if s is not None and v not in (None, 0) else 0.0
             cap = GAMMA_MAX if name.startswith("gamma") else 0.5
+            base = torque_base if name in CONTACT_TORQUE_PARAMETERS else force_base
             widths[name] = float(min(max(base, rel), cap))
         r.contact = widths
     step = metrics.get("one_step_rms") or {}

@@ -33,11 +33,19 @@ PPO is the default. Its settings are SB3's defaults (learning rate 3e-4, 10 epoc
 GAE 0.95, no entropy bonus, ``gamma`` 0.99) except for the size of an update: the rollout of one
 update is 4,096 transitions (:data:`DEFAULT_ROLLOUT`: 64 steps x 64 twins, or 512 x 8 plants)
 whatever the number of envs, so ``envs`` only decides how many run in parallel, not what the
-algorithm does (twin and plant runs do the same updates), and mini-batches are 128. Why: with a
-budget of 100k steps SB3's 2,048 x 8 = 16,384 transitions per update leave 6 updates; 4,096 give
-25, and measured on the twin (seed 0, the shipped model, 10 plant episodes) the policy then rolls
-0.60 m per 1000-step episode on the plant instead of 0.44 m (README, "Training on the twin", for
-the figures over seeds). ``gamma`` 0.99 looks 100 control steps (2 s) ahead, about the time the
+algorithm does (twin and plant runs do the same updates), and mini-batches are 1,024 with Adam's
+fused kernel (``policy_kwargs={"optimizer_kwargs": {"fused": True}}``: the same update rule in one
+kernel call). Why the rollout: with a budget of 100k steps SB3's 2,048 x 8 = 16,384 transitions per
+update leave 6 updates; 4,096 give 25, and measured on the twin (seed 0, the shipped model, 10
+plant episodes) the policy then rolls 0.60 m per 1000-step episode on the plant instead of 0.44 m
+(README, "Training on the twin", for the figures over seeds). Why the mini-batches: an update of
+4,096 transitions in mini-batches of 128 is 320 optimizer steps of a 64 x 64 MLP, whose cost is
+SB3's and torch's fixed cost per call (Python, autograd, the optimizer), not arithmetic:
+mini-batches of 1,024 (40 steps) make an update 3.6-4x cheaper and the fused Adam 10-16 % more
+(``benchmarks/bench_train.py --updates``); the policies it trains on the shipped model at the
+300k default roll 1.18-2.15 m per episode on the plant over five seeds, against 0.61-1.24 m for
+runs with mini-batches of 128 on the contact law without torques (seed 0 on that law with
+mini-batches of 1,024: 1.52 m) (README, "Randomized twins, defaults that transfer"). ``gamma`` 0.99 looks 100 control steps (2 s) ahead, about the time the
 0.3 m/s motors take to reel a cable through most of its range and tip the robot onto the next
 face; forward speed is a dense reward, so longer horizons are not needed. The initial action
 noise stays SB3's (std 1, ``log_std_init`` 0): a quieter start (std 0.37) rolled further on the
@@ -97,8 +105,9 @@ ALGORITHMS = ("ppo", "sac")
 DEFAULT_ROLLOUT = 4096
 DEFAULT_ENVS = {("ppo", False): 64, ("ppo", True): 8, ("sac", False): 8, ("sac", True): 4}
 PPO_HYPERPARAMETERS: dict[str, Any] = {
-    "learning_rate": 3e-4, "batch_size": 128, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
+    "learning_rate": 3e-4, "batch_size": 1024, "n_epochs": 10, "gamma": 0.99, "gae_lambda": 0.95,
     "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
+    "policy_kwargs": {"optimizer_kwargs": {"fused": True}},
 }
 SAC_HYPERPARAMETERS: dict[str, Any] = {
     "learning_rate": 3e-4, "batch_size": 256, "tau": 0.005, "gamma": 0.99, "train_freq": 1,
@@ -543,7 +552,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                     "randomization": None if randomization is None else randomization.to_json(),
                     "continued_from": None if cfg.init_policy is None else os.path.abspath(cfg.init_policy),
                     "envs": cfg.n_envs,
-                    "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str))},
+                    "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str, dict))},
                     "started": started,
                     "wall_s": time.perf_counter() - t0,
                 }

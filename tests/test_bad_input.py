@@ -405,6 +405,17 @@ def test_a_fit_that_is_not_physical_writes_nothing(files, work):
     assert not (d / "f.json").exists()
 
 
+def test_a_model_with_an_unknown_effect_is_not_written(files, work):
+    """``save_model`` validates before writing: an effect name no loader knows (a model built in
+    code) is refused naming it, and an existing file at the path is left as it was."""
+    model = load_model(files["fit"])
+    model.effects = [{"name": "ground", "parameters": [], "stderr": [], "options": {}}]
+    (work / "m.json").write_text("keep")
+    with pytest.raises(ModelFileError, match=r"m.json' not written: .*unknown effect 'ground' \(known: "):
+        save_model(work / "m.json", model)
+    assert (work / "m.json").read_text() == "keep"
+
+
 @FUZZ
 @given(kind=st.sampled_from(FILE_KINDS), index=st.integers(0, 10**6),
        command=st.sampled_from(["summary", "fit", "predict-model", "predict-data"]))

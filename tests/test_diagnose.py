@@ -329,6 +329,19 @@ def test_contact_rods_reported_apart_and_explained_partial(robot):
     for part, res, ref in (("force", rw.force, rw.inertial_force), ("torque", rw.torque_body, rw.inertial_torque_body)):
         want = (res[m].square().mean().sqrt() / ref[m].square().mean().sqrt()).item()
         assert e["inside"][part] == pytest.approx(want, rel=1e-9), part
+    # the torque about the contact point (the centre of the end sphere in contact), by hand: the
+    # residual torque less the residual force's moment about it
+    from identified.rotation import matrix_apply
+
+    geo_pts = np.einsum("etrij,rkj->etrki", rot, np.asarray(geo["segment"]))  # COM -> end centres
+    inside = (depth > 0).reshape(-1, near.shape[-1], 2)
+    lever = torch.as_tensor((geo_pts.reshape(inside.shape + (3,)) * inside[..., None]).sum(-2)
+                            / np.maximum(inside.sum(-1), 1)[..., None])
+    tq = matrix_apply(torch.as_tensor(rot.reshape(-1, near.shape[-1], 3, 3)), rw.torque_body)
+    about = tq - torch.linalg.cross(lever, rw.force)
+    want = (about[m].square().mean().sqrt() / rw.inertial_torque_body[m].square().mean().sqrt()).item()
+    assert e["inside"]["torque_about_contact_point"] == pytest.approx(want, rel=1e-9)
+    assert want < 0.5 * e["inside"]["torque"]  # most of the torque residual is a missed force's moment
 
 
 def test_whiteness_corrects_for_the_number_of_series():
@@ -387,3 +400,17 @@ def test_one_step_summary_by_hand(viscous_result, plants):
     assert reg["fraction"] == pytest.approx(fast.mean(), abs=1e-12)
     assert reg["force_rms_in"] == pytest.approx(np.sqrt((fn[fast] ** 2).mean()), rel=1e-9)
     assert reg["force_rms_out"] == pytest.approx(np.sqrt((fn[~fast] ** 2).mean()), rel=1e-9)
+
+
+def test_candidate_scores_hold_the_total_mass():
+    """The parameter changes a candidate's score may use keep the total mass (else the model's own
+    parameters, scaled, would explain any residual): every direction adds nothing to the sum of
+    the masses, the rest move freely, and only the scale direction is lost (rank n - 1)."""
+    from identified.diagnose.residual import _mass_total_held
+
+    m_idx = np.array([2, 4, 5])
+    Z = _mass_total_held(7, m_idx)
+    assert Z.shape == (7, 6) and np.linalg.matrix_rank(Z) == 6
+    np.testing.assert_array_equal(Z[m_idx].sum(axis=0), np.zeros(6))
+    np.testing.assert_array_equal(Z[[0, 1, 3, 6]], np.eye(6)[[0, 1, 3, 5]])
+    np.testing.assert_array_equal(Z[:, 2], [0, 0, 1, 0, 0, -1, 0])

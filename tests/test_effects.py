@@ -95,6 +95,30 @@ def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_pat
     np.testing.assert_allclose(force[:, 1:], 0.0, atol=1e-6)
 
 
+def test_declared_cable_slack_on_pull_only_springs_is_exact(ico, tmp_path):
+    """The law that reads the rest length, declared (no search): the springs' rest lengths are
+    identified with kappa's Gauss-Newton column, and kappa = -K, K and l0 come out exact. In these
+    3 x 400 steps springs 10 and 20 never go slack: their kappa is not identifiable (held at 0,
+    no error bar, listed), never a number with an error bar that misses the truth."""
+    plant = tmp_path / "slack.xml"
+    plant.write_text(re.sub(r'springlength="([^" ]+)"', r'springlength="0 \1"', ico.read_text()))
+    data = collect(plant, CollectConfig(episodes=3, steps=400, seed=23, push_every=100))
+    model = fit_model(data, ico, effects="cable_slack")
+    truth = preset_parameters("ico", "paper-nonuniform", seed=5)["springs"]
+    K = np.array([s["stiffness"] for s in truth])
+    kappa = np.array(model.effects[0]["parameters"]["kappa"])
+    se = np.array(model.effects[0]["stderr"]["kappa"], dtype=float)
+    seen = np.isfinite(se)
+    assert np.flatnonzero(~seen).tolist() == [10, 20] and np.all(kappa[~seen] == 0.0)
+    assert [n.split(":")[0] for n in model.metrics["not_identifiable"]] == [
+        "cable_slack.spring10.kappa", "cable_slack.spring20.kappa"]
+    np.testing.assert_allclose(kappa[seen], -K[seen], rtol=1e-9)
+    np.testing.assert_allclose(model.stiffness, K, rtol=1e-9)
+    np.testing.assert_allclose(model.rest_length, [s["rest_length"] for s in truth], rtol=0, atol=1e-9)
+    assert "(2 not identifiable)" in model.summary()
+
+
+@pytest.mark.expensive
 def test_a_spring_declared_two_sided_that_only_pulls_is_cable_slack(ico, tmp_path):
     """The plant's springs are pull-only cables (MuJoCo's dead band ``springlength="0 L0"``); the fit
     is given them as two-sided springs.  The search adds ``cable_slack`` with kappa = -K on every
@@ -213,6 +237,16 @@ def _hand_wrench(eff, topo: Topology, s: RodState, rest: np.ndarray, ctx) -> tup
             f = local[..., e, 0, None] * n + local[..., e, 1, None] * along + local[..., e, 2, None] * across
             force += f
             torque += np.cross(lever, f)
+        # torsional and rolling friction: against the spin about the normal and the rolling, each
+        # saturating at mu f_n (f_n the rod's total normal force) over the angular speed omega_slip
+        mu_t, mu_r, w_s = eff.values[9:12]
+        fn = local[..., :, 0].sum(-1)
+        w = s.angvel.numpy()
+        w_n = w @ n
+        w_t = w - w_n[..., None] * n
+        t = np.linalg.norm(w_t, axis=-1)
+        torque += -(mu_t * fn * np.tanh(w_n / w_s))[..., None] * n
+        torque += -(mu_r * fn * np.tanh(t / w_s) / np.maximum(t, 1e-300))[..., None] * w_t
         return force, torque
     raise AssertionError(f"no hand law for {eff.name}")
 
@@ -253,10 +287,11 @@ def test_each_effects_wrench_force_and_torque_is_its_law_by_hand(ico, name):
 
 def test_ground_contacts_wrench_force_and_torque_is_its_law_by_hand(tmp_path):
     """Ground contact overrides ``wrench``: its force and torque are the contact forces at the
-    end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f."""
+    end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f, plus
+    the torsional and rolling friction torques (against the spin about the normal and the rolling)."""
     path = tmp_path / "robot.xml"
     write_model(path, "ico", preset="robot")
-    theta = np.array([2000.0, 40.0, 1.0, 5.0, 0.9, 5.0, 0.7, 0.6, 0.05])
+    theta = np.array([2000.0, 40.0, 1.0, 5.0, 0.9, 5.0, 0.7, 0.6, 0.05, 0.02, 0.004, 0.7])
     eff, topo, s, rest, ctx = _wrench_case(path, "ground_contact", lambda e: theta)
     f, tau = eff.wrench(s, ctx)
     f_hand, tau_hand = _hand_wrench(eff, topo, s, rest, ctx)
@@ -306,7 +341,7 @@ def test_twin_cable_friction_is_the_fit_law_at_the_accelerations_it_makes(ico):
     torch.testing.assert_close(r.abs()[~stuck], F.expand_as(r)[~stuck])
 
 
-@pytest.mark.parametrize("size,seed", [(5.0, 21), (1.5, 22)])
+@pytest.mark.parametrize("size,seed", [(5.0, 21), pytest.param(1.5, 22, marks=pytest.mark.expensive)])
 def test_tendon_frictionloss_is_identified_exactly_as_sticking_cable_friction(ico, tmp_path, size, seed):
     """MuJoCo's tendon frictionloss (a soft box constraint): the slip force is recovered to the
     solver's tolerance, the stick law's virtual mass is 1 / R (R = (1 - d) / d x invweight0 at
@@ -394,6 +429,7 @@ def test_robot_contact_leaves_springs_and_rods_exact_and_explains_the_ground(rob
     assert after * 10 <= before, (before, after)
 
 
+@pytest.mark.expensive
 def test_air_drag_on_the_robot_is_found_beside_its_ground_contact(robot, tmp_path):
     """Viscous air on the robot: the drag's free-run gain hides under the contact law's error, so
     the search adds it on its held-out one-step error, and it comes out as MuJoCo's own drag."""

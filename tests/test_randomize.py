@@ -26,6 +26,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import action_to_rest, perturb_start
 from tensegrity_gym.randomize import (
     CONTACT_FACTOR,
     CONTACT_PARAMETERS,
+    CONTACT_TORQUE_PARAMETERS,
     GAMMA_MAX,
     PRIOR_WIDTH,
     Randomization,
@@ -183,9 +184,14 @@ def test_auto_comes_from_the_fit_numbers_not_the_mjcf():
     ev = model.metrics["residual_stage"]["ground_contact"]["explained_variance"]
     base = CONTACT_FACTOR * np.sqrt(1 - ev)
     gc = next(e for e in model.effects if e["name"] == "ground_contact")
+    stage = model.metrics["residual_stage"]["ground_contact"]
     for name in CONTACT_PARAMETERS:
+        if name not in gc["parameters"]:  # a model written before the contact torques: none drawn
+            assert name in CONTACT_TORQUE_PARAMETERS and name not in r.contact
+            continue
         se = gc["stderr"][name]
-        want = max(base, 0 if se is None else 3 * abs(se / gc["parameters"][name]))
+        b = base if name not in CONTACT_TORQUE_PARAMETERS else CONTACT_FACTOR * np.sqrt(1 - stage["torque_explained_variance"])
+        want = max(b, 0.1, 0 if se is None else 3 * abs(se / gc["parameters"][name]))
         cap = GAMMA_MAX if name.startswith("gamma") else 0.5
         assert r.contact[name] == pytest.approx(min(want, cap), rel=1e-12)
     assert r.stiffness == PRIOR_WIDTH  # a noise-free fit: 3 se of 1e-14 is below the prior

@@ -25,6 +25,7 @@ README = ROOT / "README.md"
 SMALL = {
     "CollectConfig(episodes=20, steps=2000,": "CollectConfig(episodes=2, steps=300,",
     ".learn(10_000)": ".learn(1_000)",
+    "num_envs=64,": "num_envs=8,",
 }
 BLOCK = re.compile(r"^```python\n(.*?)^```", re.DOTALL | re.MULTILINE)
 PRINTS = re.compile(r"#\s*prints\s+(.*)$")

@@ -261,6 +261,7 @@ def test_fast_contact_wrench_equals_the_fitted_law(contact_backend):
     ctx = t.ctx._replace(base_lin_acc=t.lin_acc, base_ang_acc_body=t.ang_acc_body)
     c, f = gc.contact_forces(s, ctx)
     force0, torque0 = gc._to_wrench(c, f)
+    torque0 = torque0 + gc.contact_torque(s, f, gc.theta(s.pos))  # torsional and rolling friction
     force, torque = (unvec(x) for x in gc.wrench_components(
         vec(s.pos), vec(s.vel), vec(s.angvel), mat(ctx.rot), vec(ctx.base_lin_acc), vec(ctx.base_ang_acc_body),
         ctx.params.mass, vec(ctx.params.inertia)))

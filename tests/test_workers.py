@@ -71,6 +71,7 @@ def test_jobs_option():
 
 
 @linux
+@pytest.mark.expensive
 def test_the_search_gives_the_same_model_with_one_process_or_two(tmp_path):
     """A hidden drag found the same way, with the same parameters and loop, whatever ``jobs``."""
     from identified.fit.pipeline import fit_model

@@ -122,7 +122,10 @@ def diagnose(
     ``base_refit_explains``; ``data``; ``one_step`` (``force_rms`` N and ``torque_rms`` N m per
     axis, ``relative``, ``per_rod``, ``worst_rod``, ``effect_rows``: per added effect with a region,
     the relative residual on its rows and on the others, ``inside``/``outside``, overall and per
-    episode); ``k_step`` (``after``/``before``: ``{"1", "10", "100"}`` with ``pos`` m and
+    episode, and for an effect with a contact point (ground contact) ``inside.torque_about_contact_point``:
+    the residual torque less the residual force's moment about that point, relative to the recorded
+    torque -- what a pure torque at the contact would have to explain; the rest of the torque
+    residual is the moment of a force the law misses); ``k_step`` (``after``/``before``: ``{"1", "10", "100"}`` with ``pos`` m and
     ``quat``); ``free_run`` (``time_s``, ``before``, ``after`` curves, subsampled); ``regions``
     (``near_ground``, ``slack``, ``fast``, ``pushed``: RMS residual in and out); ``whiteness``
     (Ljung-Box per rod and dof, ``white``, ``min_p``); ``input_correlation`` (``rest_length``,

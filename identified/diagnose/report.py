@@ -130,6 +130,11 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
         L += ["", (f"On the rods {e['effect']} acts on ({e['region']}, {e['fraction']:.1%} of the rod-instants) the "
                    f"residual is {f(e['inside']['force'])} of the recorded force and {f(e['inside']['torque'])} of the "
                    f"recorded torque; on the other rods {f(e['outside']['force'])} and {f(e['outside']['torque'])}.")]
+        about = e["inside"].get("torque_about_contact_point")
+        if about is not None:
+            L[-1] += (f" About the contact point (the residual torque less the residual force's moment) the torque "
+                      f"residual is {f(about)} of the recorded torque: the rest is the moment of a force at the "
+                      f"contact that the law misses.")
     if "time" in figs:
         L += ["", f"![residual against time]({figs['time']})"]
     L += ["", "## Where: by region of state", "",

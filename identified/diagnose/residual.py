@@ -66,7 +66,8 @@ def one_step(model: IdentifiedModel, data: Dataset, candidates: list[Effect], re
         if ch.row_weight is not None:  # the central scheme leaves out rows across a push switch
             y = y * ch.row_weight[..., None]
         ts = np.arange(t_first, t_first + n_t) - first
-        rec.store(eps, ts, rw, ch, {k: e.rows_affected(state, ctx) for k, e in region_effects.items()})
+        rec.store(eps, ts, rw, ch, {k: e.rows_affected(state, ctx) for k, e in region_effects.items()},
+                  {k: e.contact_point(state, ctx) for k, e in region_effects.items() if hasattr(e, "contact_point")})
         ctx = ctx._replace(base_lin_acc=rw.terms.lin_acc, base_ang_acc_body=rw.terms.ang_acc_body,
                            recorded_lin_acc=ch.acc, recorded_ang_acc_body=ch.alpha_body)
         scores.add(ch, state, ctx, rot, half, y, eps, ts)
@@ -88,10 +89,13 @@ class _Record:
         self.res = np.full((E, Tn, R, 6), np.nan)  # force world N, torque rod frame N m
         self.ref = np.zeros((E, Tn, R, 6))  # the recorded inertial wrench, for the relative RMS
         self.masks = {k: np.zeros((E, Tn, R), dtype=bool) for k in (*regions, "pushed")}
+        #: per region whose effect has a contact point: the residual torque about it (world, N m)
+        self.about: dict[str, np.ndarray] = {}
         self.short = np.zeros((E, Tn, S), dtype=bool)
         self.speed = np.zeros((E, Tn, R))
 
-    def store(self, eps: np.ndarray, ts: np.ndarray, rw: Any, ch: Any, region_rows: dict[str, torch.Tensor]) -> None:
+    def store(self, eps: np.ndarray, ts: np.ndarray, rw: Any, ch: Any, region_rows: dict[str, torch.Tensor],
+              points: dict[str, torch.Tensor] | None = None) -> None:
         E_, n_t = len(eps), len(ts)
         R, S = self.res.shape[2], self.short.shape[2]
         blk = (eps[:, None], ts[None, :])
@@ -101,6 +105,11 @@ class _Record:
         self.masks["pushed"][blk] = (ch.push_force.norm(dim=-1) > 0).reshape(E_, n_t, R).numpy()
         for k, rows in region_rows.items():
             self.masks[k][blk] = rows.reshape(E_, n_t, R).numpy()
+        torque = matrix_apply(rw.terms.ctx.rot, rw.torque_body)
+        for k, point in (points or {}).items():
+            if k not in self.about:
+                self.about[k] = np.full(self.res.shape[:3] + (3,), np.nan)
+            self.about[k][blk] = (torque - torch.linalg.cross(point, rw.force)).reshape(E_, n_t, R, 3).numpy()
         self.speed[blk] = ch.vel.norm(dim=-1).reshape(E_, n_t, R).numpy()
 
     @property
@@ -179,6 +188,10 @@ class _Record:
                 entry[side] = _relative(self.res[m], self.ref[m])
                 entry[f"{side}_per_episode"] = [_relative(self.res[e][m[e]], self.ref[e][m[e]])
                                                 for e in range(self.res.shape[0])]
+            if region in self.about:  # what stays of the torque once the residual force's moment is out
+                a = inside & ~np.isnan(self.about[region][..., 0])
+                entry["inside"]["torque_about_contact_point"] = _ratio(_rms(self.about[region][a], None),
+                                                                       _rms(self.ref[a][:, 3:], None))
             out.append(entry)
         return out
 

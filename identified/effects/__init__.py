@@ -117,6 +117,7 @@ def effect_from_json(obj: dict[str, Any], n_rods: int, n_springs: int) -> Effect
 def _flatten_loose(eff: Effect, obj: dict[str, Any]) -> np.ndarray:
     parts = []
     for b in eff.blocks:
-        v = np.asarray(obj[b.name], dtype=float)
+        # a block the file does not hold (a parameter added to the effect later): no standard error
+        v = np.asarray(obj[b.name] if b.name in obj else np.full(b.size(eff.n_rods, eff.n_springs), np.nan), dtype=float)
         parts.append(v.reshape(-1, b.width) if eff.kind != "global" else v.reshape(1, b.width))
     return np.concatenate(parts, axis=1).reshape(-1)

@@ -314,7 +314,7 @@ class Effect(ABC):
         for b in self.blocks:
             idx = self._block_index(b)
             v = self.values[idx]
-            s = "" if se is None else f" ± {np.max(se[idx]):.2g}"
+            s = "" if se is None else _pm(se[idx])
             if v.size <= 3:
                 parts.append(f"{b.name} = {np.array2string(v, precision=4)}{s} {b.unit}".rstrip())
             else:
@@ -334,3 +334,11 @@ class Effect(ABC):
     @abstractmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> Effect:
         """An unfitted instance for this system (reads the geometry it needs from the MJCF)."""
+
+
+def _pm(se: np.ndarray) -> str:
+    """`` ± worst`` of a block's standard errors; says which the data cannot tell (NaN)."""
+    if np.all(np.isnan(se)):
+        return " ± not identifiable"
+    worst = f" ± {np.nanmax(se):.2g}"
+    return worst + f" ({int(np.isnan(se).sum())} not identifiable)" if np.isnan(se).any() else worst

@@ -30,6 +30,22 @@ spring-rod model -- the law is *linear* in ``(κ, β_n, γ_n, β_t, γ_t)``: it 
 squares on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
 and the friction bound ``μ`` by a profile scan of the same residual.  Measured on the robot preset,
 this law explains most of the contact force (``explained_variance`` in the fit's metrics).
+
+Contact torques.  A capsule pressed on the ground also resists spinning about the contact normal
+(torsional friction) and rolling (rolling resistance), as MuJoCo's ``condim 6`` contacts do; the
+forces above, on the rod's axis, have no torque about the contact point.  Per rod, with ``F_n``
+the sum of its contacts' normal forces and ``ω`` its world angular velocity, ``ω_n = ω·n`` its spin
+about the normal and ``ω_t = ω - ω_n n`` its rolling,
+
+    τ = -F_n [μ_t tanh(ω_n / ω_s) n + μ_r tanh(|ω_t| / ω_s) ω_t / |ω_t|]
+
+a Coulomb torque of at most ``μ_t F_n`` (``μ_r F_n``; lengths, m) smoothed over the angular speed
+``ω_s``.  Linear in ``(μ_t, μ_r)`` given ``F_n``: fitted first, by non-negative least squares on the
+residual torque *about the contact point* (the residual torque less the lever times the residual
+force: every force at the contact point, the force law's included, leaves none there), with the
+residual force's normal component as ``F_n``, and ``ω_s`` by a profile scan
+(:func:`_fit_torques`); the force law is then fitted on the residual less these torques.  A model
+file written before the torques loads with none (:data:`TORQUE_DEFAULTS`).
 """
 
 from __future__ import annotations
@@ -65,6 +81,17 @@ EPSILONS = (0.003, 0.01, 0.02, 0.05, 0.1, 0.2)
 MU_GRID = np.geomspace(0.05, 3.0, 40)
 LINEAR = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p")
 NL = len(LINEAR)
+#: indices of the contact torques' parameters: torsional and rolling friction lengths (m) and the
+#: angular speed over which both saturate (rad/s)
+I_TORSION, I_ROLLING, I_OMEGA = NL + 2, NL + 3, NL + 4
+#: the saturation speeds scanned by the fit (its profile over ``omega_slip``); the smallest keeps the
+#: explicit step stable: the torque's slope ``mu f_n / omega_slip`` stays well below ``I / dt``
+OMEGA_GRID = (0.3, 1.0, 3.0, 10.0)
+#: what a model file written before the contact torques holds for them: no torque
+TORQUE_DEFAULTS = {"mu_torsion": 0.0, "mu_rolling": 0.0, "omega_slip": 1.0}
+#: rounds of the alternating fit (the force law on the residual less the torques, the torques on
+#: the residual torque about the contact point less the force law's)
+TORQUE_ROUNDS = 3
 
 
 class GeometryError(ValueError):
@@ -99,7 +126,8 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
 
 class GroundContact(Effect):
     name = "ground_contact"
-    description = "rod capsules on a ground plane: constraint-like normal force and saturating friction"
+    description = ("rod capsules on a ground plane: constraint-like normal force, saturating friction, and "
+                   "torsional and rolling friction torques")
     blocks = (
         ParamBlock("kappa", "global", mass_scaled=False, unit="1/s^2"),
         ParamBlock("beta_n", "global", mass_scaled=False, unit="1/s"),
@@ -110,12 +138,15 @@ class GroundContact(Effect):
         ParamBlock("gamma_p", "global", mass_scaled=False),
         ParamBlock("mu", "global", mass_scaled=False),
         ParamBlock("epsilon", "global", mass_scaled=False),
+        ParamBlock("mu_torsion", "global", mass_scaled=False, unit="m"),
+        ParamBlock("mu_rolling", "global", mass_scaled=False, unit="m"),
+        ParamBlock("omega_slip", "global", mass_scaled=False, unit="rad/s"),
     )
     fit_strategy = "residual"
     needs_base_acceleration = True
     component_form = True
     region = "near_ground"
-    profiled = ("epsilon",)  # the regulariser's profile scan (mu's is redone at every fit)
+    profiled = ("epsilon", "omega_slip")  # profile scans (mu's is redone at every fit)
     fit_cost = 10.0  # its friction coefficient is scanned (measured ~12x a drag fit on the robot)
 
     @classmethod
@@ -278,7 +309,17 @@ class GroundContact(Effect):
         robot rollout 2.0 s against 3.6 s).  The twin's compiled step calls
         :meth:`wrench_components`, the same law in component form (tests/test_twin_speed.py checks
         the two engine steps agree)."""
-        return self._to_wrench(*self.contact_forces(state, ctx))
+        c, f = self.contact_forces(state, ctx)
+        force, torque = self._to_wrench(c, f)
+        return force, torque + self.contact_torque(state, f, self.theta(state.pos))
+
+    def contact_torque(self, state: Any, forces: torch.Tensor, th: torch.Tensor) -> torch.Tensor:
+        """The torsional and rolling friction torques on each rod, WORLD (..., R, 3), from its
+        contacts' bounded forces ``forces`` (..., R, 2, 3) (normal component first): module
+        docstring, ``τ = -(Σ f_n) [μ_t tanh(ω_n / ω_s) n + μ_r tanh(|ω_t| / ω_s) ω_t / |ω_t|]``."""
+        n = self._geom(state.pos)[2]
+        return _friction_torque(forces[..., 0].sum(-1), state.angvel, n, th[..., I_TORSION],
+                                th[..., I_ROLLING], th[..., I_OMEGA])
 
     def wrench_components(self, pos: Vec, vel: Vec, angvel: Vec, rot: Mat, base_lin_acc: Vec,
                           base_ang_acc_body: Vec, mass: torch.Tensor, inertia: Vec) -> tuple[Vec, Vec]:
@@ -338,12 +379,22 @@ class GroundContact(Effect):
         mu = th[..., NL]
         force: Vec = (0.0, 0.0, 0.0)
         torque: Vec = (0.0, 0.0, 0.0)
+        fn_sum = 0.0
         for lever, (rn, ra, rp) in zip(levers, raw):
             # the bounds, as :meth:`_bound`: f_n >= 0, |f_t| <= μ f_n
             fn = rn.clamp_min(0.0)
             scale = torch.clamp(mu * fn / torch.sqrt(ra * ra + rp * rp).clamp_min(1e-12), max=1.0)
             world = tuple(fn * a + ra * scale * b + rp * scale * c for a, b, c in zip(*dirs))
             force, torque = vadd(force, world), vadd(torque, vcross(lever, world))
+            fn_sum = fn_sum + fn
+        # the torsional and rolling friction torques, as :meth:`contact_torque`
+        w_n = vdot(angvel, n)
+        w_t = tuple(w - w_n * c for w, c in zip(angvel, n))
+        t_norm = torch.sqrt(vdot(w_t, w_t))
+        inv_s = 1.0 / th[..., I_OMEGA]
+        tors = -th[..., I_TORSION] * fn_sum * torch.tanh(w_n * inv_s)
+        roll = -th[..., I_ROLLING] * fn_sum * torch.tanh(t_norm * inv_s) / t_norm.clamp_min(1e-12)
+        torque = tuple(t + tors * c + roll * w for t, c, w in zip(torque, n, w_t))
         return force, torque
 
     def _geom_components(self, like: torch.Tensor) -> tuple[Any, ...]:
@@ -355,6 +406,14 @@ class GroundContact(Effect):
             self._cache[key] = (radius, [tuple(seg[:, e, k].contiguous() for k in range(3)) for e in range(2)],
                                 tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
         return self._cache[key]
+
+    def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
+        """Each rod's contact point, the lever from its centre of mass (..., R, 3) world: the centre
+        of its end sphere in contact (the mean of both when both are; 0 when none is), the point
+        the law's forces act at.  The diagnosis and the torques' fit take torques about it."""
+        c = self.contacts(state, ctx)
+        active = c["active"].to(state.pos.dtype)  # (..., R, 2)
+        return (active.unsqueeze(-1) * c["lever"]).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
 
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
@@ -385,6 +444,14 @@ class GroundContact(Effect):
         g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
         if Y.shape[0] < 50 * 6:
             raise ValueError("too few contact rows to identify ground_contact")
+        # first the friction torques, on the residual torque about the contact point (the force
+        # law's wrench has none there), then the force law on what they leave
+        omegas = [float(self.options["omega_slip"])] if "omega_slip" in self.options else OMEGA_GRID
+        with torch.no_grad():
+            tq = _fit_torques(self, state, ctx, force, torque, sel, groups, omegas)
+        spin = torch.cat((torch.zeros_like(tq["torque"]), tq["torque"] / scale), -1)  # (rows, 6)
+        Yf = Yw - spin
+        Y = Yf.reshape(-1).numpy()
         best = (np.inf, None, None, None, None)
         with torch.no_grad():
             grid = [float(self.options["epsilon"])] if "epsilon" in self.options else EPSILONS
@@ -394,16 +461,96 @@ class GroundContact(Effect):
                 X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
                 theta = np.linalg.lstsq(X, Y, rcond=None)[0]
                 cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0, eps]])))
-                sse, mu = _mu_scan(cc, raw, sel, Yw, scale)
+                sse, mu = _mu_scan(cc, raw, sel, Yf, scale)
                 if sse < best[0]:
                     best = (sse, theta, mu, eps, X)
         sse, theta, mu, eps, X = best
         cov = _cluster_cov(X, Y - X @ theta, g)
-        self.values = np.concatenate([theta, [mu, eps]])
-        # μ and ε: profile scans, no standard error (null in the JSON)
-        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan]])
-        return {"rows": int(sel.sum()), "explained_variance": float(1 - sse / max(float(Y @ Y - len(Y) * Y.mean() ** 2), 1e-300)),
-                "profile": f"mu: scan over 0.05..3; epsilon: scan over {list(grid)} (no standard errors)"}
+        self.values = np.concatenate([theta, [mu, eps], tq["values"]])
+        # μ, ε and ω_s: profile scans, no standard error (null in the JSON)
+        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan], tq["stderr"], [np.nan]])
+        Yall = Yw.reshape(-1).numpy()
+        return {"rows": int(sel.sum()),
+                "explained_variance": float(1 - sse / max(float(Yall @ Yall - len(Yall) * Yall.mean() ** 2), 1e-300)),
+                "torque_explained_variance": tq["explained_variance"],
+                "profile": (f"mu: scan over 0.05..3; epsilon: scan over {list(grid)}; omega_slip: scan over "
+                            f"{list(omegas)} (no standard errors)")}
+
+    def flatten(self, obj: dict[str, Any]) -> np.ndarray:
+        """As :meth:`Effect.flatten`; a model file written before the contact torques (no
+        ``mu_torsion``, ``mu_rolling``, ``omega_slip``) loads with none (:data:`TORQUE_DEFAULTS`)."""
+        return super().flatten({**TORQUE_DEFAULTS, **obj} if "kappa" in obj else obj)
+
+
+def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
+                 sel: torch.Tensor, groups: np.ndarray, omegas: Any) -> dict[str, Any]:
+    """The friction torques' least squares (``μ_t``, ``μ_r`` >= 0; ``ω_s`` by a profile scan) on
+    the residual torque about each rod's contact point: the residual torque ``torque`` less the
+    contact point's lever times the residual force ``force`` ((N, R, 3) world; the point: the
+    centre of its end sphere in contact, the mean of both when both are).  Every force at the
+    contact point (the force law's) leaves no torque about it: what stays is a pure torque, which
+    only the friction torques explain, and the normal force they scale with is the residual force's
+    normal component (the contact's, the only normal force the model lacks).  Returns the values
+    ``[μ_t, μ_r, ω_s]``, the standard errors of ``μ_t``, ``μ_r`` (cluster-robust over ``groups``,
+    the episode of each instant; none for a coefficient at its bound), the explained variance of
+    that torque and the fitted torques on the rows ``sel`` (rows, 3)."""
+    about = torque - torch.linalg.cross(eff.contact_point(state, ctx), force)
+    n = eff._geom(state.pos)[2]
+    y = about[sel].reshape(-1).numpy()
+    fn = (force[sel] * n).sum(-1).clamp_min(0.0)
+    w = state.angvel[sel]
+    one = torch.ones((), dtype=w.dtype)
+    best: tuple = (np.inf,)
+    for om in omegas:
+        X = torch.stack([_friction_torque(fn, w, n, one, 0 * one, om * one),
+                         _friction_torque(fn, w, n, 0 * one, one, om * one)], -1).reshape(-1, 2).numpy()
+        coef = _nonnegative_lstsq(X, y)
+        sse = float(((y - X @ coef) ** 2).sum())
+        if sse < best[0]:
+            best = (sse, coef, om, X)
+    sse, coef, om, X = best
+    g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 3)
+    free = coef > 0  # a coefficient held at its bound has no standard error
+    se = np.full(2, np.nan)
+    if free.any():
+        se[free] = np.sqrt(np.clip(np.diag(_cluster_cov(X[:, free], y - X @ coef, g)), 0, None))
+    return {"values": np.array([coef[0], coef[1], om]), "stderr": se,
+            "torque": torch.as_tensor((X @ coef).reshape(-1, 3)),
+            "explained_variance": float(1 - sse / max(float(y @ y), 1e-300))}
+
+
+def _nonnegative_lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least squares with every coefficient >= 0, for a few columns: the best of the unconstrained
+    solutions on every subset of the columns whose coefficients come out non-negative."""
+    from itertools import combinations
+
+    k = X.shape[1]
+    best, out = np.inf, np.zeros(k)
+    for size in range(k + 1):
+        for cols in combinations(range(k), size):
+            coef = np.zeros(k)
+            if cols:
+                coef[list(cols)] = np.linalg.lstsq(X[:, cols], y, rcond=None)[0]
+            if (coef < 0).any():
+                continue
+            sse = float(((y - X @ coef) ** 2).sum())
+            if sse < best:
+                best, out = sse, coef
+    return out
+
+
+def _friction_torque(fn: torch.Tensor, angvel: torch.Tensor, n: torch.Tensor, mu_t: Any, mu_r: Any,
+                     omega: Any) -> torch.Tensor:
+    """``-f_n [μ_t tanh(ω_n / ω_s) n + μ_r tanh(|ω_t| / ω_s) ω_t / |ω_t|]`` (..., 3), the friction
+    torques of a rod with total normal force ``fn`` (...,) and world angular velocity ``angvel``
+    (..., 3) on a plane of normal ``n``: ``ω_n = ω·n`` its spin about the normal, ``ω_t`` the rest
+    (rolling).  The parameters broadcast against ``fn``."""
+    w_n = (angvel * n).sum(-1)
+    w_t = angvel - w_n.unsqueeze(-1) * n
+    t_norm = w_t.norm(dim=-1)
+    tors = -mu_t * fn * torch.tanh(w_n / omega)
+    roll = -mu_r * fn * torch.tanh(t_norm / omega) / t_norm.clamp_min(1e-12)
+    return tors.unsqueeze(-1) * n + roll.unsqueeze(-1) * w_t
 
 
 def _mu_scan(c: dict, raw: torch.Tensor, sel: torch.Tensor, target: torch.Tensor, scale: float,

@@ -351,6 +351,7 @@ def identify(
                 side of the current estimate (an empty column) is held at 0 for this
                 classification only. What the solve holds for good (a bias) is kept in ``f``."""
                 held = {**f, **{i: 0.0 for i in hold}}
+                unseen.clear()
                 for _ in range(3):
                     try:
                         sol = solve_separating(held)
@@ -360,10 +361,13 @@ def identify(
                         if not hit:
                             raise
                         held.update({i: 0.0 for i in hit})
+                        unseen.extend(hit)
                 else:
                     sol = solve_separating(held)
                 f.update({i: v for i, v in held.items() if i not in rest_law and i not in released})
                 return sol
+
+            unseen: list[int] = []  # held by the last classification: no row on the other side
 
             try:
                 sol = solve_classified(fixed, hold=rest_law + released)
@@ -384,7 +388,12 @@ def identify(
                 if sol.cov is not None:
                     k_i = layout.k(np.arange(topology.n_springs))
                     k_se = np.sqrt(np.clip(np.diag(sol.cov)[k_i], 0.0, None))
-                    new[slack & ~(sol.theta[k_i] > 3.0 * k_se)] = np.inf
+                    new[slack & topology.pull_only & ~(sol.theta[k_i] > 3.0 * k_se)] = np.inf
+                # a spring a law reads the rest length of (declared two-sided) is always attached: an
+                # estimate the solve cannot give (its K indistinguishable from 0 while the law is
+                # held) keeps the last one; the law's columns would be infinite at l0 = inf
+                reader = slack & ~topology.pull_only & ~np.isfinite(new)
+                new[reader] = rest_estimate[reader]
                 change = np.where(new == rest_estimate, 0.0, np.abs(new - rest_estimate))[slack]
                 size = max(np.max(np.abs(new[np.isfinite(new)]), initial=0.0), 1e-12)
                 settled = not slack.any() or bool(np.max(change) <= REST_TOL * size)
@@ -437,6 +446,8 @@ def identify(
     model = _to_model(topology, layout, sol, dataset, scale_desc, has_pushes, regressors, solver, elapsed,
                       columns.length_ref)
     model.integrator = integrator
+    if solver == "lstsq" and unseen:
+        _mark_unseen(model, layout, unseen)
     model.actuators = _actuators_json(layout, sol, act_by_name, dynamics, tau, tau_se, topology)
     for a in model.actuators:
         if a["name"] in absorbed:
@@ -537,6 +548,22 @@ def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) 
             model.stderr["inertia"][i, a] = np.nan
         names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
                      "(its spin is not observable)")
+
+
+def _mark_unseen(model: IdentifiedModel, layout: ParameterLayout, unseen: Sequence[int]) -> None:
+    """Parameters of a law that switches at a spring's rest length whose spring never crossed it in
+    the data (an empty column, held at 0): no standard error, and the list in
+    ``metrics.not_identifiable``, never printed as a number with an error bar."""
+    names = model.metrics.setdefault("not_identifiable", [])
+    for k, e in enumerate(layout.effects):
+        sl = layout.effect_slice(k)
+        mine = [i for i in unseen if sl.start <= i < sl.stop]
+        if not mine or e.stderr is None:
+            continue
+        e.stderr[[i - sl.start for i in mine]] = np.nan
+        model.effects[k] = e.to_json()
+        names += [f"{layout.full_names[i]}: its spring never crossed its rest length in the data (held at 0)"
+                  for i in mine]
 
 
 def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float]:

@@ -163,7 +163,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     # --integrator it first picks the one whose equations fit the data (fit_model)
     model = fit_model(data, args.model, effects=args.effects, regressors=args.regressors, scale=scale,
                       solver=args.solver, weak_window=weak, integrator=args.integrator, scheme=args.scheme,
-                      refine=args.refine, progress=not args.quiet, jobs=args.jobs)
+                      refine=args.refine, progress=not args.quiet, jobs=args.jobs, inertia=args.inertia)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
@@ -568,6 +568,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how the plant steps, and so how the identified engine will: MuJoCo's euler, "
                    "implicit or implicitfast (the same for free rods), rk4, or auto: chosen from the data "
                    "by the equation residual of each (default: euler; auto with --refine)")
+    f.add_argument("--inertia", choices=("auto", "full", "diagonal"), default="auto",
+                   help="each rod's inertia: full (mass, centre of mass in the rod frame and the whole inertia "
+                   "tensor, for rods whose centre of mass or principal axes the frame does not give), diagonal "
+                   "(the paper's M, Ixx, Iyy, Izz about the frame's origin), or auto: full for rods made of "
+                   "several bodies (default)")
     f.add_argument("--scheme", choices=("forward", "central"), default=None,
                    help="accelerations by forward differences (exact for euler and implicit plants; the "
                    "default for them) or central differences (second order for any integrator; the default "

@@ -213,3 +213,23 @@ def test_auto_gives_composite_rods_the_full_model():
 def _read_prism() -> str:
     with open(PRISM, encoding="utf-8") as fh:
         return fh.read()
+
+
+def test_fit_command_takes_the_inertia_model(plant_and_data, tmp_path, monkeypatch):
+    """``tensegrity fit --inertia full`` on the off-centre prism (single-body rods, which ``auto``
+    fits diagonally) writes every rod's centre of mass to rounding; a wrong choice is one line."""
+    from identified.dataset import save_dataset
+    from identified.model import load_model
+    from tests._fuzz import run_cli
+
+    xml, data = plant_and_data
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "p.xml").write_text(xml)
+    save_dataset("d.npz", data)
+    rc, _, err = run_cli(["fit", "d.npz", "--model", "p.xml", "--total-mass", "0.84", "--inertia", "full",
+                          "--out", "f.json", "--quiet"])
+    assert rc == 0, err
+    com = load_model("f.json").com
+    np.testing.assert_allclose(com, [c for c, _, _ in INERTIAL.values()], rtol=0, atol=1e-9)
+    rc, _, err = run_cli(["fit", "d.npz", "--model", "p.xml", "--inertia", "principal", "--out", "g.json"])
+    assert rc == 2 and "--inertia" in err and not os.path.exists("g.json")

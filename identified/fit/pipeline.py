@@ -117,6 +117,7 @@ def fit_model(
     jobs: int | str | None = "auto",
     hold_inertia: Sequence[tuple[int, int]] = (),
     contact_margin: int = 0,
+    inertia: str = "auto",
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -125,6 +126,8 @@ def fit_model(
     with ``refine``); MuJoCo's ``"implicitfast"`` is the engine's ``"implicit"``.
     ``jobs``: processes the effect search fits its candidates in (``"auto"``: the cores this
     process may use; :mod:`identified.fit.workers`); the model does not depend on it.
+    ``inertia``: ``"auto"``, ``"full"`` (each rod's ten inertial parameters) or ``"diagonal"``,
+    as :func:`identified.fit.identify.identify`.
     """
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
@@ -144,7 +147,7 @@ def fit_model(
         selection = None
     kw = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
           "integrator": integ, "scheme": scheme, "hold_inertia": tuple(hold_inertia),
-          "contact_margin": contact_margin}
+          "contact_margin": contact_margin, "inertia": inertia}
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}

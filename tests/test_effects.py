@@ -54,7 +54,7 @@ def _fit_errors(model, data):
 
 @pytest.mark.parametrize("option,effect,seed", [
     ('viscosity="1.5"', "linear_drag", 2),
-    ('density="60"', "quadratic_drag", 3),
+    pytest.param('density="60"', "quadratic_drag", 3, marks=pytest.mark.expensive),
 ])
 def test_a_hidden_fluid_effect_is_found_and_removes_the_error(ico, tmp_path, option, effect, seed):
     _, data = _hidden(ico, tmp_path, option, seed)
@@ -84,6 +84,7 @@ def test_free_joint_damping_is_an_implicit_linear_drag(ico, tmp_path):
     assert model.loop[0]["error_after"] < 1e-9 < model.loop[0]["error_before"]
 
 
+@pytest.mark.expensive
 def test_a_gravity_the_dataset_does_not_declare_is_a_constant_force(ico, tmp_path):
     _plant, data = _hidden(ico, tmp_path, 'gravity="0.4 0 -9.81"', 4)
     data = dataclasses.replace(data, gravity=np.array([0.0, 0.0, -9.81]))  # it declares the nominal one
@@ -138,7 +139,7 @@ def test_a_spring_declared_two_sided_that_only_pulls_is_cable_slack(ico, tmp_pat
     assert model.loop[0]["error_after"] * 1000 <= model.loop[0]["error_before"]
 
 
-@pytest.mark.parametrize("seed", [6, 7])
+@pytest.mark.parametrize("seed", [6, pytest.param(7, marks=pytest.mark.expensive)])
 def test_clean_data_get_nothing_added(ico, seed):
     data = collect(ico, CollectConfig(episodes=4, steps=600, seed=seed, push_every=100))
     model = fit_model(data, ico, effects="auto")
@@ -590,6 +591,7 @@ def _roll(env, cable: str | None, seed: int = 0) -> np.ndarray:
     return info["com"][:2] - start
 
 
+@pytest.mark.expensive
 def test_shipped_twin_rolls_like_the_plant():
     """The shipped model (scripts/make_shipped_model.sh, --effects auto): contracting an edge of the
     base triangle rolls plant and twin onto the same face; another cable rolls neither."""

@@ -206,7 +206,7 @@ def _contact_episode(b: IdentifiedBackend, dtype: torch.dtype, compile: bool) ->
     return _run(b, dtype, compile)
 
 
-@pytest.mark.parametrize("compile", [False, pytest.param(True, marks=pytest.mark.skipif(
+@pytest.mark.parametrize("compile", [pytest.param(False, marks=pytest.mark.expensive), pytest.param(True, marks=pytest.mark.skipif(
     not compiler_available(), reason="torch.compile needs a C++ compiler"))])
 def test_float32_contact_twin_agrees_with_float64_over_an_episode(contact_backend, compile):
     """The default twin (float32, compiled or not) with ground contact against the float64 engine

@@ -31,8 +31,18 @@ from identified.jsonsafe import json_safe
 from identified.rotation import matrix_to_quat, quat_to_matrix
 from identified.topology import Rod, Spring, Topology
 
-__all__ = ["IdentifiedModel", "ModelFileError", "check_effect_objects", "inertia_tensor", "load_model",
-           "principal_axes", "rigid_body_from_regression", "save_model", "validate_fields"]
+__all__ = [
+    "IdentifiedModel",
+    "ModelFileError",
+    "check_effect_objects",
+    "com_and_tensor",
+    "inertia_tensor",
+    "load_model",
+    "principal_axes",
+    "rigid_body_from_regression",
+    "save_model",
+    "validate_fields",
+]
 
 FORMAT = "tensegrity-identified/1"
 INTEGRATORS = ("euler", "implicit", "rk4")  # as identified.engine.integration.INTEGRATORS
@@ -414,7 +424,7 @@ def principal_axes(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lam, Q
 
 
-def _com_and_tensor(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def com_and_tensor(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The centre of mass (3,) and inertia tensor about it (3, 3, rod frame) from the ten inertial
     parameters ``[M, Ixx, Iyy, Izz, Mcx, Mcy, Mcz, Jxy, Jxz, Jyz]`` about the rod frame's origin
     (the parallel-axis theorem: ``J_c = J_o - M (|c|² E - c cᵀ)``)."""
@@ -428,7 +438,7 @@ def rigid_body_from_regression(theta: np.ndarray, cov: np.ndarray | None, cols: 
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Each rod's centre of mass (R, 3), principal moments (R, 3) and axes (R, 4 w-x-y-z) from
     the regression's ten parameters per rod (``cols`` (R, 10): their full-vector indices in the
-    order of :func:`_com_and_tensor`), with standard errors (R, 3) each propagated to first order
+    order of :func:`com_and_tensor`), with standard errors (R, 3) each propagated to first order
     from ``cov`` (the moments' derivative at fixed axes: exact to first order, also for nearly
     equal moments); ``None`` without a covariance."""
     R = cols.shape[0]
@@ -438,14 +448,14 @@ def rigid_body_from_regression(theta: np.ndarray, cov: np.ndarray | None, cols: 
         com_se, moments_se = np.zeros((R, 3)), np.zeros((R, 3))
     for i in range(R):
         x = np.asarray(theta[cols[i]], dtype=float)
-        c, J = _com_and_tensor(x)
+        c, J = com_and_tensor(x)
         lam, Q = principal_axes(J)
         com[i], moments[i], frame[i] = c, lam, matrix_to_quat(Q)
         if cov is None:
             continue
 
         def g(y: np.ndarray, Q: np.ndarray = Q) -> np.ndarray:
-            cy, Jy = _com_and_tensor(y)
+            cy, Jy = com_and_tensor(y)
             return np.concatenate([cy, np.einsum("ji,jk,ki->i", Q, Jy, Q)])
 
         steps = 1e-6 * np.maximum(np.abs(x), 1e-6 * max(np.max(np.abs(x)), 1e-300))

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from identified.fit.regression import IdentifiabilityError, Solution
-from identified.model import inertia_tensor
+from identified.model import com_and_tensor, inertia_tensor
 
 __all__ = [
     "ADAM_TOLERANCE",
@@ -219,14 +219,11 @@ def constrain_rigid_bodies(sol: Solution, resolve: Callable[[dict[int, float]], 
 
 def _rigid_body(theta: np.ndarray, layout: Any, i: int) -> tuple[float, np.ndarray, np.ndarray]:
     """Rod ``i``'s mass, centre of mass (3,) and inertia tensor about it (3, 3) from the ten fitted
-    parameters (the parallel-axis theorem)."""
-    x = np.asarray(theta)[[layout.m(i), *(layout.inertia(i, a) for a in range(3)),
-                           *(layout.first_moment(i, k) for k in range(6))]]
+    parameters (:func:`identified.model.com_and_tensor`; a non-positive mass: the frame's origin)."""
+    x = np.asarray(theta)[layout.inertial(i)]
     m = float(x[0])
-    c = x[4:7] / m if m > 0 else np.zeros(3)
-    J_o = np.diag(x[1:4])
-    J_o[[0, 0, 1], [1, 2, 2]] = J_o[[1, 2, 2], [0, 0, 1]] = x[7:10]
-    return m, c, J_o - m * (c @ c * np.eye(3) - np.outer(c, c))
+    c, J_c = com_and_tensor(x if m > 0 else np.concatenate([[1.0], x[1:4], np.zeros(3), x[7:10]]))
+    return m, c, J_c
 
 
 def physical_warnings(

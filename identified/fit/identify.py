@@ -681,8 +681,7 @@ def _to_model(
         rest = np.where(passive, _rest_from(th, layout, passive, length_ref), rest)
     inertia, inertia_se, com, com_se, frame = th[i_idx], None if se is None else se[i_idx], None, None, None
     if layout.full_inertia:  # the ten parameters -> centre of mass, principal moments and axes
-        cols = np.array([[layout.m(i), *i_idx[i], *(layout.first_moment(i, k) for k in range(6))]
-                         for i in range(R)])
+        cols = np.array([layout.inertial(i) for i in range(R)])
         com, inertia, frame, com_se, inertia_se = rigid_body_from_regression(th, sol.cov, cols)
     if se is not None:
         stderr = {"stiffness": se[k_idx], "damping": se[c_idx], "mass": se[m_idx], "inertia": inertia_se}

@@ -162,6 +162,12 @@ class ParameterLayout:
         the rod frame's origin, kg m² (only with ``full_inertia``)."""
         return self.first_moment(i, 3 + k)
 
+    def inertial(self, i: int) -> list[int]:
+        """Full-vector indices of rod ``i``'s ten inertial parameters ``[M, Ixx, Iyy, Izz, Mcx,
+        Mcy, Mcz, Jxy, Jxz, Jyz]`` about the rod frame's origin (the order of
+        :func:`identified.model.com_and_tensor`; only with ``full_inertia``)."""
+        return [self.m(i), *(self.inertia(i, a) for a in range(3)), *(self.first_moment(i, k) for k in range(6))]
+
     @property
     def signed(self) -> np.ndarray:
         """(n_full,) bool: parameters that may be negative (the rest are physical magnitudes)."""

@@ -79,3 +79,36 @@ def test_noisy_markers_are_smoothed(robot):
     truth = np.stack([data.pos[e, f:f + rd.n_steps + 1] for e, f in enumerate(first)])
     err = np.linalg.norm(rd.pos - truth, axis=-1)
     assert np.median(err) < 0.7e-3  # one marker's error: median ~1.5 mm (3D)
+
+
+def test_missing_markers_weigh_out_their_rods_steps(robot):
+    """A rod's equations weigh 0 within GAP_FRAMES frames of a frame where one of its markers is
+    missing, 1 from 2 x GAP_FRAMES frames on; other rods keep theirs.  The weights survive
+    ``select`` and a save/load round trip."""
+    from identified.dataset import load_dataset, save_dataset
+    from identified.fit.markers import GAP_FRAMES
+
+    path, topo, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=100), seed=1)
+    hole = rec.markers.copy()
+    f0 = 50  # frame 50 of the first take: rod 0's first marker missing for 3 frames
+    hole[f0:f0 + 3, 0] = np.nan
+    from dataclasses import replace
+
+    ms = states_from_recording(replace(rec, markers=hole), topo, dt=data.dt, lam=1e-12)
+    w = ms.data.weight
+    assert w.shape == (2, ms.data.n_steps, 6)
+    step = round(0.01 / data.dt)  # engine steps per frame
+    first = round(ms.starts[0] / data.dt)  # the grid's instant 0 is the recording's step `first`
+    t = np.arange(ms.data.n_steps) + first  # each instant in recording steps
+    frame = t / step
+    near = np.minimum(np.abs(frame - f0), np.abs(frame - (f0 + 2)))
+    inside = (frame >= f0 - GAP_FRAMES) & (frame <= f0 + 2 + GAP_FRAMES - 1)
+    assert np.all(w[0, inside, 0] == 0)
+    assert np.all(w[0, near >= 2 * GAP_FRAMES + 1, 0] == 1)
+    assert np.all(w[0, :, 1:] == 1) and np.all(w[1] == 1)
+    assert np.all((w >= 0) & (w <= 1))
+    assert ms.data.select(steps=100).weight.shape == (2, 100, 6)
+    out = str(__import__("tempfile").mkdtemp()) + "/d.npz"
+    save_dataset(out, ms.data)
+    np.testing.assert_array_equal(load_dataset(out).weight, w)

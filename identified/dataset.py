@@ -75,6 +75,10 @@ class Dataset:
     actuator_names: tuple[str, ...] = ()
     ctrl: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
     weight: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    #: copies of this dataset's states measured once more with fresh sensor noise (never saved):
+    #: how states reconstructed from noisy markers would scatter, for the fit's errors in variables
+    #: (:mod:`identified.fit.noise`)
+    replicas: tuple[Dataset, ...] = ()
 
     @property
     def n_episodes(self) -> int:
@@ -110,6 +114,7 @@ class Dataset:
             push_point=self.push_point[ep, :t],
             ctrl=self.ctrl[ep, :t] if self.ctrl.ndim == 3 and self.ctrl.shape[0] else self.ctrl,
             weight=self.weight[ep, :t] if self.has_weight else self.weight,
+            replicas=tuple(r.select(episodes, steps) for r in self.replicas),
         )
 
     @property
@@ -258,7 +263,7 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
 def save_dataset(path: str | os.PathLike, d: Dataset) -> None:
     """Validate and write ``d`` atomically (temporary file in the same folder, then rename)."""
     d.validate()
-    arrays = {f.name: getattr(d, f.name) for f in fields(d)}
+    arrays = {f.name: getattr(d, f.name) for f in fields(d) if f.name != "replicas"}
     arrays["format"] = np.array(FORMAT)
     for k in ("rod_names", "tendon_names", "actuated_names", "actuator_names"):
         arrays[k] = np.array(arrays[k], dtype=str)

@@ -112,3 +112,39 @@ def test_missing_markers_weigh_out_their_rods_steps(robot):
     out = str(__import__("tempfile").mkdtemp()) + "/d.npz"
     save_dataset(out, ms.data)
     np.testing.assert_array_equal(load_dataset(out).weight, w)
+
+
+def test_gcv_smoothing_is_scipys_choice():
+    """The smoothing read back from scipy's generalised cross validation gives its very spline."""
+    from scipy.interpolate import make_smoothing_spline
+
+    from identified.fit.markers import gcv_smoothing
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0.0, 2.0, 200)
+    y = np.sin(3 * t) + 0.01 * rng.standard_normal(t.size)
+    lam = gcv_smoothing(t, y)
+    assert lam is not None and lam > 0
+    np.testing.assert_array_equal(make_smoothing_spline(t, y, lam=lam)(t), make_smoothing_spline(t, y)(t))
+
+
+def test_noise_replicas_scatter_as_the_reconstruction(robot):
+    """Replicas of states from 1 mm markers: the same shape and weights; a pair is antithetic about
+    the reconstruction (the splines are linear, the pose fits nearly so); each scatters about it as
+    the reconstruction from noisy markers scatters about that from the clean ones (same smoothing)."""
+    path, topo, data = robot
+    from dataclasses import replace
+
+    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=3)
+    clean = record_markers(data, path, RecordConfig(rate=100), seed=3)
+    clean = replace(clean, markers=np.where(np.isnan(rec.markers), np.nan, clean.markers))  # the same gaps
+    ms = states_from_recording(rec, topo, dt=data.dt, lam=1e-6, replicas=2)
+    rd = ms.data
+    a, b = rd.replicas
+    assert a.pos.shape == rd.pos.shape and a.weight is rd.weight
+    noise = rd.pos - states_from_recording(clean, topo, dt=data.dt, lam=1e-6).data.pos
+    scatter = np.sqrt(np.mean((a.pos - rd.pos) ** 2))
+    assert 0.9 < scatter / np.sqrt(np.mean(noise ** 2)) < 1.1
+    mid = 0.5 * (a.pos + b.pos) - rd.pos
+    assert np.sqrt(np.mean(mid ** 2)) < 0.01 * scatter
+    assert rd.select(episodes=[1], steps=50).replicas[0].pos.shape == (1, 51, 6, 3)

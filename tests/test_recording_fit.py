@@ -152,19 +152,20 @@ def test_noise_replicas_scatter_as_the_reconstruction(robot):
 
 @pytest.mark.expensive
 def test_noisy_markers_fit_calibrated(tmp_path):
-    """The robot preset from 1 mm markers at 100 Hz with 2 % missing (4 takes of 5 s, total mass
-    known): every K within 1 % and M within 2 % of the plant's, every z-score (estimate - truth) /
-    standard error within 3.5 and their RMS within 2 over K, c and M.  Cheap siblings: the weights
-    and replicas tests above."""
+    """The robot preset from 1 mm markers at 100 Hz with 2 % missing (10 takes of 2 s, total mass
+    known; the error bars are the cluster-robust sandwich over the takes): every K within 1 % and
+    M within 5 % of the plant's, every z-score (estimate - truth) / standard error of K, c and M
+    within 3 and their RMS within 1.5.  Cheap siblings: the weights and replicas tests above."""
     from identified.fit.identify import ScaleSpec
     from identified.fit.markers import fit_recording
 
     path = str(tmp_path / "robot.xml")
     write_model(path, "ico", preset="robot")
-    data = collect(path, CollectConfig(episodes=4, steps=5000, seed=0))
+    data = collect(path, CollectConfig(episodes=10, steps=2000, seed=0))
     rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=0)
     m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
-    truth = {"stiffness": 2000.0, "damping": 30.0, "mass": 3.5}  # the preset's (tensegrity_gym.models)
+    assert m.metrics["stderr"].startswith("cluster-robust")
+    truth = {"stiffness": 2000.0, "damping": 30.0, "mass": 3.5}  # the robot preset's
     z = []
     for key, value in truth.items():
         est, se = np.asarray(getattr(m, key)), np.asarray(m.stderr[key])
@@ -172,6 +173,6 @@ def test_noisy_markers_fit_calibrated(tmp_path):
         if key == "stiffness":
             assert np.abs(est / value - 1).max() < 0.01
         if key == "mass":
-            assert np.abs(est / value - 1).max() < 0.02
+            assert np.abs(est / value - 1).max() < 0.05
     z = np.concatenate(z)
-    assert np.abs(z).max() < 3.5 and np.sqrt(np.mean(z ** 2)) < 2.0
+    assert np.abs(z).max() < 3.0 and np.sqrt(np.mean(z ** 2)) < 1.5

@@ -25,6 +25,9 @@ key                shape            meaning
 ``seed``           ()               seed of the collection run (-1 if unknown)
 ``actuator_names`` (U,)             optional: MJCF names of MuJoCo tendon actuators
 ``ctrl``           (E, T, U)        optional: command sent to each actuator during step t
+``weight``         (E, T, R)        optional: how much each rod's equations of step t count in a
+                                    fit, in [0, 1] (states reconstructed from markers: 0 where the
+                                    rod's markers were missing); absent: 1 everywhere
 =================  ===============  ==========================================================
 
 Step ``t`` takes the state at instant ``t`` to instant ``t + 1`` under ``rest_length[:, t]`` and
@@ -71,6 +74,11 @@ class Dataset:
     seed: int = -1
     actuator_names: tuple[str, ...] = ()
     ctrl: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    weight: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    #: copies of this dataset's states measured once more with fresh sensor noise (never saved):
+    #: how states reconstructed from noisy markers would scatter, for the fit's errors in variables
+    #: (:mod:`identified.fit.noise`)
+    replicas: tuple[Dataset, ...] = ()
 
     @property
     def n_episodes(self) -> int:
@@ -105,7 +113,14 @@ class Dataset:
             push_force=self.push_force[ep, :t],
             push_point=self.push_point[ep, :t],
             ctrl=self.ctrl[ep, :t] if self.ctrl.ndim == 3 and self.ctrl.shape[0] else self.ctrl,
+            weight=self.weight[ep, :t] if self.has_weight else self.weight,
+            replicas=tuple(r.select(episodes, steps) for r in self.replicas),
         )
+
+    @property
+    def has_weight(self) -> bool:
+        """Whether the dataset weighs its rods' equations per step (``weight``)."""
+        return self.weight.ndim == 3 and self.weight.size > 0
 
     def validate(self) -> Dataset:
         """Check shapes, finiteness and unit quaternions; raise DatasetError naming what is wrong."""
@@ -132,6 +147,12 @@ def _validate(d: Dataset) -> None:
     U = len(d.actuator_names)
     if U == 0 and np.size(d.ctrl) == 0 and np.shape(d.ctrl) != (E, T1 - 1, 0):
         object.__setattr__(d, "ctrl", np.zeros((E, T1 - 1, 0)))  # no actuators: an empty record
+    if np.size(d.weight):
+        w = np.asarray(d.weight)
+        if w.shape != (E, T1 - 1, R):
+            raise DatasetError(f"'weight' must have shape {(E, T1 - 1, R)} (one per rod and step), got {w.shape}")
+        if not np.all((w >= 0) & (w <= 1)):
+            raise DatasetError("'weight' holds values outside [0, 1]")
     ctrl = np.asarray(d.ctrl)
     if ctrl.shape != (E, T1 - 1, U):
         raise DatasetError(f"'ctrl' must have shape {(E, T1 - 1, U)} (one command per actuator and step), "
@@ -234,6 +255,7 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
         seed=int(arrays.get("seed", -1)),
         actuator_names=tuple(str(x) for x in np.atleast_1d(arrays.get("actuator_names", np.array([], dtype=str)))),
         ctrl=np.asarray(arrays.get("ctrl", np.zeros((0, 0, 0))), dtype=np.float64),
+        weight=np.asarray(arrays.get("weight", np.zeros((0, 0, 0))), dtype=np.float64),
         **{k: np.asarray(arrays[k], dtype=np.float64) for k in (*_STATE_KEYS, *_STEP_KEYS)},
     )
 
@@ -241,7 +263,7 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> Dataset:
 def save_dataset(path: str | os.PathLike, d: Dataset) -> None:
     """Validate and write ``d`` atomically (temporary file in the same folder, then rename)."""
     d.validate()
-    arrays = {f.name: getattr(d, f.name) for f in fields(d)}
+    arrays = {f.name: getattr(d, f.name) for f in fields(d) if f.name != "replicas"}
     arrays["format"] = np.array(FORMAT)
     for k in ("rod_names", "tendon_names", "actuated_names", "actuator_names"):
         arrays[k] = np.array(arrays[k], dtype=str)

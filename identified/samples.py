@@ -123,7 +123,8 @@ def iter_chunks(
                 push_torque_body=torque,
                 # a push switching at instant t is a jump in the rod's acceleration, across which
                 # the central difference is only first order: those equations are left out
-                row_weight=(cut(data.push_force, ep, ts, -1) == cut(data.push_force, ep, ts)).all(-1).to(dtype),
+                row_weight=(cut(data.push_force, ep, ts, -1) == cut(data.push_force, ep, ts)).all(-1).to(dtype)
+                * (cut(data.weight, ep, ts) if data.has_weight else 1.0),
                 ctrl=0.5 * (cut(data.ctrl, ep, ts, -1) + cut(data.ctrl, ep, ts)) if has_ctrl else None,
             )
             yield chunk, len(range(*ep.indices(E)))
@@ -141,5 +142,6 @@ def iter_chunks(
             push_force=cut(data.push_force, ep, ts),
             push_torque_body=matrix_apply_transpose(rot, push_torque(ep, ts, 0)),
             ctrl=cut(data.ctrl, ep, ts) if has_ctrl else None,
+            row_weight=cut(data.weight, ep, ts) if data.has_weight else None,
         )
         yield chunk, len(range(*ep.indices(E)))

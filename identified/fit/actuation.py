@@ -30,7 +30,8 @@ def activation_dataset(dataset: Dataset, names: Sequence[str], dynamics: Sequenc
     idx = [dataset.actuator_names.index(n) for n in names]
     act, dact = activations(dataset.ctrl[..., idx], dataset.dt, dynamics, tau)
     return replace(dataset, ctrl=np.concatenate([act, dact], axis=-1),
-                   actuator_names=tuple(names) + tuple(f"{n}/dtau" for n in names))
+                   actuator_names=tuple(names) + tuple(f"{n}/dtau" for n in names),
+                   replicas=tuple(activation_dataset(r, names, dynamics, tau) for r in dataset.replicas))
 
 
 def step_time_constant(tau: np.ndarray, gain: np.ndarray, gain_dtau: np.ndarray, dynamics: Sequence[str],

@@ -388,7 +388,7 @@ def residual_check(model, data) -> dict:
     from identified.evaluate import relative_one_step_errors
 
     rel = float(relative_one_step_errors([model], data)[0])
-    noisy = bool(np.any(np.asarray(data.noise) > 0))
+    noisy = bool(np.any(np.asarray(data.noise) > 0)) or bool(data.replicas)  # states from noisy markers too
     large = bool(not noisy and not rel <= LARGE_RESIDUAL)
     out = {"relative_one_step": rel if np.isfinite(rel) else None, "threshold": LARGE_RESIDUAL,
            "judged": not noisy, "large": large}

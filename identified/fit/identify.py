@@ -620,6 +620,8 @@ def fit_residual_effects(model: IdentifiedModel, dataset: Dataset, late: Sequenc
         stats = {}
         for e in late:
             rows = e.rows_affected(state, ctx)
+            if ch.row_weight is not None:  # steps the data weigh out (a rod's markers missing) stay out
+                rows = rows & (ch.row_weight > 0)
             stats[e.name] = e.fit_residual(state, ctx, force, torque, groups, rows)
             model.effects.append(e.to_json())
     return stats

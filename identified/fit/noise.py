@@ -12,6 +12,11 @@ well: on 20 x 2000 steps the spread of the fitted parameters over copies is belo
 standard errors.  More copies come in antithetic pairs ``±n'``, which cancel the odd-order terms
 of ``ΔAᵀΔA``.  :mod:`identified.fit.regression` uses ``C`` in its errors-in-variables estimator.
 
+States reconstructed from noisy markers (:mod:`identified.fit.markers`) have noise that the
+splines and the rigid fits shape, not the white noise of a state sensor: such a dataset carries its
+``replicas``, the same reconstruction from its markers with fresh marker noise added, and those
+take the copies' place here.
+
 Quaternion noise is a rotation vector of the recorded std per axis, composed on the left and
 renormalised (:mod:`tensegrity_gym.collect` records it that way); for isotropic noise the frame
 of composition does not matter.
@@ -36,8 +41,8 @@ Rows = Callable[[Dataset, bool], Iterable[tuple[torch.Tensor, int]]]
 
 
 def has_noise(data: Dataset) -> bool:
-    """Whether the dataset records sensor noise (any std > 0)."""
-    return bool(np.any(np.asarray(data.noise) > 0))
+    """Whether the dataset records sensor noise (any std > 0) or carries noisy replicas."""
+    return bool(np.any(np.asarray(data.noise) > 0)) or bool(data.replicas)
 
 
 def perturbed(data: Dataset, draws: dict[str, np.ndarray], sign: float) -> Dataset:
@@ -80,8 +85,11 @@ def with_noise_replicates(
     per = max(1, block_steps // max(data.n_steps, 1))
     for e0 in range(0, data.n_episodes, per):
         part = data.select(episodes=slice(e0, min(e0 + per, data.n_episodes)))
-        draws = [_draws(part, rng) for _ in range((copies + 1) // 2)]
-        noisy = [perturbed(part, draws[k // 2], 1.0 if k % 2 == 0 else -1.0) for k in range(copies)]
+        if part.replicas:  # measured again from noisier sensors (states from markers)
+            noisy = list(part.replicas[:copies])
+        else:
+            draws = [_draws(part, rng) for _ in range((copies + 1) // 2)]
+            noisy = [perturbed(part, draws[k // 2], 1.0 if k % 2 == 0 else -1.0) for k in range(copies)]
         streams = [iter(rows_of(c, False)) for c in noisy]
         for A, n in rows_of(part, True):
             yield A, n, [next(s)[0] for s in streams]

@@ -224,7 +224,7 @@ def _hand_wrench(eff, topo: Topology, s: RodState, rest: np.ndarray, ctx) -> tup
         return _point_wrench(topo, pos, rot, kappa * np.minimum(_stretch(topo, pos, rot) - rest, 0.0))
     if eff.name == "cable_friction":  # the force r resisting lengthening pulls both ends together
         return _point_wrench(topo, pos, rot, eff.cable_forces(s, ctx).numpy())
-    if eff.name == "ground_contact":  # contact forces in (n, along, across) where the capsule touches
+    if eff.name == "ground_contact":  # contact forces in (n, along, across) at the end-sphere centres
         _, local = eff.contact_forces(s, ctx)
         local = local.numpy()
         n = np.asarray(eff.options["normal"], dtype=float)
@@ -234,11 +234,7 @@ def _hand_wrench(eff, topo: Topology, s: RodState, rest: np.ndarray, ctx) -> tup
         across = np.cross(n, along)
         force, torque = np.zeros((N, R, 3)), np.zeros((N, R, 3))
         for e in range(2):
-            centre = np.einsum("nrij,rj->nri", rot, np.asarray(eff.options["segment"], dtype=float)[:, e])
-            # the middle of the overlap of the end sphere (radius r, depth d) and the plane
-            r = np.asarray(eff.options["radius"], dtype=float)
-            depth = r - ((pos + centre) @ n - eff.options["ground_height"])
-            lever = centre - (r - depth / 2)[..., None] * n
+            lever = np.einsum("nrij,rj->nri", rot, np.asarray(eff.options["segment"], dtype=float)[:, e])
             f = local[..., e, 0, None] * n + local[..., e, 1, None] * along + local[..., e, 2, None] * across
             force += f
             torque += np.cross(lever, f)
@@ -291,8 +287,8 @@ def test_each_effects_wrench_force_and_torque_is_its_law_by_hand(ico, name):
 
 
 def test_ground_contacts_wrench_force_and_torque_is_its_law_by_hand(tmp_path):
-    """Ground contact overrides ``wrench``: its force and torque are the contact forces where each
-    capsule end touches the plane (the middle of the overlap below the end sphere), in the (normal, along the rod's shadow, across) frame, with torque r x f, plus
+    """Ground contact overrides ``wrench``: its force and torque are the contact forces at the
+    end-sphere centres, in the (normal, along the rod's shadow, across) frame, with torque r x f, plus
     the torsional and rolling friction torques (against the spin about the normal and the rolling)."""
     path = tmp_path / "robot.xml"
     write_model(path, "ico", preset="robot")
@@ -303,86 +299,6 @@ def test_ground_contacts_wrench_force_and_torque_is_its_law_by_hand(tmp_path):
     assert np.abs(f_hand).max() > 1.0  # rods on the ground
     np.testing.assert_allclose(f.numpy(), f_hand, rtol=1e-9, atol=1e-9 * np.abs(f_hand).max())
     np.testing.assert_allclose(tau.numpy(), tau_hand, rtol=1e-9, atol=1e-9 * np.abs(tau_hand).max())
-
-
-def _lying_rod(path, values, vel=(0.0, 0.0, 0.0), push=(0.0, 0.0, 0.0), d=0.004):
-    """The robot's ground contact with ``values``, its rod 0 lying along x on the plane (both end
-    caps pressed in by ``d``), moving at ``vel`` and pushed by ``push`` N at its centre of mass,
-    the other rods in the air: the law's state and context (M = 3.5 kg, I = (0.8, 0.8, 0.0011))."""
-    import types
-
-    from identified.rotation import quat_to_matrix
-
-    write_model(path, "ico", preset="robot")
-    topo = Topology.from_mjcf(path)
-    eff = make_effect("ground_contact", topo, str(path))
-    eff.values = np.asarray(values, dtype=float)
-    R, r, M = topo.n_rods, eff.options["radius"][0], 3.5
-    inertia = torch.tensor([0.8, 0.8, 0.0011], dtype=torch.float64)
-    quat = torch.tensor([[np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0]] * R, dtype=torch.float64)  # axis along x
-    pos = torch.tensor([[0.0, 3.0 * i, 5.0] for i in range(R)], dtype=torch.float64)  # the others in the air
-    pos[0, 2] = eff.options["ground_height"] + r - d
-    zero = torch.zeros(R, 3, dtype=torch.float64)
-    v = zero.clone()
-    v[0] = torch.tensor(vel, dtype=torch.float64)
-    s = RodState(pos[None], quat[None], v[None], zero[None])
-    a0 = zero.clone()
-    a0[:, 2] = -9.81
-    a0[0] += torch.tensor(push, dtype=torch.float64) / M
-    rot = torch.as_tensor(quat_to_matrix(quat.numpy()))[None]
-    ctx = types.SimpleNamespace(params=types.SimpleNamespace(mass=torch.full((R,), M, dtype=torch.float64),
-                                                             inertia=inertia.expand(R, 3)),
-                                rot=rot, base_lin_acc=a0[None], base_ang_acc_body=zero[None])
-    return eff, s, ctx, a0[0].numpy(), M, inertia.numpy(), r - d / 2
-
-
-def test_a_pushed_lying_rod_rolls_as_a_cylinder(tmp_path):
-    """Friction acts where the capsule touches the plane, so an end cap rolls across its rod.
-
-    A rod lying on the plane (both end caps pressed in by d), pushed across its axis by F at its
-    centre of mass: with sticking contacts (gamma = 1, no spring-damper, a large mu, a vanishing
-    regulariser) both contact points stop, the rod rolls about the line through them, and its
-    centre of mass accelerates as a rolling cylinder's, F / (M + I_zz / rho²), with rho = r - d/2
-    the lever from the axis to the contact point; it spins about its axis at a / rho and gravity
-    is held. A force at the end-sphere centres (on the axis) would hold the rod still instead."""
-    F = 7.0
-    values = [0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 50.0, 1e-10, 0.0, 0.0, 1.0]
-    eff, s, ctx, a0, M, inertia, rho = _lying_rod(tmp_path / "robot.xml", values, push=(0.0, F, 0.0))
-    f, tau = (x[0].numpy() for x in eff.wrench(s, ctx))
-    acc = a0 + f[0] / M
-    alpha_body = ctx.rot[0, 0].numpy().T @ tau[0] / inertia
-    np.testing.assert_allclose(acc, [0.0, F / (M + inertia[2] / rho**2), 0.0], atol=1e-7 * F / M)
-    np.testing.assert_allclose(alpha_body, [0.0, 0.0, -acc[1] / rho], atol=1e-6 * F / M / rho)
-    np.testing.assert_array_equal(f[1:], 0.0)  # no contact in the air
-
-
-def test_a_sliding_contact_is_bounded_and_gamma_is_held_at_one_plus_epsilon(tmp_path):
-    """A rod sliding along its axis at 1 m/s while pushed across, mu = 0.1 far below what sticking
-    asks: each contact's friction is mu f_n in the unbounded law's direction, its normal force the
-    unbounded one, exactly. And a gain gamma above 1 + eps acts as 1 + eps: a contact cancels at
-    most the acceleration that pushes its point (a larger gamma would drive the point, and a
-    sticking end cap would roll on by itself)."""
-    values = [3000.0, 80.0, 1.0, 30.0, 1.0, 30.0, 1.0, 0.1, 0.1, 0.0, 0.0, 1.0]
-    eff, s, ctx, *_ = _lying_rod(tmp_path / "robot.xml", values, vel=(1.0, 0.0, 0.0), push=(0.0, 20.0, 0.0))
-    _, raw = eff._unbounded(s, ctx, eff.theta(s.pos))
-    _, f = eff.contact_forces(s, ctx)
-    raw, f = raw[0, 0].numpy(), f[0, 0].numpy()  # rod 0's two ends, (n, along = x, across = y)
-    tnorm = np.linalg.norm(raw[:, 1:], axis=-1, keepdims=True)
-    assert (tnorm[:, 0] > 0.1 * raw[:, 0]).all() and (raw[:, 0] > 0).all()  # both press and slide
-    np.testing.assert_allclose(f[:, 1:], 0.1 * raw[:, :1] * raw[:, 1:] / tnorm, rtol=1e-12)
-    np.testing.assert_array_equal(f[:, 0], raw[:, 0])
-    assert (f[:, 1] < 0).all()  # against the slip along x
-    # gamma: 3 acts as 1 + eps, in the fit's form and the twin's component form alike
-    over = np.array(values)
-    over[[2, 4, 6]] = 3.0
-    held = np.array(values)
-    held[[2, 4, 6]] = 1.1
-    eff.values = over
-    f_over, t_over = eff.wrench(s, ctx)
-    eff.values = held
-    f_held, t_held = eff.wrench(s, ctx)
-    torch.testing.assert_close(f_over, f_held, rtol=1e-14, atol=0.0)
-    torch.testing.assert_close(t_over, t_held, rtol=1e-14, atol=0.0)
 
 
 def test_twin_cable_friction_is_the_fit_law_at_the_accelerations_it_makes(ico):

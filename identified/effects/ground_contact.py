@@ -3,10 +3,8 @@
 Geometry (read from the MJCF, never its physics parameters): every rod's collision capsule
 (radius, segment end points in the rod frame) and the ground plane (height and normal).  Each end
 sphere of a capsule is a contact candidate; it is *in contact* when it penetrates the plane,
-depth ``d = r - (n·c - h) > 0`` (``c`` the sphere centre), at the point ``ρ = c - (r - d/2) n``, the
-middle of the overlap (lever from the rod's centre of mass; MuJoCo's contact point).  Friction there
-has a lever ``r`` about the rod's own axis: an end cap rolls across its rod, spinning it (in the
-inverse effective mass across the rod, ``r²/I_zz = 2/M`` for a solid rod, as a rolling cylinder's).
+depth ``d = r - (n·c - h) > 0`` (``c`` the sphere centre), at the point ``ρ = c - r n`` (lever from
+the rod's centre of mass).
 
 Force law.  MuJoCo's contact is a soft *constraint*, not a penalty spring: the solver chooses the
 force that gives the contact point a reference acceleration, ``f = (a_ref - J qacc) / R``, with
@@ -26,10 +24,10 @@ also moves the point sideways, which the friction must cancel to stick); ``v`` t
 (no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
 ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
 so none of them scales with the mass.  The friction axes are per rod: ``a`` along the rod's
-shadow on the ground, ``p`` across it (across, an end cap rolls: friction there spins the rod
-about its axis).  Given M, I and ``a0`` -- all from the jointly identified
+shadow on the ground, ``p`` across it (an end cap rolls across its rod more easily than it slides
+along it; on the robot γ_p ≈ 0.7 against γ_a ≈ 0.95).  Given M, I and ``a0`` -- all from the jointly identified
 spring-rod model -- the law is *linear* in ``(κ, β_n, γ_n, β_t, γ_t)``: it is fitted by least
-squares (each ``γ`` at most ``1 + ε``, :func:`_gains`) on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
+squares on the residual wrench of the rods that touch the ground (:meth:`GroundContact.fit_residual`),
 and the friction bound ``μ`` by a profile scan of the same residual.  Measured on the robot preset,
 this law explains most of the contact force (``explained_variance`` in the fit's metrics).
 
@@ -56,7 +54,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.optimize import lsq_linear
 
 from identified.effects.base import Effect, ParamBlock
 from identified.engine.smallmat import (
@@ -186,11 +183,10 @@ class GroundContact(Effect):
         _, _, n, t1, _, _ = self._geom(state.pos)
         rot = ctx.rot
         centre, depth = self._end_spheres(state, rot)
-        # the force acts where the capsule touches the plane, the middle of the overlap below the
-        # end sphere's centre: friction there also spins the rod about its own axis, so an end
-        # cap rolls across its rod (its inverse effective mass across gains r²/I_zz = 2/M)
-        radius = self._geom(state.pos)[0]
-        lever = centre - (radius.unsqueeze(-1) - depth / 2).unsqueeze(-1) * n - state.pos.unsqueeze(-2)
+        # the force acts on the rod's axis at the end sphere's centre: a contact at the capsule's
+        # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
+        # small for the data to identify and which the plant's torsional friction holds still
+        lever = centre - state.pos.unsqueeze(-2)
         # friction axes per rod: along the rod's shadow on the ground (a) and across it (p); an end
         # cap rolls across its rod far more easily than it slides along it
         axis = rot[..., :, 2]
@@ -283,7 +279,7 @@ class GroundContact(Effect):
         """The law before the friction bound: per contact (..., R, 2, 3), both ends of a rod solved
         together; an end whose normal force comes out pulling is released and the rod solved again."""
         c = self.contacts(state, ctx)
-        g = (self._references(state, ctx, c) * _gains(th)[:NL, None]).sum(-2)  # (..., R, 2, 3)
+        g = (self._references(state, ctx, c) * th[:NL, None]).sum(-2)  # (..., R, 2, 3)
         raw = self._apply(self._inverse(c["A"], c["active"], th[NL + 1]), g)
         # solved again with the pulling ends released (always: no data-dependent branch, so the
         # twin's compiled step stays one graph)
@@ -348,20 +344,17 @@ class GroundContact(Effect):
         dirs = (n, along, vcross(n, along))  # rows n, a, p
         alpha_w = mv(rot, base_ang_acc_body)
         sqrt_i = tuple(torch.sqrt(i) for i in inertia)
-        gains = _gains(th)
         levers, depths, bodies, refs = [], [], [], []
         for e in range(2):
-            centre = mv(rot, seg[e])  # COM -> end-sphere centre
-            depths.append(radius - (vdot(vadd(pos, centre), n) - height))
-            # COM -> contact point, the middle of the overlap (as :meth:`contacts`)
-            lever = vsub(centre, vscale(n, radius - depths[-1] / 2))
+            lever = mv(rot, seg[e])  # COM -> end-sphere centre
+            depths.append(radius - (vdot(vadd(pos, lever), n) - height))
             # B_e (3 directions x 3 body axes) = Rᵀ (ρ_e × u) / sqrt(I)
             bodies.append(tuple(x / si for d in dirs for x, si in zip(mtv(rot, vcross(lever, d)), sqrt_i)))
             # reference accelerations g = κ d n - β v - γ a0 per direction, from the contact point's
             # velocity and its acceleration under every other force
             v = vadd(vel, vcross(angvel, lever))
             a0 = vadd(base_lin_acc, vcross(alpha_w, lever))
-            refs.append(tuple(-(th[..., 1 + 2 * k] * vdot(d, v) + gains[..., 2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
+            refs.append(tuple(-(th[..., 1 + 2 * k] * vdot(d, v) + th[..., 2 + 2 * k] * vdot(d, a0)) for k, d in enumerate(dirs)))
             levers.append(lever)
         refs[0] = (refs[0][0] + th[..., 0] * depths[0], *refs[0][1:])
         refs[1] = (refs[1][0] + th[..., 0] * depths[1], *refs[1][1:])
@@ -415,9 +408,9 @@ class GroundContact(Effect):
         return self._cache[key]
 
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
-        """Each rod's contact point, the lever from its centre of mass (..., R, 3) world: where its
-        end sphere in contact touches the plane (the mean of both when both are; 0 when none is),
-        the point the law's forces act at.  The diagnosis and the torques' fit take torques about it."""
+        """Each rod's contact point, the lever from its centre of mass (..., R, 3) world: the centre
+        of its end sphere in contact (the mean of both when both are; 0 when none is), the point
+        the law's forces act at.  The diagnosis and the torques' fit take torques about it."""
         c = self.contacts(state, ctx)
         active = c["active"].to(state.pos.dtype)  # (..., R, 2)
         return (active.unsqueeze(-1) * c["lever"]).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
@@ -466,22 +459,16 @@ class GroundContact(Effect):
                 c, terms = self._linear_terms(state, ctx, eps)
                 F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
                 X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
-                # every γ at most 1 + ε (:func:`_gains`): bounded least squares
-                upper = np.full(NL, np.inf)
-                upper[2::2] = 1.0 + eps
-                theta = lsq_linear(X, Y, bounds=(np.full(NL, -np.inf), upper), method="bvls").x
+                theta = np.linalg.lstsq(X, Y, rcond=None)[0]
                 cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0, eps]])))
                 sse, mu = _mu_scan(cc, raw, sel, Yf, scale)
                 if sse < best[0]:
                     best = (sse, theta, mu, eps, X)
         sse, theta, mu, eps, X = best
-        free = np.ones(NL, dtype=bool)
-        free[2::2] = theta[2::2] < 1.0 + eps - 1e-12  # a γ held at its bound has no standard error
-        se = np.full(NL, np.nan)
-        se[free] = np.sqrt(np.clip(np.diag(_cluster_cov(X[:, free], Y - X @ theta, g)), 0, None))
+        cov = _cluster_cov(X, Y - X @ theta, g)
         self.values = np.concatenate([theta, [mu, eps], tq["values"]])
         # μ, ε and ω_s: profile scans, no standard error (null in the JSON)
-        self.stderr = np.concatenate([se, [np.nan, np.nan], tq["stderr"], [np.nan]])
+        self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan], tq["stderr"], [np.nan]])
         Yall = Yw.reshape(-1).numpy()
         return {"rows": int(sel.sum()),
                 "explained_variance": float(1 - sse / max(float(Yall @ Yall - len(Yall) * Yall.mean() ** 2), 1e-300)),
@@ -499,8 +486,8 @@ def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, 
                  sel: torch.Tensor, groups: np.ndarray, omegas: Any) -> dict[str, Any]:
     """The friction torques' least squares (``μ_t``, ``μ_r`` >= 0; ``ω_s`` by a profile scan) on
     the residual torque about each rod's contact point: the residual torque ``torque`` less the
-    contact point's lever times the residual force ``force`` ((N, R, 3) world; the point: where
-    its end sphere in contact touches the plane, the mean of both when both are).  Every force at the
+    contact point's lever times the residual force ``force`` ((N, R, 3) world; the point: the
+    centre of its end sphere in contact, the mean of both when both are).  Every force at the
     contact point (the force law's) leaves no torque about it: what stays is a pure torque, which
     only the friction torques explain, and the normal force they scale with is the residual force's
     normal component (the contact's, the only normal force the model lacks).  Returns the values
@@ -564,18 +551,6 @@ def _friction_torque(fn: torch.Tensor, angvel: torch.Tensor, n: torch.Tensor, mu
     tors = -mu_t * fn * torch.tanh(w_n / omega)
     roll = -mu_r * fn * torch.tanh(t_norm / omega) / t_norm.clamp_min(1e-12)
     return tors.unsqueeze(-1) * n + roll.unsqueeze(-1) * w_t
-
-
-def _gains(th: torch.Tensor) -> torch.Tensor:
-    """The law's parameters (..., P) with each ``γ`` at most ``1 + ε``: a contact force cancels at
-    most the acceleration that pushes its point (``γ / (1 + ε) <= 1``, as MuJoCo's impedance
-    ``d <= 1``); a larger ``γ`` would drive the point against that acceleration, a force that makes
-    energy (a sticking end cap then rolls on by itself).  The fit keeps ``γ`` within the bound; this
-    holds it for any value given (a randomized twin's draws)."""
-    cap = 1.0 + th[..., NL + 1]
-    gamma = torch.minimum(th[..., 2:NL:2], cap.unsqueeze(-1))
-    return torch.cat((th[..., 0:1], th[..., 1:2], gamma[..., 0:1], th[..., 3:4], gamma[..., 1:2], th[..., 5:6],
-                      gamma[..., 2:3], th[..., NL:]), -1)
 
 
 def _mu_scan(c: dict, raw: torch.Tensor, sel: torch.Tensor, target: torch.Tensor, scale: float,

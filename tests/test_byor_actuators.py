@@ -12,8 +12,10 @@ import re
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 from identified.engine.actuators import activations
+from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.fit.identify import ScaleSpec
 from identified.fit.pipeline import fit_model
 from identified.model import IdentifiedModel, load_model, save_model
@@ -99,3 +101,46 @@ def test_filter_time_constants_found_by_search(tmp_path):
         assert a["gain"] == pytest.approx(m.actuator_gainprm[i, 0], rel=1e-8)
         assert a["time_constant"] == pytest.approx(m.actuator_dynprm[i, 0], rel=1e-8)
         assert 0 < a["time_constant_stderr"] < 1e-9
+
+
+BIASED = "".join(
+    f'<general name="w{i}" tendon="{t}" dyntype="filter" dynprm="{tau}" gainprm="{g}" biastype="affine" '
+    f'biasprm="{b} 0 0" ctrlrange="0 1"/>'
+    for i, t, tau, g, b in ((1, "top12", 0.03, -7.0, 0.6), (2, "top23", 0.05, -5.5, 0.8), (3, "vert3", 0.04, -6.0, 0.5)))
+
+
+def _lengths(data, topology) -> np.ndarray:
+    """(N, S) every spring's length at the recorded instants."""
+    flat = lambda x: torch.as_tensor(x[:, :-1].reshape(-1, *x.shape[2:]))
+    ends = endpoint_kinematics(topology, flat(data.pos), flat(data.quat), flat(data.vel), flat(data.angvel))
+    return spring_geometry(ends)[0].numpy()
+
+
+def test_biases_identified_where_their_cables_go_slack(tmp_path):
+    """A constant bias is the same column as its cable's preload only while the cable is taut: the
+    first solve (no rest length estimated, every cable taut) cannot separate them, the later ones
+    can where the cable goes slack (top12, top23: the bias is recovered exactly); on a cable taut
+    throughout (vert3) the bias is held at 0, noted, and the rest length holds it (``l0 + b / K``)."""
+    path = tmp_path / "prism_biased.xml"
+    path.write_text(_prism(BIASED), encoding="utf-8")
+    m, total = _truth(str(path))
+    data = collect(str(path), CollectConfig(episodes=2, steps=500, seed=3, push_every=50, push_magnitude=5.0))
+    fit = fit_model(data, str(path), effects="ground_contact", scale=ScaleSpec(total_mass=total), jobs=1)
+    tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, s.name) for s in fit.topology.springs]
+    K, l0 = m.tendon_stiffness[tid], m.tendon_lengthspring[tid, 1].copy()
+    slack = np.mean(_lengths(data, fit.topology) < l0, axis=0)
+    for a in fit.actuators:
+        i = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a["name"])
+        j = fit.topology.spring_names.index(a["tendon"])
+        b = m.actuator_biasprm[i, 0]
+        assert a["gain"] == pytest.approx(m.actuator_gainprm[i, 0], rel=1e-8)
+        assert a["time_constant"] == pytest.approx(m.actuator_dynprm[i, 0], rel=1e-8)
+        if a["name"] == "w3":
+            assert slack[j] == 0.0 and a["bias"] == 0.0 and "never went slack" in a["note"]
+            l0[j] += b / K[j]
+        else:
+            assert 0.0 < slack[j] < 0.1 and "note" not in a
+            assert a["bias"] == pytest.approx(b, rel=1e-8)
+    np.testing.assert_allclose(fit.stiffness, K, rtol=1e-9)
+    np.testing.assert_allclose(fit.rest_length, l0, rtol=1e-9)
+    assert fit.metrics["residual"]["relative_one_step"] < 1e-9

@@ -316,8 +316,9 @@ def identify(
                 return solve(factors, layout, anchor, f)
 
             def solve_separating(f: dict[int, float]) -> Any:
-                """Solve; an actuator's constant bias on a cable that never went slack is the same
-                column as that cable's preload: held at 0 (absorbed into its rest length), noted."""
+                """Solve; an actuator's constant bias on a cable taut in every row of the current
+                classification is the same column as that cable's preload: held at 0 in ``f``
+                (absorbed into its rest length), noted in ``absorbed``."""
                 try:
                     return solve_holding(f)
                 except IdentifiabilityError as err:
@@ -330,7 +331,10 @@ def identify(
                         absorbed.append(layout.actuators[a])
                     return solve_separating(f)
 
+            # the biases absorbed by the latest classification: the first one takes every cable taut
+            # (no rest length estimated yet), so a bias is held there and released with the estimate
             absorbed: list[str] = []
+            biases = {layout.bias(a) for a in range(len(layout.actuators))}
             # a law that switches at a passive spring's rest length (Effect.reads_rest_length) has
             # empty columns while the estimate is 0 (every cable taut): held at 0 in the first solve,
             # released once the rest lengths are estimated
@@ -352,6 +356,8 @@ def identify(
                 classification only. What the solve holds for good (a bias) is kept in ``f``."""
                 held = {**f, **{i: 0.0 for i in hold}}
                 unseen.clear()
+                absorbed.clear()
+                absorbed_now = {i for i in biases if i not in f}
                 for _ in range(3):
                     try:
                         sol = solve_separating(held)
@@ -364,7 +370,8 @@ def identify(
                         unseen.extend(hit)
                 else:
                     sol = solve_separating(held)
-                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released})
+                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released
+                          and i not in absorbed_now})
                 return sol
 
             unseen: list[int] = []  # held by the last classification: no row on the other side
@@ -413,6 +420,7 @@ def identify(
                 fixed.update({i: 0.0 for i in steps})
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
+            fixed.update({layout.bias(layout.actuators.index(n)): 0.0 for n in absorbed})  # held for good
             tau_se = np.zeros(U)
             if filters.any():  # the last step's spread, then the fit at the settled time constants
                 g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))

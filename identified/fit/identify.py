@@ -388,6 +388,11 @@ def identify(
             # a spring an effect's law switches at its rest length (cable_slack) is reclassified too
             slack = passive & (topology.pull_only | any(e.reads_rest_length for e in joint))
             U = len(layout.actuators)
+            # a bias absorbed by a settled classification puts the estimate at ``l0 + b / K``, below
+            # the rest length for a bias that tightens the cable: the rows between stay taut and
+            # the bias inseparable. Probed once from above (a low quantile of the cable's lengths),
+            # the classification settles again; the probe is kept if it fits the rows better
+            before_probe: dict[str, Any] | None = None
             for it in range(REST_ITERATIONS if (slack.any() or filters.any() or released) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
                 # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
@@ -412,10 +417,24 @@ def identify(
                     settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
                     tau = tau_new
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
+                probe = [topology.spring_names.index(act_by_name[n].tendon) for n in absorbed]
+                probe = [j for j in probe if passive[j] and topology.pull_only[j]]
+                if settled and before_probe is None and probe:
+                    before_probe = {"sol": sol, "factors": factors, "rest": rest_estimate.copy(), "tau": tau,
+                                    "absorbed": list(absorbed), "unseen": list(unseen)}
+                    low = np.quantile(recorded_lengths(dataset, topology)[:, probe], PROBE_QUANTILE, axis=0)
+                    rest_estimate[probe] = np.maximum(rest_estimate[probe], low)
+                    settled = False
                 if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
+            if before_probe is not None and _misfit(sol) >= _misfit(before_probe["sol"]):
+                sol, factors, tau = before_probe["sol"], before_probe["factors"], before_probe["tau"]
+                rest_estimate[:] = before_probe["rest"]
+                absorbed[:], unseen[:] = before_probe["absorbed"], before_probe["unseen"]
+                if filters.any():
+                    src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
             if rest_law and layout.rest_steps:  # the settled estimate: its steps held at 0, solved once more
                 fixed.update({i: 0.0 for i in steps})
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
@@ -479,6 +498,9 @@ def identify(
 #: change by less than REST_TOL (relative)
 REST_ITERATIONS = 25
 REST_TOL = 1e-11
+#: the quantile of a cable's recorded lengths its rest-length estimate is probed from when its
+#: actuator's bias was absorbed (``identify``)
+PROBE_QUANTILE = 0.05
 TAU_TOL = 1e-10  # relative change of a filter's time constant at which the search stops
 
 
@@ -506,14 +528,24 @@ def _with_estimate(rest: torch.Tensor, passive: np.ndarray, estimate: np.ndarray
     return torch.where(mask, torch.as_tensor(estimate, dtype=rest.dtype, device=rest.device), rest)
 
 
-def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
-    """(S,) every spring's mean length over (up to ``max_instants`` of) the recorded states, m: the
-    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+def recorded_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(N, S) every spring's length at (up to ``max_instants`` of) the recorded states, m."""
     E, T = dataset.n_episodes, dataset.n_steps + 1
     stride = max(1, (E * T) // max_instants)
     t = lambda x: torch.as_tensor(x.reshape(-1, *x.shape[2:])[::stride], dtype=torch.float64)
     ends = endpoint_kinematics(topology, t(dataset.pos), t(dataset.quat), t(dataset.vel), t(dataset.angvel))
-    return spring_geometry(ends).length.mean(0).numpy()
+    return spring_geometry(ends).length.numpy()
+
+
+def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(S,) every spring's mean length over the recorded states (:func:`recorded_lengths`), m: the
+    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+    return recorded_lengths(dataset, topology, max_instants).mean(0)
+
+
+def _misfit(sol: Solution) -> float:
+    """The solution's equation residual, summed over rods and equations (same rows, same scale)."""
+    return float(np.sum(np.square(np.asarray(sol.residual_rms, dtype=float))))
 
 
 def _rest_from(theta: np.ndarray, layout: ParameterLayout, passive: np.ndarray, ref: np.ndarray) -> np.ndarray:

@@ -391,8 +391,11 @@ def identify(
             # a bias absorbed by a settled classification puts the estimate at ``l0 + b / K``, below
             # the rest length for a bias that tightens the cable: the rows between stay taut and
             # the bias inseparable. Probed once from above (a low quantile of the cable's lengths),
-            # the classification settles again; the probe is kept if it fits the rows better
+            # the classification settles again; the probe is kept if it fits the rows better. A bias
+            # the probe separates only by the row at the estimate itself (the cable's shortest length
+            # in the fitted rows: any l0 at or below it fits as well) is no evidence: held at 0
             before_probe: dict[str, Any] | None = None
+            held_bias: list[str] = []
             for it in range(REST_ITERATIONS if (slack.any() or filters.any() or released) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
                 # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
@@ -421,10 +424,22 @@ def identify(
                 probe = [j for j in probe if passive[j] and topology.pull_only[j]]
                 if settled and before_probe is None and probe:
                     before_probe = {"sol": sol, "factors": factors, "rest": rest_estimate.copy(), "tau": tau,
-                                    "absorbed": list(absorbed), "unseen": list(unseen)}
+                                    "absorbed": list(absorbed), "unseen": list(unseen), "names": list(absorbed)}
                     low = np.quantile(recorded_lengths(dataset, topology)[:, probe], PROBE_QUANTILE, axis=0)
                     rest_estimate[probe] = np.maximum(rest_estimate[probe], low)
                     settled = False
+                elif settled and before_probe is not None and "shortest" not in before_probe:
+                    separated = [n for n in before_probe["names"] if n not in absorbed]
+                    js = [topology.spring_names.index(act_by_name[n].tendon) for n in separated]
+                    before_probe["shortest"] = shortest = fitted_min_lengths(
+                        src["data"], topology, late, js, scheme, chunk_steps, device, contact_margin)
+                    edge = [(n, j) for n, j, x in zip(separated, js, shortest)
+                            if rest_estimate[j] <= x + REST_EDGE * abs(rest_estimate[j])]
+                    for n, j in edge:
+                        fixed[layout.bias(layout.actuators.index(n))] = 0.0
+                        held_bias.append(n)
+                        rest_estimate[j] = before_probe["rest"][j]
+                    settled = not edge
                 if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
@@ -440,6 +455,7 @@ def identify(
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
             fixed.update({layout.bias(layout.actuators.index(n)): 0.0 for n in absorbed})  # held for good
+            absorbed += [n for n in held_bias if n not in absorbed]
             tau_se = np.zeros(U)
             if filters.any():  # the last step's spread, then the fit at the settled time constants
                 g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))
@@ -501,6 +517,9 @@ REST_TOL = 1e-11
 #: the quantile of a cable's recorded lengths its rest-length estimate is probed from when its
 #: actuator's bias was absorbed (``identify``)
 PROBE_QUANTILE = 0.05
+#: a probed rest length within this (relative) of the cable's shortest fitted length sits at the edge
+#: of the data: its bias is not separated by any slack row
+REST_EDGE = 1e-6
 TAU_TOL = 1e-10  # relative change of a filter's time constant at which the search stops
 
 
@@ -541,6 +560,26 @@ def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000
     """(S,) every spring's mean length over the recorded states (:func:`recorded_lengths`), m: the
     reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
     return recorded_lengths(dataset, topology, max_instants).mean(0)
+
+
+def fitted_min_lengths(dataset: Dataset, topology: Topology, late: Sequence[Effect], springs: Sequence[int],
+                       scheme: str, chunk_steps: int = 4096, device: str = "cpu", margin: int = 0) -> np.ndarray:
+    """(len(springs),) each spring's shortest length, m, at the instants the joint fit keeps for it (a
+    rod it holds not touched by a residual-stage effect ``late``, within ``margin`` steps)."""
+    out = np.full(len(springs), np.inf)
+    if not len(springs):
+        return out
+    for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
+        length = spring_geometry(endpoint_kinematics(topology, ch.pos, ch.quat, ch.vel, ch.angvel)).length
+        keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool, device=ch.pos.device)
+        if late:
+            hit = _affected(late, topology, ch)
+            keep = ~(_dilate(hit, n_ep, margin) if margin else hit)
+        for k, j in enumerate(springs):
+            seen = keep[:, [r for r in topology.springs[j].rods if r >= 0]].any(-1)
+            if bool(seen.any()):
+                out[k] = min(out[k], float(length[seen, j].min()))
+    return out
 
 
 def _misfit(sol: Solution) -> float:

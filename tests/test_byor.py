@@ -158,20 +158,62 @@ def test_malformed_models_are_refused_naming_the_element(case: str) -> None:
         MujocoPlant(xml)
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda x: x.replace('<site site="bar1_top"/><site site="bar2_top"/>',
-                         '<site site="bar1_top"/><site site="bar3_bot"/><site site="bar2_top"/>'),
-     "tendon 'top12' is routed over 3 sites"),
-    (lambda x: x.replace('<spatial name="top12"', '<spatial name="top12" limited="true" range="0 1"'),
-     "tendon 'top12' has a length limit"),
-    (lambda x: re.sub(r'(<spatial name="top12" [^>]*springlength=")0 ', r'\g<1>0.1 ', x),
-     "tendon 'top12': a dead-band with a non-zero lower bound"),
-    (lambda x: x.replace('<motor name="motor1" tendon="vert1"', '<motor name="motor1" site="bar1_top"'),
-     "actuator 'motor1' drives a site, not a tendon"),
-])
+#: what the plant can simulate (and ``collect`` records) but the identified engine does not model
+UNMODELLED = {
+    "three sites": (lambda x: x.replace('<site site="bar1_top"/><site site="bar2_top"/>',
+                                        '<site site="bar1_top"/><site site="bar3_bot"/><site site="bar2_top"/>'),
+                    "tendon 'top12' is routed over 3 sites"),
+    "length limit": (lambda x: x.replace('<spatial name="top12"', '<spatial name="top12" limited="true" range="0 1"'),
+                     "tendon 'top12' has a length limit"),
+    "dead band": (lambda x: re.sub(r'(<spatial name="top12" [^>]*springlength=")0 ', r'\g<1>0.1 ', x),
+                  "tendon 'top12': a dead-band with a non-zero lower bound"),
+    "site actuator": (lambda x: x.replace('<motor name="motor1" tendon="vert1"', '<motor name="motor1" site="bar1_top"'),
+                      "actuator 'motor1' drives a site, not a tendon"),
+}
+
+
+@pytest.mark.parametrize("edit, message", list(UNMODELLED.values()), ids=list(UNMODELLED))
 def test_what_the_engine_does_not_model_is_refused(edit, message) -> None:
     with pytest.raises(TopologyError, match=message):
         Topology.from_mjcf(edit(PRISM))
+
+
+NO_CONTROLS = PRISM.split("<actuator>")[0] + "</mujoco>"
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED) + ["no controls"] + sorted(UNMODELLED))
+def test_cli_refuses_each_malformed_model_in_one_line(case: str, tmp_path, capsys) -> None:
+    """Every malformed model through the command line (in process): exit status 2, one line on
+    stderr naming the element, nothing written. A model with no actuator and no motor is a valid
+    structure (it can be recorded) but gives nothing to control: ``train`` refuses it; what the
+    plant simulates but the identified engine does not model is recorded and refused by ``fit``."""
+    from tensegrity_gym.cli import main
+
+    bad = tmp_path / "bad.xml"
+    out = tmp_path / "out"
+    if case == "no controls":
+        bad.write_text(NO_CONTROLS)
+        argv = ["train", "--plant", "--xml-file", str(bad), "--timesteps", "64", "--out", str(out)]
+        message = "the model has no actuated cables and no actuators: nothing to control"
+    elif case in MALFORMED:
+        xml, message = MALFORMED[case]
+        bad.write_text(xml)
+        argv = ["collect", "--model", str(bad), "--episodes", "1", "--steps", "10", "--out", str(out)]
+    elif case in UNMODELLED:  # recorded from the plant, refused by the fit
+        edit, message = UNMODELLED[case]
+        bad.write_text(edit(PRISM))
+        data = tmp_path / "d.npz"
+        collect = ["collect", "--model", str(bad), "--episodes", "1", "--steps", "10", "--out"]
+        if case == "site actuator":  # the plant refuses that one already
+            argv = collect + [str(out)]
+        else:
+            assert main(collect + [str(data), "--quiet"]) == 0
+            argv = ["fit", str(data), "--model", str(bad), "--out", str(out), "--quiet"]
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tensegrity: error: ") and re.search(message, err[0]), err
+    assert not list(tmp_path.glob("out*"))
 
 
 def test_cli_refuses_in_one_line(tmp_path) -> None:

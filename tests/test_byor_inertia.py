@@ -233,3 +233,94 @@ def test_fit_command_takes_the_inertia_model(plant_and_data, tmp_path, monkeypat
     np.testing.assert_allclose(com, [c for c, _, _ in INERTIAL.values()], rtol=0, atol=1e-9)
     rc, _, err = run_cli(["fit", "d.npz", "--model", "p.xml", "--inertia", "principal", "--out", "g.json"])
     assert rc == 2 and "--inertia" in err and not os.path.exists("g.json")
+
+
+# ---------------------------------------------------------------------- ground contact, full tensor
+_BAR = ('<mujoco><worldbody><body name="bar" pos="0.1 -0.2 0.25" quat="0.8 0.3 -0.4 0.33"><freejoint/>'
+        '<inertial pos="0.03 -0.01 0.05" mass="0.25" fullinertia="0.0070 0.0072 0.0006 0.0001 -0.00005 0.00008"/>'
+        '<geom type="capsule" fromto="0 0 -0.2897 0 0 0.2897" size="0.01"/></body></worldbody></mujoco>')
+_SEGMENT = [[0.0, 0.0, -0.2897], [0.0, 0.0, 0.2897]]
+#: a contact law: κ, β_n, γ_n, β_a, γ_a, β_p, γ_p, μ, ε, μ_torsion, μ_rolling, ω_slip
+_LAW = [4000.0, 60.0, 0.95, 40.0, 0.9, 30.0, 0.7, 0.8, 0.05, 0.004, 0.002, 1.0]
+
+
+def _contact_bar(full: bool = True):
+    """The bar's MuJoCo model and data, its ground contact law and the engine's view of its rigid
+    body: the true centre of mass and inertia tensor (``full``) or the principal moments alone."""
+    from types import SimpleNamespace
+
+    from identified.effects.ground_contact import GroundContact
+
+    m = mujoco.MjModel.from_xml_string(_BAR)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    J = inertia_tensor(m.body_inertia[1:2], m.body_iquat[1:2])[0]
+    t = lambda x: torch.as_tensor(np.asarray(x, dtype=float))
+    params = SimpleNamespace(mass=t([m.body_mass[1]]), inertia=t([np.diag(J)]) if full else t(m.body_inertia[1:2]),
+                             com=t(m.body_ipos[1:2]) if full else None,
+                             inertia_products=t([J[[0, 0, 1], [1, 2, 2]]]) if full else None)
+    gc = GroundContact(1, 0, values=_LAW, options={"radius": [0.01], "segment": [_SEGMENT], "ground_height": 0.0,
+                                                   "normal": [0.0, 0.0, 1.0]})
+    return m, d, gc, params
+
+
+def test_contact_effective_mass_is_mujocos_for_an_off_centre_rod():
+    """The contact law's inverse effective-mass matrix of a rod whose centre of mass is 5 cm off its
+    frame's origin, with a full inertia tensor (both end spheres, in the contact directions)
+    equals MuJoCo's ``J M⁻¹ Jᵀ`` at the same points to rounding; the principal moments alone with
+    the lever from the frame's origin (the diagonal model) miss it by far."""
+    from types import SimpleNamespace
+
+    m, d, gc, params = _contact_bar()
+    M = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M)
+    rot = d.xmat[1].reshape(3, 3)
+    jac = []
+    for end in _SEGMENT:
+        jacp = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jacp, None, d.xpos[1] + rot @ np.array(end), 1)
+        jac.append(jacp)
+    jac = np.concatenate(jac)
+    truth = jac @ np.linalg.solve(M, jac.T)  # (6, 6): (end, world axis)
+    state = SimpleNamespace(pos=torch.as_tensor(d.xpos[1:2].copy()))
+    for full in (True, False):
+        params = _contact_bar(full)[3]
+        c = gc.contacts(state, SimpleNamespace(rot=torch.as_tensor(rot[None].copy()), params=params))
+        D = np.zeros((6, 6))  # world -> (end, contact direction)
+        D[:3, :3], D[3:, 3:] = c["dirs"][0, 0].numpy(), c["dirs"][0, 1].numpy()
+        want = D @ truth @ D.T
+        if full:
+            np.testing.assert_allclose(c["A"][0].numpy(), want, rtol=0, atol=1e-12 * np.abs(want).max())
+        else:
+            assert np.abs(c["A"][0].numpy() - want).max() > 0.05 * np.abs(want).max()
+
+
+def test_contact_component_form_agrees_for_an_off_centre_rod():
+    """The twin's component form of the contact law (:meth:`GroundContact.wrench_components`) equals
+    the fit's tensor form with a centre of mass off the frame and products of inertia, on moving
+    states with an end sphere in the ground."""
+    from types import SimpleNamespace
+
+    from identified.engine.smallmat import mat, unvec, vec
+    from identified.rotation import quat_to_matrix
+
+    _, _, gc, p = _contact_bar()
+    rng = np.random.default_rng(3)
+    n = 48
+    quat = torch.as_tensor(rng.normal(size=(n, 1, 4)))
+    quat = quat / quat.norm(dim=-1, keepdim=True)
+    rot = quat_to_matrix(quat)
+    pos = torch.as_tensor(np.concatenate([rng.normal(0, 0.3, (n, 1, 2)), rng.uniform(0.0, 0.3, (n, 1, 1))], -1))
+    r = lambda s: torch.as_tensor(rng.normal(0, s, (n, 1, 3)))
+    state = SimpleNamespace(pos=pos, vel=r(0.5), angvel=r(1.0))
+    ctx = SimpleNamespace(rot=rot, params=p, base_lin_acc=r(5.0), base_ang_acc_body=r(20.0))
+    c, f = gc.contact_forces(state, ctx)
+    force0, torque0 = gc._to_wrench(c, f)
+    torque0 = torque0 + gc.contact_torque(state, f, gc.theta(pos))
+    force, torque = (unvec(x) for x in gc.wrench_components(
+        vec(pos), vec(state.vel), vec(state.angvel), mat(rot), vec(ctx.base_lin_acc), vec(ctx.base_ang_acc_body),
+        p.mass, vec(p.inertia), vec(p.com), vec(p.inertia_products)))
+    assert 10 < int(c["active"].sum()) < c["active"].numel()
+    scale = float(force0.abs().max())
+    torch.testing.assert_close(force, force0, rtol=0, atol=1e-12 * scale)
+    torch.testing.assert_close(torque, torque0, rtol=0, atol=1e-12 * scale)

@@ -247,9 +247,11 @@ class Effect(ABC):
         return None
 
     def wrench_components(self, pos: Any, vel: Any, angvel: Any, rot: Any, base_lin_acc: Any,
-                          base_ang_acc_body: Any, mass: torch.Tensor, inertia: Any) -> tuple[Any, Any]:
+                          base_ang_acc_body: Any, mass: torch.Tensor, inertia: Any, com: Any = None,
+                          products: Any = None) -> tuple[Any, Any]:
         """The law in component form for the engine's fused step (``component_form = True``);
-        every argument's components (..., R)."""
+        every argument's components (..., R) (``com``, ``products``: the rods' centres of mass in
+        their frames and products of inertia, ``None``: 0)."""
         raise NotImplementedError(f"effect '{self.name}' has no component form (component_form = False)")
 
     def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,

@@ -18,10 +18,13 @@ gravity, pushes, other effects) this is, for one contact on a rod,
 
 written here per direction for one contact: in full, the force in contact coordinates
 ``(n, a, p)`` is ``A⁻¹ g`` with ``g`` the bracketed reference accelerations and
-``A_ab = δ_ab / M + (ρ×u_a)ᵀ I_w⁻¹ (ρ×u_b)`` the contact point's inverse effective-mass matrix from
-the rod's identified M and I (its off-diagonal terms are why a normal force at a tilted rod's end
-also moves the point sideways, which the friction must cancel to stick); ``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ``
-(no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
+``A_ab = δ_ab / M + (ρ_c×u_a)ᵀ J_w⁻¹ (ρ_c×u_b)`` the contact point's inverse effective-mass matrix
+from the rod's identified mass and full inertia tensor ``J_w = R J Rᵀ`` about its centre of mass,
+``ρ_c`` the point's lever from the centre of mass (a rod frame off the centre of mass, or turned
+from its principal axes, as MuJoCo's ``J M⁻¹ Jᵀ``; its off-diagonal terms are why a normal force
+at a tilted rod's end also moves the point sideways, which the friction must cancel to stick);
+``v`` the point's velocity, ``a0 = a0_rod + α0 × ρ`` with ``ρ`` the lever from the rod frame's
+origin, whose acceleration ``a0_rod`` is (no centripetal term, as MuJoCo's ``J qacc``).  ``γ ≈ 1`` cancels what would push the rod into the
 ground (a hard contact), ``κ``, ``β`` are a soft spring-damper in acceleration units (1/s², 1/s),
 so none of them scales with the mass.  The friction axes are per rod: ``a`` along the rod's
 shadow on the ground, ``p`` across it (an end cap rolls across its rod more easily than it slides
@@ -56,17 +59,21 @@ import numpy as np
 import torch
 
 from identified.effects.base import Effect, ParamBlock
+from identified.engine.accelerations import inertia_matrix
 from identified.engine.smallmat import (
     Mat,
     Vec,
+    inverse3,
     minverse,
     mmul,
     mtranspose,
     mtv,
     mv,
+    unvec,
     vadd,
     vcross,
     vdot,
+    vec,
     vscale,
     vsub,
 )
@@ -196,12 +203,17 @@ class GroundContact(Effect):
         across = torch.linalg.cross(n.expand_as(along), along)
         dirs = torch.stack((n.expand_as(along), along, across), -2).unsqueeze(-3).expand(lever.shape[:-1] + (3, 3))
         p = ctx.params
-        inertia = p.inertia.unsqueeze(-2).unsqueeze(-2)
-        rxu = torch.linalg.cross(lever.unsqueeze(-2).expand_as(dirs), dirs)  # (..., R, 2, 3, 3)
-        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu) / inertia.sqrt()
+        com = getattr(p, "com", None)
+        # the effective mass takes the lever from the centre of mass and the full inertia tensor
+        rho = lever if com is None else lever - matrix_apply(rot.unsqueeze(-3), com.unsqueeze(-2))
+        rxu = torch.linalg.cross(rho.unsqueeze(-2).expand_as(dirs), dirs)  # (..., R, 2, 3, 3)
+        body = matrix_apply_transpose(rot.unsqueeze(-3).unsqueeze(-3), rxu)
         B = body.reshape(body.shape[:-3] + (6, 3))
+        products = getattr(p, "inertia_products", None)
+        j_inv = (torch.diag_embed(1.0 / p.inertia) if products is None else  # (..., R, 3, 3) rod frame
+                 inverse3(unvec(inertia_matrix(vec(p.inertia), vec(products))).unflatten(-1, (3, 3))))
         eye = torch.eye(3, dtype=lever.dtype, device=lever.device).repeat(2, 2)
-        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
+        A = eye / p.mass.unsqueeze(-1).unsqueeze(-1) + B @ j_inv @ B.transpose(-1, -2)  # J M⁻¹ Jᵀ
         return {"depth": depth, "active": depth > 0, "lever": lever, "A": A, "dirs": dirs}
 
     def _point_kinematics(self, state: Any, ctx: Any, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
@@ -322,9 +334,11 @@ class GroundContact(Effect):
                                 th[..., I_ROLLING], th[..., I_OMEGA])
 
     def wrench_components(self, pos: Vec, vel: Vec, angvel: Vec, rot: Mat, base_lin_acc: Vec,
-                          base_ang_acc_body: Vec, mass: torch.Tensor, inertia: Vec) -> tuple[Vec, Vec]:
+                          base_ang_acc_body: Vec, mass: torch.Tensor, inertia: Vec, com: Vec | None = None,
+                          products: Vec | None = None) -> tuple[Vec, Vec]:
         """The law's force and WORLD torque on each rod in component form (every argument's
-        components (..., R); ``mass`` and ``inertia`` the identified rods'): the same law as
+        components (..., R); ``mass``, ``inertia`` (the rod-frame diagonal about the centre of mass),
+        ``com`` and ``products`` (``None``: 0) the identified rods'): the same law as
         :meth:`contact_forces` (then :meth:`_to_wrench`), which the fit uses, written for the
         engine's step with no per-parameter columns: the reference accelerations contracted as they
         are formed, ``J M⁻¹ Jᵀ`` as its four 3x3 blocks per rod, and the two masked 6x6 solves by
@@ -343,13 +357,17 @@ class GroundContact(Effect):
         along = tuple(torch.where(norm > 1e-6, a * inv, t) for a, t in zip(along, t1))
         dirs = (n, along, vcross(n, along))  # rows n, a, p
         alpha_w = mv(rot, base_ang_acc_body)
-        sqrt_i = tuple(torch.sqrt(i) for i in inertia)
-        levers, depths, bodies, refs = [], [], [], []
+        j_inv = None if products is None else minverse(inertia_matrix(inertia, products))
+        levers, depths, bodies, scaled, refs = [], [], [], [], []
         for e in range(2):
-            lever = mv(rot, seg[e])  # COM -> end-sphere centre
+            lever = mv(rot, seg[e])  # frame origin -> end-sphere centre
             depths.append(radius - (vdot(vadd(pos, lever), n) - height))
-            # B_e (3 directions x 3 body axes) = Rᵀ (ρ_e × u) / sqrt(I)
-            bodies.append(tuple(x / si for d in dirs for x, si in zip(mtv(rot, vcross(lever, d)), sqrt_i)))
+            # B_e (3 directions x 3 body axes) = Rᵀ (ρ_c × u), ρ_c from the centre of mass, and B_e J⁻¹
+            rho = lever if com is None else mv(rot, vsub(seg[e], com))
+            b = [mtv(rot, vcross(rho, d)) for d in dirs]
+            bodies.append(tuple(x for row in b for x in row))
+            scaled.append(tuple(x for row in b for x in (tuple(r / i for r, i in zip(row, inertia)) if j_inv is None
+                                                         else mv(j_inv, row))))
             # reference accelerations g = κ d n - β v - γ a0 per direction, from the contact point's
             # velocity and its acceleration under every other force
             v = vadd(vel, vcross(angvel, lever))
@@ -360,7 +378,7 @@ class GroundContact(Effect):
         refs[1] = (refs[1][0] + th[..., 0] * depths[1], *refs[1][1:])
         inv_m, eps = 1.0 / mass, th[..., NL + 1]
 
-        def block(b: Mat, c: Mat, regularised: bool) -> Mat:  # I/M + B_b B_cᵀ (ε on the diagonal)
+        def block(b: Mat, c: Mat, regularised: bool) -> Mat:  # E/M + B_b (J⁻¹ B_cᵀ) (ε on the diagonal)
             out = []
             for i in range(3):
                 for j in range(3):
@@ -371,7 +389,8 @@ class GroundContact(Effect):
                     out.append(x)
             return tuple(out)
 
-        P, Q, W = block(bodies[0], bodies[0], True), block(bodies[0], bodies[1], False), block(bodies[1], bodies[1], True)
+        P, Q, W = (block(bodies[0], scaled[0], True), block(bodies[0], scaled[1], False),
+                   block(bodies[1], scaled[1], True))
         active = (depths[0] > 0, depths[1] > 0)
         raw = _masked_block_solve(P, Q, W, active, refs)
         # solved again with the pulling ends released (always: one graph)
@@ -618,3 +637,4 @@ def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray
     G = len(np.unique(groups))
     corr = G / max(G - 1, 1)
     return corr * XtX_inv @ meat @ XtX_inv
+

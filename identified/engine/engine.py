@@ -456,7 +456,8 @@ class SpringRodEngine:
                                                           products)
         if self.effects:  # constraint-like effects see the accelerations under every other force
             for effect in self.effects:
-                ef, et = effect.wrench_components(pos, vel, angvel, rot, lin_acc, ang_acc_b, p.mass, inertia)
+                ef, et = effect.wrench_components(pos, vel, angvel, rot, lin_acc, ang_acc_b, p.mass, inertia,
+                                                   com, products)
                 force, torque = vadd(force, ef), vadd(torque, et)
             lin_acc, ang_acc_b = rod_accelerations_components(force, torque, rot, w_b, p.mass, inertia, gravity,
                                                               com, products)

@@ -316,8 +316,9 @@ def identify(
                 return solve(factors, layout, anchor, f)
 
             def solve_separating(f: dict[int, float]) -> Any:
-                """Solve; an actuator's constant bias on a cable that never went slack is the same
-                column as that cable's preload: held at 0 (absorbed into its rest length), noted."""
+                """Solve; an actuator's constant bias on a cable taut in every row of the current
+                classification is the same column as that cable's preload: held at 0 in ``f``
+                (absorbed into its rest length), noted in ``absorbed``."""
                 try:
                     return solve_holding(f)
                 except IdentifiabilityError as err:
@@ -330,7 +331,10 @@ def identify(
                         absorbed.append(layout.actuators[a])
                     return solve_separating(f)
 
+            # the biases absorbed by the latest classification: the first one takes every cable taut
+            # (no rest length estimated yet), so a bias is held there and released with the estimate
             absorbed: list[str] = []
+            biases = {layout.bias(a) for a in range(len(layout.actuators))}
             # a law that switches at a passive spring's rest length (Effect.reads_rest_length) has
             # empty columns while the estimate is 0 (every cable taut): held at 0 in the first solve,
             # released once the rest lengths are estimated
@@ -352,6 +356,8 @@ def identify(
                 classification only. What the solve holds for good (a bias) is kept in ``f``."""
                 held = {**f, **{i: 0.0 for i in hold}}
                 unseen.clear()
+                absorbed.clear()
+                absorbed_now = {i for i in biases if i not in f}
                 for _ in range(3):
                     try:
                         sol = solve_separating(held)
@@ -364,7 +370,8 @@ def identify(
                         unseen.extend(hit)
                 else:
                     sol = solve_separating(held)
-                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released})
+                f.update({i: v for i, v in held.items() if i not in rest_law and i not in released
+                          and i not in absorbed_now})
                 return sol
 
             unseen: list[int] = []  # held by the last classification: no row on the other side
@@ -381,6 +388,14 @@ def identify(
             # a spring an effect's law switches at its rest length (cable_slack) is reclassified too
             slack = passive & (topology.pull_only | any(e.reads_rest_length for e in joint))
             U = len(layout.actuators)
+            # a bias absorbed by a settled classification puts the estimate at ``l0 + b / K``, below
+            # the rest length for a bias that tightens the cable: the rows between stay taut and
+            # the bias inseparable. Probed once from above (a low quantile of the cable's lengths),
+            # the classification settles again; the probe is kept if it fits the rows better. A bias
+            # the probe separates only by the row at the estimate itself (the cable's shortest length
+            # in the fitted rows: any l0 at or below it fits as well) is no evidence: held at 0
+            before_probe: dict[str, Any] | None = None
+            held_bias: list[str] = []
             for it in range(REST_ITERATIONS if (slack.any() or filters.any() or released) else 0):
                 new = _rest_from(sol.theta, layout, passive, columns.length_ref)
                 # a cable whose stiffness the rows leave indistinguishable from 0 never pulled: none of
@@ -405,14 +420,42 @@ def identify(
                     settled &= bool(np.all(np.abs(tau_new - tau)[filters] <= TAU_TOL * tau[filters]))
                     tau = tau_new
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
+                probe = [topology.spring_names.index(act_by_name[n].tendon) for n in absorbed]
+                probe = [j for j in probe if passive[j] and topology.pull_only[j]]
+                if settled and before_probe is None and probe:
+                    before_probe = {"sol": sol, "factors": factors, "rest": rest_estimate.copy(), "tau": tau,
+                                    "absorbed": list(absorbed), "unseen": list(unseen), "names": list(absorbed)}
+                    low = np.quantile(recorded_lengths(dataset, topology)[:, probe], PROBE_QUANTILE, axis=0)
+                    rest_estimate[probe] = np.maximum(rest_estimate[probe], low)
+                    settled = False
+                elif settled and before_probe is not None and "shortest" not in before_probe:
+                    separated = [n for n in before_probe["names"] if n not in absorbed]
+                    js = [topology.spring_names.index(act_by_name[n].tendon) for n in separated]
+                    before_probe["shortest"] = shortest = fitted_min_lengths(
+                        src["data"], topology, late, js, scheme, chunk_steps, device, contact_margin)
+                    edge = [(n, j) for n, j, x in zip(separated, js, shortest)
+                            if rest_estimate[j] <= x + REST_EDGE * abs(rest_estimate[j])]
+                    for n, j in edge:
+                        fixed[layout.bias(layout.actuators.index(n))] = 0.0
+                        held_bias.append(n)
+                        rest_estimate[j] = before_probe["rest"][j]
+                    settled = not edge
                 if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
+            if before_probe is not None and _misfit(sol) >= _misfit(before_probe["sol"]):
+                sol, factors, tau = before_probe["sol"], before_probe["factors"], before_probe["tau"]
+                rest_estimate[:] = before_probe["rest"]
+                absorbed[:], unseen[:] = before_probe["absorbed"], before_probe["unseen"]
+                if filters.any():
+                    src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
             if rest_law and layout.rest_steps:  # the settled estimate: its steps held at 0, solved once more
                 fixed.update({i: 0.0 for i in steps})
                 factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
                 sol = solve_classified(fixed)
+            fixed.update({layout.bias(layout.actuators.index(n)): 0.0 for n in absorbed})  # held for good
+            absorbed += [n for n in held_bias if n not in absorbed]
             tau_se = np.zeros(U)
             if filters.any():  # the last step's spread, then the fit at the settled time constants
                 g_i, d_i = layout.gain(np.arange(U)), layout.gain_dtau(np.arange(U))
@@ -471,6 +514,12 @@ def identify(
 #: change by less than REST_TOL (relative)
 REST_ITERATIONS = 25
 REST_TOL = 1e-11
+#: the quantile of a cable's recorded lengths its rest-length estimate is probed from when its
+#: actuator's bias was absorbed (``identify``)
+PROBE_QUANTILE = 0.05
+#: a probed rest length within this (relative) of the cable's shortest fitted length sits at the edge
+#: of the data: its bias is not separated by any slack row
+REST_EDGE = 1e-6
 TAU_TOL = 1e-10  # relative change of a filter's time constant at which the search stops
 
 
@@ -498,14 +547,44 @@ def _with_estimate(rest: torch.Tensor, passive: np.ndarray, estimate: np.ndarray
     return torch.where(mask, torch.as_tensor(estimate, dtype=rest.dtype, device=rest.device), rest)
 
 
-def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
-    """(S,) every spring's mean length over (up to ``max_instants`` of) the recorded states, m: the
-    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+def recorded_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(N, S) every spring's length at (up to ``max_instants`` of) the recorded states, m."""
     E, T = dataset.n_episodes, dataset.n_steps + 1
     stride = max(1, (E * T) // max_instants)
     t = lambda x: torch.as_tensor(x.reshape(-1, *x.shape[2:])[::stride], dtype=torch.float64)
     ends = endpoint_kinematics(topology, t(dataset.pos), t(dataset.quat), t(dataset.vel), t(dataset.angvel))
-    return spring_geometry(ends).length.mean(0).numpy()
+    return spring_geometry(ends).length.numpy()
+
+
+def mean_lengths(dataset: Dataset, topology: Topology, max_instants: int = 20000) -> np.ndarray:
+    """(S,) every spring's mean length over the recorded states (:func:`recorded_lengths`), m: the
+    reference of the preload columns (:class:`~identified.fit.features.RodColumns`)."""
+    return recorded_lengths(dataset, topology, max_instants).mean(0)
+
+
+def fitted_min_lengths(dataset: Dataset, topology: Topology, late: Sequence[Effect], springs: Sequence[int],
+                       scheme: str, chunk_steps: int = 4096, device: str = "cpu", margin: int = 0) -> np.ndarray:
+    """(len(springs),) each spring's shortest length, m, at the instants the joint fit keeps for it (a
+    rod it holds not touched by a residual-stage effect ``late``, within ``margin`` steps)."""
+    out = np.full(len(springs), np.inf)
+    if not len(springs):
+        return out
+    for ch, n_ep in iter_chunks(dataset, chunk_steps, scheme, device=device):
+        length = spring_geometry(endpoint_kinematics(topology, ch.pos, ch.quat, ch.vel, ch.angvel)).length
+        keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool, device=ch.pos.device)
+        if late:
+            hit = _affected(late, topology, ch)
+            keep = ~(_dilate(hit, n_ep, margin) if margin else hit)
+        for k, j in enumerate(springs):
+            seen = keep[:, [r for r in topology.springs[j].rods if r >= 0]].any(-1)
+            if bool(seen.any()):
+                out[k] = min(out[k], float(length[seen, j].min()))
+    return out
+
+
+def _misfit(sol: Solution) -> float:
+    """The solution's equation residual, summed over rods and equations (same rows, same scale)."""
+    return float(np.sum(np.square(np.asarray(sol.residual_rms, dtype=float))))
 
 
 def _rest_from(theta: np.ndarray, layout: ParameterLayout, passive: np.ndarray, ref: np.ndarray) -> np.ndarray:

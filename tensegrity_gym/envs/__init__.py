@@ -8,7 +8,9 @@
 ``TensegrityIco-v0`` also has a ``vector_entry_point``, ``tensegrity_gym.envs.vector:make_vector_env``:
 ``gym.make_vec("TensegrityIco-v0", num_envs=N, backend="identified", ...)`` is the natively batched
 twin (one engine call per physics step for all N envs); with the MuJoCo backend ``make_vec`` gives a
-``SyncVectorEnv`` of plants, as it would without the entry point.
+``SyncVectorEnv`` of plants, as it would without the entry point; ``Tensegrity-v0`` the same for any
+MJCF (``gym.make_vec("Tensegrity-v0", num_envs=N, backend="identified", xml_file=PATH, model=F.json)``,
+its MuJoCo actuators stepped in the batch).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ def register_envs() -> None:
         gymnasium.register(
             id="Tensegrity-v0",
             entry_point="tensegrity_gym.envs.tensegrity_v0:TensegrityEnv",
+            vector_entry_point="tensegrity_gym.envs.vector:make_tensegrity_vector_env",
             max_episode_steps=1000,
         )
 

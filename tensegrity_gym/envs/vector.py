@@ -1,9 +1,14 @@
-"""The natively batched twin: N TensegrityIco-v0 envs on the identified engine in one vector env.
+"""The natively batched twin: N TensegrityIco-v0 (or Tensegrity-v0) envs on the identified engine
+in one vector env.
 
 ``gym.make_vec("TensegrityIco-v0", num_envs=N, vectorization_mode="vector_entry_point",
 backend="identified", model="F.json")`` builds :class:`TensegrityIcoVectorEnv`: the N envs' rod
 states live in tensors ``(N, R, ·)`` and every physics substep is ONE batched engine call
-(:class:`~tensegrity_gym.backends.twin_physics.TwinPhysics`). Observation, reward and
+(:class:`~tensegrity_gym.backends.twin_physics.TwinPhysics`). ``gym.make_vec("Tensegrity-v0",
+num_envs=N, backend="identified", xml_file=PATH, model="F.json")`` is the same for any tensegrity
+MJCF: its actions are the rest-length motors' targets, then its MuJoCo tendon actuators' commands,
+whose force and activation the batch steps with the identified law of the single twin
+(:class:`~identified.engine.actuators.ActuatorBank`, one batched call). Observation, reward and
 termination are the env's pure functions (:mod:`tensegrity_gym.envs.tensegrity_ico_v0`) applied to
 the batch — the same functions, which work over a leading batch dimension (:func:`batch_observation`,
 :func:`batch_termination_reason` and :func:`batch_reward_terms` are thin aliases); tests check them
@@ -19,15 +24,16 @@ limit (``max_episode_steps``, 1000 from the registration) truncates; autoreset f
 sub-env whose physics diverges terminates with ``info["termination_reason"] = "non-finite state"``
 and its last finite observation, exactly as the single env.
 
-The registered ``vector_entry_point`` is :func:`make_vector_env`: with ``backend="identified"`` it
-builds this class; with any other backend (the MuJoCo plant, which cannot be batched) it returns a
-``SyncVectorEnv`` of single envs, so ``gym.make_vec("TensegrityIco-v0", num_envs=N)`` keeps giving
-N plants.
+The registered ``vector_entry_point`` is :func:`make_vector_env` (:func:`make_tensegrity_vector_env`
+for Tensegrity-v0): with ``backend="identified"`` it builds this class; with any other backend
+(the MuJoCo plant, which cannot be batched) it returns a ``SyncVectorEnv`` of single envs, so
+``gym.make_vec("TensegrityIco-v0", num_envs=N)`` keeps giving N plants.
 
 Domain randomization (``randomize=``, a :class:`~tensegrity_gym.randomize.Randomization`): every
 sub-env draws its own spring, rod, contact, rest-offset and motor parameters, its command latency,
 at each of its resets from its own generator (seeded as its reset state is: the same seed, the same
 draw); observation noise and pushes come from one generator seeded by ``reset(seed=...)``. The
+latency delays the actuators' commands with the motors' targets. The
 physics carries the parameters as tensors with a leading env dimension
 (:class:`~tensegrity_gym.backends.twin_physics.TwinPhysics` ``per_env``), so a step is still one
 batched engine call. Without ``randomize`` (or with nothing to draw) nothing of this runs.
@@ -62,6 +68,7 @@ __all__ = [
     "batch_observation",
     "batch_reward_terms",
     "batch_termination_reason",
+    "make_tensegrity_vector_env",
     "make_vector_env",
 ]
 
@@ -71,11 +78,14 @@ NON_FINITE = "non-finite state"
 # ---------------------------------------------------------------------- batched pure functions
 def batch_observation(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
                       rest_lengths: np.ndarray, actuated_index: np.ndarray, rest_min: np.ndarray,
-                      rest_max: np.ndarray, exclude_current_positions: bool = True) -> np.ndarray:
+                      rest_max: np.ndarray, exclude_current_positions: bool = True,
+                      actuator_state: np.ndarray | None = None, ctrl_low: np.ndarray | None = None,
+                      ctrl_high: np.ndarray | None = None) -> np.ndarray:
     """(N, n_obs) float64: the env's own :func:`~tensegrity_gym.envs.tensegrity_ico_v0.observation`
-    on a batch (``pos``, ``vel``, ``angvel`` (N, R, 3), ``quat`` (N, R, 4), ``rest_lengths`` (N, S))."""
+    on a batch (``pos``, ``vel``, ``angvel`` (N, R, 3), ``quat`` (N, R, 4), ``rest_lengths`` (N, S),
+    ``actuator_state`` (N, U) or ``None`` without MuJoCo actuators)."""
     return observation(RodState(pos, quat, vel, angvel), rest_lengths, actuated_index, rest_min, rest_max,
-                       exclude_current_positions)
+                       exclude_current_positions, actuator_state, ctrl_low, ctrl_high)
 
 
 def batch_termination_reason(pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
@@ -95,7 +105,8 @@ def batch_reward_terms(com_before: np.ndarray, com_after: np.ndarray, action: np
 
 # ---------------------------------------------------------------------- the vector env
 class TensegrityIcoVectorEnv(VectorEnv):
-    """N TensegrityIco-v0 twins stepped by one batched identified engine (see the module docstring).
+    """N TensegrityIco-v0 (or Tensegrity-v0) twins stepped by one batched identified engine (see the
+    module docstring).
 
     Args:
         num_envs: N, the number of sub-envs.
@@ -111,6 +122,9 @@ class TensegrityIcoVectorEnv(VectorEnv):
             :class:`TwinPhysics`; not with a randomization of the physics).
         randomize: a :class:`~tensegrity_gym.randomize.Randomization` (or its JSON mapping) drawn
             per sub-env at every reset (module docstring); ``None``: the identified values.
+        env_class: the single env the sub-envs are (:class:`TensegrityIcoEnv` or a subclass, e.g.
+            :class:`~tensegrity_gym.envs.tensegrity_v0.TensegrityEnv`); ``xml_file`` in
+            ``env_kwargs`` is the MJCF the model was fitted against, as for the single twin.
         **env_kwargs: every other keyword argument of :class:`TensegrityIcoEnv` (``frame_skip``,
             reward weights, ``reset_noise_scale``, ``healthy_z_range``, ``render_mode`` (only
             ``"rgb_array"``: :meth:`render` returns one image per sub-env), ...).
@@ -127,7 +141,8 @@ class TensegrityIcoVectorEnv(VectorEnv):
                  max_episode_steps: int | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  backend_kwargs: dict[str, Any] | None = None, chunk_size: int | None = None,
-                 randomize: Randomization | dict[str, Any] | None = None, **env_kwargs: Any) -> None:
+                 randomize: Randomization | dict[str, Any] | None = None,
+                 env_class: type[TensegrityIcoEnv] = TensegrityIcoEnv, **env_kwargs: Any) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs}")
         limit = max_episode_steps
@@ -140,11 +155,13 @@ class TensegrityIcoVectorEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
 
+        xml_file = env_kwargs.pop("xml_file", None)
+        if xml_file is not None:  # as the single twin: the MJCF its model was fitted against
+            if backend_kwargs and "mjcf" in backend_kwargs:
+                raise ValueError("give the MJCF once: as xml_file or as backend_kwargs['mjcf'], not both")
+            backend_kwargs = {**(backend_kwargs or {}), "mjcf": xml_file}
         backend = IdentifiedBackend(model, **(backend_kwargs or {}))
-        if backend.actuator_names:
-            raise ValueError(f"the batched twin steps rest-length motors only, not the MJCF's MuJoCo actuators "
-                             f"{list(backend.actuator_names)}: use the single twin env (gym.make)")
-        self.env = TensegrityIcoEnv(backend=backend, **env_kwargs)  # validates the arguments
+        self.env = env_class(backend=backend, **env_kwargs)  # validates the arguments
         e = self.env
         self.backend = backend
         if isinstance(randomize, dict):
@@ -153,7 +170,9 @@ class TensegrityIcoVectorEnv(VectorEnv):
         per_env = self.randomize is not None and self.randomize.physical
         self.physics = TwinPhysics(backend.engine, backend.motor, backend.actuated_index, batch=self.num_envs,
                                    chunk_size=chunk_size, num_threads=backend.num_threads,
-                                   compile=backend.compile, per_env=per_env)
+                                   compile=backend.compile, per_env=per_env,
+                                   actuators=backend.actuator_bank if backend.actuator_names else None)
+        self._n_motors, self._n_actuators = backend.motor.n, len(backend.actuator_names)
         self.dt = e.dt
         self.render_mode = e.render_mode
         self.metadata = {**self.metadata, "render_fps": e.metadata["render_fps"],
@@ -189,12 +208,14 @@ class TensegrityIcoVectorEnv(VectorEnv):
                               for k, v in self.physics.effect_parameters().items()}
         contact = self._base_effects.get("ground_contact")
         self._n_contact = 0 if contact is None else min(len(contact), len(CONTACT_PARAMETERS))
-        A = self.backend.motor.n
+        A, U = self._n_motors, self._n_actuators
         self._latency = np.zeros(N, dtype=np.int64)
-        self._queue = np.tile(action_to_rest(np.zeros(A), e.rest_min, e.rest_max), (N, r.latency + 1, 1))
+        # the commands in flight: the motors' targets (A), then the actuators' commands (U)
+        self._queue = np.tile(np.concatenate([action_to_rest(np.zeros(A), e.rest_min, e.rest_max), np.zeros(U)]),
+                              (N, r.latency + 1, 1))
         R = self.backend.n_rods
         sizes = ([] if e.exclude_current_positions else [("pos", 2)]) + [
-            ("pos", 1), ("pos", 3 * R), ("rot", 9 * R), ("vel", 3 * R), ("angvel", 3 * R), ("rest", A)]
+            ("pos", 1), ("pos", 3 * R), ("rot", 9 * R), ("vel", 3 * R), ("angvel", 3 * R), ("rest", A + U)]
         std = np.concatenate([np.full(n, r.obs_noise.get(g, 0.0)) for g, n in sizes])
         self._obs_std = std.astype(np.float32) if std.any() else None
         self._noise_rng = np.random.default_rng()
@@ -206,7 +227,8 @@ class TensegrityIcoVectorEnv(VectorEnv):
         draws = [r.draw(self._rng(int(i)), b.n_rods, len(b.tendon_names), self._n_contact) for i in index]
         self._latency[index] = [d.latency for d in draws]
         nominal = self.physics.rest_numpy()[index][:, b.actuated_index]
-        self._queue[index] = nominal[:, None, :]
+        held = np.concatenate([nominal, self.physics.ctrl.detach().cpu().double().numpy()[index]], axis=-1)
+        self._queue[index] = held[:, None, :]
         if not self.physics.per_env:
             return
         base = self._base
@@ -225,14 +247,23 @@ class TensegrityIcoVectorEnv(VectorEnv):
             motor_speed=b.motor.speed * np.array([d.motor_speed for d in draws]),
             effects=effects)
 
-    def _commands(self, targets: np.ndarray) -> np.ndarray:
-        """The motor targets that act now: each sub-env's command of ``latency`` steps ago."""
+    def _commands(self, commands: np.ndarray) -> np.ndarray:
+        """The commands that act now (N, A + U: the motors' targets, the actuators' commands): each
+        sub-env's of ``latency`` steps ago."""
         if self.randomize is None or self.randomize.latency == 0:
-            return targets
+            return commands
         q = self._queue
         q[:, 1:] = q[:, :-1].copy()
-        q[:, 0] = targets
+        q[:, 0] = commands
         return q[np.arange(self.num_envs), self._latency]
+
+    def _observe(self, pos: np.ndarray, quat: np.ndarray, vel: np.ndarray, angvel: np.ndarray, rest: np.ndarray,
+                 index: np.ndarray) -> np.ndarray:
+        """(n, n_obs) float64 observations of the sub-envs ``index`` at these states (n rows each)."""
+        e = self.env
+        act = self.physics.actuator_state_numpy()[index] if self._n_actuators else None
+        return batch_observation(pos, quat, vel, angvel, rest, e.actuated_index, e.rest_min, e.rest_max,
+                                 e.exclude_current_positions, act, e.ctrl_low, e.ctrl_high)
 
     def _pushes(self) -> np.ndarray | None:
         """(N, R, 3) world forces of this step's random pushes (``None`` without pushes)."""
@@ -291,8 +322,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         pos, quat, vel, angvel = (x[index] for x in self.physics.states_numpy())
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
         rest = self.physics.rest_numpy()[index]
-        obs = batch_observation(pos, quat, vel, angvel, rest, e.actuated_index, e.rest_min, e.rest_max,
-                                e.exclude_current_positions)
+        obs = self._observe(pos, quat, vel, angvel, rest, index)
         self._pos[index], self._quat[index] = pos, quat
         self._com[index] = pos.mean(axis=1)
         self._obs[index] = obs.astype(np.float32)
@@ -408,7 +438,12 @@ class TensegrityIcoVectorEnv(VectorEnv):
         # physics: one batched engine call per substep for every sub-env (restarting ones are
         # overwritten below; stepping them too is cheaper than a gather and a scatter)
         ph = self.physics
-        ph.set_targets(self._commands(action_to_rest(a, e.rest_min, e.rest_max)))
+        A = self._n_motors
+        now = self._commands(np.concatenate([action_to_rest(a[:, :A], e.rest_min, e.rest_max),
+                                             action_to_rest(a[:, A:], e.ctrl_low, e.ctrl_high)], axis=-1))
+        ph.set_targets(now[:, :A])
+        if self._n_actuators:
+            ph.set_ctrl(now[:, A:])
         ph.step(e.frame_skip, self._pushes())
         pos, quat, vel, angvel = ph.states_numpy()
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
@@ -425,8 +460,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
             ok = reason != NON_FINITE
             obs = np.zeros((s.size,) + self._obs.shape[1:], dtype=np.float32)
             if ok.any():
-                o64 = batch_observation(pos[s[ok]], quat[s[ok]], vel[s[ok]], angvel[s[ok]], rest[s[ok]],
-                                        e.actuated_index, e.rest_min, e.rest_max, e.exclude_current_positions)
+                o64 = self._observe(pos[s[ok]], quat[s[ok]], vel[s[ok]], angvel[s[ok]], rest[s[ok]], s[ok])
                 o32 = o64.astype(np.float32)
                 bad32 = ~np.isfinite(o32).all(axis=1)  # finite in float64, beyond float32's range
                 idx = np.flatnonzero(ok)
@@ -549,14 +583,28 @@ def make_vector_env(num_envs: int = 1, backend: str | Any = "mujoco", **kwargs: 
     envs, each ``gym.make("TensegrityIco-v0", backend=backend, **kwargs)`` (``max_episode_steps``
     becomes their time limit; ``autoreset_mode`` goes to the SyncVectorEnv).
     """
+    return _make("TensegrityIco-v0", TensegrityIcoEnv, num_envs, backend, **kwargs)
+
+
+def make_tensegrity_vector_env(num_envs: int = 1, backend: str | Any = "mujoco", **kwargs: Any) -> VectorEnv:
+    """The ``vector_entry_point`` of Tensegrity-v0 (any MJCF, ``xml_file=PATH``), as
+    :func:`make_vector_env`: the batched twin with ``backend="identified"``, else a
+    ``SyncVectorEnv`` of ``gym.make("Tensegrity-v0", ...)`` plants."""
+    from tensegrity_gym.envs.tensegrity_v0 import TensegrityEnv
+
+    return _make("Tensegrity-v0", TensegrityEnv, num_envs, backend, **kwargs)
+
+
+def _make(env_id: str, env_class: type[TensegrityIcoEnv], num_envs: int, backend: str | Any,
+          **kwargs: Any) -> VectorEnv:
     if backend == "identified":
-        return TensegrityIcoVectorEnv(num_envs, **kwargs)
+        return TensegrityIcoVectorEnv(num_envs, env_class=env_class, **kwargs)
     if not isinstance(backend, str):
         raise TypeError("make_vec needs the backend by name (one backend instance cannot serve several envs)")
     autoreset_mode = kwargs.pop("autoreset_mode", AutoresetMode.NEXT_STEP)
     env_kwargs = {**kwargs, "backend": backend}
 
     def make_one() -> gym.Env:
-        return gym.make("TensegrityIco-v0", **env_kwargs)
+        return gym.make(env_id, **env_kwargs)
 
     return gym.vector.SyncVectorEnv([make_one for _ in range(int(num_envs))], autoreset_mode=autoreset_mode)

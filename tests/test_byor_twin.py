@@ -197,3 +197,32 @@ def test_batched_twin_steps_the_actuators_as_the_single_twin(tmp_path):
     np.testing.assert_allclose(pos_v, pos_s, rtol=0, atol=1e-12)
     v.close()
     s.close()
+
+
+@pytest.mark.expensive
+@pytest.mark.parametrize("name", ["six_bar_composite", "six_bar_nested"])
+def test_twin_env_of_the_six_bars_passes_the_checkers(tmp_path, name):
+    """Tensegrity-v0 with backend="identified" on the composite and nested 6-bars of ``examples/``
+    (fitted from a short collection, ground contact included): Gymnasium's and SB3's checkers pass,
+    its actions are the model's controls (the nested bar's filtered actuators, the composite's
+    rest-length motors) as on the plant, and an episode starts where the plant's does."""
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    xml = os.path.join(os.path.dirname(PRISM), f"{name}.xml")
+    data = collect(xml, CollectConfig(episodes=3, steps=1000, seed=1, push_every=50, push_magnitude=5.0))
+    path = tmp_path / "fit.json"
+    save_model(path, fit_model(data, xml, effects="ground_contact", jobs=1))
+    twin = gym.make("Tensegrity-v0", xml_file=xml, backend="identified", model=str(path),
+                    backend_kwargs={"compile": False})
+    plant = gym.make("Tensegrity-v0", xml_file=xml)
+    assert twin.action_space == plant.action_space and twin.observation_space.shape == plant.observation_space.shape
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the unbounded observation Box
+        check_env(twin.unwrapped, skip_render_check=True)
+        sb3_check_env(twin.unwrapped, warn=False)
+    o_twin, _ = twin.reset(seed=4)
+    o_plant, _ = plant.reset(seed=4)
+    np.testing.assert_allclose(o_twin, o_plant, rtol=0, atol=1e-5)
+    twin.close()
+    plant.close()

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from identified.fit.noise import has_noise
 from identified.fit.regression import IdentifiabilityError, Solution
 from identified.model import com_and_tensor, inertia_tensor
 
@@ -388,7 +389,7 @@ def residual_check(model, data) -> dict:
     from identified.evaluate import relative_one_step_errors
 
     rel = float(relative_one_step_errors([model], data)[0])
-    noisy = bool(np.any(np.asarray(data.noise) > 0)) or bool(data.replicas)  # states from noisy markers too
+    noisy = has_noise(data)  # recorded sensor noise, or states reconstructed from noisy markers
     large = bool(not noisy and not rel <= LARGE_RESIDUAL)
     out = {"relative_one_step": rel if np.isfinite(rel) else None, "threshold": LARGE_RESIDUAL,
            "judged": not noisy, "large": large}

@@ -424,12 +424,12 @@ def identify(
                 probe = [j for j in probe if passive[j] and topology.pull_only[j]]
                 if settled and before_probe is None and probe:
                     before_probe = {"sol": sol, "factors": factors, "rest": rest_estimate.copy(), "tau": tau,
-                                    "absorbed": list(absorbed), "unseen": list(unseen), "names": list(absorbed)}
+                                    "absorbed": list(absorbed), "unseen": list(unseen)}
                     low = np.quantile(recorded_lengths(dataset, topology)[:, probe], PROBE_QUANTILE, axis=0)
                     rest_estimate[probe] = np.maximum(rest_estimate[probe], low)
                     settled = False
                 elif settled and before_probe is not None and "shortest" not in before_probe:
-                    separated = [n for n in before_probe["names"] if n not in absorbed]
+                    separated = [n for n in before_probe["absorbed"] if n not in absorbed]
                     js = [topology.spring_names.index(act_by_name[n].tendon) for n in separated]
                     before_probe["shortest"] = shortest = fitted_min_lengths(
                         src["data"], topology, late, js, scheme, chunk_steps, device, contact_margin)

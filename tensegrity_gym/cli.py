@@ -434,7 +434,9 @@ def cmd_gap(args: argparse.Namespace) -> None:
     def ratio(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.3g}"
 
-    print(f"  plant progress / twin: {ratio(tr['plant_over_twin'])}; / random: {ratio(tr['plant_over_random'])}")
+    se = tr.get("plant_over_twin_stderr")
+    pm = "" if se is None or tr["plant_over_twin"] is None else f" ± {se:.2g} (standard error over the episodes)"
+    print(f"  plant progress / twin: {ratio(tr['plant_over_twin'])}{pm}; / random: {ratio(tr['plant_over_random'])}")
     ol = r["open_loop"]
 
     def metres(x: float | None) -> str:
@@ -460,11 +462,11 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
         return
     print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}; "
           "forward progress per episode (m), mean over the episodes")
-    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin':>12s}")
+    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin ± s.e.':>19s}")
     for path, rep in zip(policies, r["reports"], strict=True):
-        ratio = rep["transfer"]["plant_over_twin"]
-        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}"
-              f"{'n/a' if ratio is None else format(ratio, '.2f'):>12s}")
+        ratio, se = rep["transfer"]["plant_over_twin"], rep["transfer"].get("plant_over_twin_stderr")
+        cell = "n/a" if ratio is None else f"{ratio:.2f}" + ("" if se is None else f" ± {se:.2f}")
+        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}{cell:>19s}")
     o = r["over_policies"]
 
     def line(label: str, sp: dict) -> str:

@@ -66,8 +66,15 @@ def test_transfer_ratios_are_plant_over_twin_and_over_random():
     twin, plant, rnd = _summary([0.8, 0.4]), _summary([0.3, 0.3]), _summary([0.1, -0.05])
     out = transfer_ratios(twin, plant, rnd)
     assert out["plant_over_twin"] == pytest.approx(0.5) and out["plant_over_random"] == pytest.approx(12.0)
+    # delta method: the plant's episodes agree (0 spread), the twin's mean 0.6 has a standard error
+    # of 0.2 (sample std 0.2828 / sqrt 2): 0.5 x 0.2 / 0.6
+    assert out["plant_over_twin_stderr"] == pytest.approx(0.5 * 0.2 / 0.6, rel=1e-12)
+    both = transfer_ratios(twin, _summary([0.2, 0.4]), rnd)  # and the plant's: 0.5 sqrt((0.1/0.3)^2 + (0.2/0.6)^2)
+    assert both["plant_over_twin_stderr"] == pytest.approx(0.5 * np.sqrt(2) / 3, rel=1e-12)
     assert transfer_ratios(_summary([0.0]), plant, _summary([-0.1])) == {"plant_over_twin": None,
+                                                                        "plant_over_twin_stderr": None,
                                                                         "plant_over_random": None}
+    assert transfer_ratios(_summary([0.5]), _summary([0.4]), rnd)["plant_over_twin_stderr"] is None  # one episode
 
 
 def test_open_loop_divergence_by_hand():

@@ -479,8 +479,13 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
     print(line("twin progress (m)", o["twin"]["progress_m"]))
     print(line("plant progress (m)", o["plant"]["progress_m"]))
     print(line("plant / twin", o["plant_over_twin"]))
+    pooled = o["plant_over_twin_pooled"]
+    if pooled["ratio"] is not None:
+        se = "" if pooled["stderr"] is None else f" ± {pooled['stderr']:.2f}"
+        print(f"  plant / twin over every policy's episodes together: {pooled['ratio']:.2f}{se}")
     print(f"  random policy on the plant: {o['random_plant']['progress_m']:.3f} m; "
-          f"{o['plant_progress_at_least_0.5m']} of {len(policies)} policies roll >= 0.5 m on the plant")
+          f"{o['plant_progress_at_least_0.5m']} of {len(policies)} policies roll >= 0.5 m on the plant, "
+          f"{o['plant_over_twin_at_least_0.9']} reach 90 % of their twin progress")
 
 
 # ---------------------------------------------------------------------- parser

@@ -408,7 +408,10 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
     where ``over_policies`` holds, for ``twin`` and ``plant`` progress and return and for the
     ``plant_over_twin`` ratio, the mean, standard deviation, minimum and maximum over the policies
     (:func:`tensegrity_gym.sweep.spread`), plus ``random_plant`` (run once per episode length and
-    env settings: the same for every policy that shares them) and how many policies roll at least ``0.5`` m on the plant. ``video_dir``: the videos
+    env settings: the same for every policy that shares them), how many policies roll at least
+    ``0.5`` m on the plant and reach 90 % of their twin progress, and ``plant_over_twin_pooled``:
+    the ratio of the mean plant to the mean twin progress over every policy's episodes together,
+    with its standard error (as :func:`transfer_ratios`). ``video_dir``: the videos
     of policy ``i`` in ``video_dir/<i>``.
     """
     from tensegrity_gym.sweep import spread
@@ -436,5 +439,13 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
     over["random_plant"] = {"progress_m": spread(r["random_plant"]["progress_m"] for r in reports)["mean"],
                             "return": spread(r["random_plant"]["return"] for r in reports)["mean"]}
     over["plant_progress_at_least_0.5m"] = sum(r["plant"]["progress_m"] >= 0.5 for r in reports)
+    over["plant_over_twin_at_least_0.9"] = sum((r["transfer"]["plant_over_twin"] or 0.0) >= 0.9 for r in reports)
+    # every policy's episodes together: does the twin predict the plant over the policies?
+    pooled = {w: {"progress_per_episode_m": [x for r in reports for x in r[w]["progress_per_episode_m"]]}
+              for w in ("twin", "plant")}
+    for b in pooled.values():
+        b["progress_m"] = float(np.mean(b["progress_per_episode_m"]))
+    ratio = _ratio(pooled["plant"]["progress_m"], pooled["twin"]["progress_m"])
+    over["plant_over_twin_pooled"] = {"ratio": ratio, "stderr": _ratio_stderr(ratio, pooled["plant"], pooled["twin"])}
     return {"policies": [os.fspath(p) for p in policies], "reports": reports, "over_policies": over,
             "episodes": int(episodes), "seeds": reports[0]["seeds"]}

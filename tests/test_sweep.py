@@ -184,6 +184,15 @@ def test_gap_over_a_sweep_folder_reports_mean_and_spread(sweep, twin, capsys):
         per = [rep[where]["progress_m"] for rep in r["reports"]]
         assert r["over_policies"][where]["progress_m"]["mean"] == pytest.approx(np.mean(per), rel=1e-12)
         assert r["over_policies"][where]["progress_m"]["std"] == pytest.approx(np.std(per), rel=1e-12, abs=1e-15)
+    # every policy's episodes together: the ratio of the pooled means, and the count at 90 %
+    pooled = {w: [x for rep in r["reports"] for x in rep[w]["progress_per_episode_m"]] for w in ("twin", "plant")}
+    if np.mean(pooled["twin"]) > 0:
+        assert r["over_policies"]["plant_over_twin_pooled"]["ratio"] == pytest.approx(
+            np.mean(pooled["plant"]) / np.mean(pooled["twin"]), rel=1e-12)
+    else:
+        assert r["over_policies"]["plant_over_twin_pooled"]["ratio"] is None
+    assert r["over_policies"]["plant_over_twin_at_least_0.9"] == sum(
+        (rep["transfer"]["plant_over_twin"] or 0) >= 0.9 for rep in r["reports"])
     # the random policy ran once: both reports hold the same block
     assert r["reports"][0]["random_plant"] == r["reports"][1]["random_plant"]
     assert main(args) == 0

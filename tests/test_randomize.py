@@ -18,6 +18,7 @@ import torch
 
 import tensegrity_gym  # noqa: F401  (registers the env)
 from identified.model import load_model
+from identified.state import RodState
 from identified.twin import engine_from_model
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend, default_model_path
 from tensegrity_gym.backends.twin_physics import TwinPhysics, compiler_available
@@ -336,3 +337,53 @@ def test_training_records_its_randomization(tmp_path):
     train(cfg, tmp_path / "Q.zip", progress=False)
     assert load_policy(tmp_path / "Q.zip").meta["randomization"] is None
     assert torch.get_num_threads() >= 1
+
+
+def test_turn_about_vertical_is_a_rigid_turn_of_the_whole_state():
+    from identified.rotation import quat_to_matrix
+    from tensegrity_gym.envs.tensegrity_ico_v0 import turn_about_vertical
+
+    rng = np.random.default_rng(5)
+    s = RodState(rng.normal(size=(6, 3)), rng.normal(size=(6, 4)), rng.normal(size=(6, 3)), rng.normal(size=(6, 3)))
+    s.quat /= np.linalg.norm(s.quat, axis=-1, keepdims=True)
+    t = turn_about_vertical(s, np.pi / 2)  # x -> y, y -> -x about the centre of mass
+    com = s.pos.mean(0)
+    d = s.pos - com
+    np.testing.assert_allclose(t.pos - com, np.stack([-d[:, 1], d[:, 0], d[:, 2]], -1), atol=1e-12)
+    np.testing.assert_allclose(t.vel, np.stack([-s.vel[:, 1], s.vel[:, 0], s.vel[:, 2]], -1), atol=1e-12)
+    np.testing.assert_allclose(t.angvel, np.stack([-s.angvel[:, 1], s.angvel[:, 0], s.angvel[:, 2]], -1), atol=1e-12)
+    rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    np.testing.assert_allclose(quat_to_matrix(t.quat), rz @ quat_to_matrix(s.quat), atol=1e-12)
+
+
+def test_reset_yaw_turns_the_start_and_the_twin_turns_with_it():
+    """A start turned about the vertical rolls as the unturned start turned: the twin's physics
+    (gravity, a horizontal ground, the contact law's per-rod friction axes) has no heading, so
+    the env with ``reset_yaw`` is the plain env turned by each env's own drawn angle."""
+    from tensegrity_gym.envs.tensegrity_ico_v0 import turn_about_vertical
+
+    w = 2.0
+    v, plain = _venv(3, Randomization(reset_yaw=w)), _venv(3, None)
+    v.reset(seed=7)
+    plain.reset(seed=7)
+
+    def yaw(a, b):  # the angle turning the rod layout b into a, about their centres of mass
+        da, db = a - a.mean(0), b - b.mean(0)
+        return np.arctan2((db[:, 0] * da[:, 1] - db[:, 1] * da[:, 0]).sum(), (db[:, :2] * da[:, :2]).sum())
+
+    s0, p0 = v.unwrapped.physics.states_numpy(), plain.unwrapped.physics.states_numpy()
+    angles = np.array([yaw(s0[0][i], p0[0][i]) for i in range(3)])
+    assert np.all(np.abs(angles) <= w) and np.ptp(angles) > 0.1  # each env its own heading, within the width
+    acts = np.random.default_rng(2).uniform(-1, 1, (15, 3, 24))
+    for a in acts:
+        v.step(a)
+        plain.step(a)
+    s, p = v.unwrapped.physics.states_numpy(), plain.unwrapped.physics.states_numpy()
+    assert np.abs(s[0] - p[0]).max() > 0.1  # the turned robot is elsewhere ...
+    for i in range(3):  # ... where the plain robot turned by its angle is
+        t = turn_about_vertical(RodState(*(x[i] for x in p)), angles[i])
+        c0, c, th = p0[0][i].mean(0), p[0][i].mean(0), angles[i]  # turned about the start's centre of mass
+        rz = np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
+        t.pos += (c0 - c) - rz @ (c0 - c)
+        for got, want in zip((s[0][i], s[2][i], s[3][i]), (t.pos, t.vel, t.angvel), strict=True):
+            np.testing.assert_allclose(got, want, atol=1e-9)

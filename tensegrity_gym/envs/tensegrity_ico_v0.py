@@ -201,6 +201,18 @@ def perturb_start(nominal: RodState, rng: np.random.Generator, scale: float) -> 
     )
 
 
+def turn_about_vertical(state: RodState, yaw: float) -> RodState:
+    """``state`` turned by ``yaw`` rad about the vertical (world z) through its centre of mass:
+    positions, orientations, velocities and angular velocities (world frame) alike, so the shape,
+    the contact with a horizontal ground and every speed are unchanged, only the heading."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    com = state.pos.mean(axis=0)
+    q = quat_multiply(np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), state.quat)
+    return RodState(pos=com + (state.pos - com) @ rz.T, quat=q / np.linalg.norm(q, axis=-1, keepdims=True),
+                    vel=state.vel @ rz.T, angvel=state.angvel @ rz.T)
+
+
 # ---------------------------------------------------------------------- the env
 class TensegrityIcoEnv(gym.Env):
     r"""

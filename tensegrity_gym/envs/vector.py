@@ -60,6 +60,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import (
     perturb_start,
     reward_terms,
     termination_reasons,
+    turn_about_vertical,
 )
 from tensegrity_gym.randomize import CONTACT_PARAMETERS, Randomization
 
@@ -309,6 +310,9 @@ class TensegrityIcoVectorEnv(VectorEnv):
         their reset infos in vector layout (keys masked to ``index``)."""
         e = self.env
         starts = [perturb_start(self._nominal, self._rng(int(i)), e.reset_noise_scale) for i in index]
+        if self.randomize is not None and self.randomize.reset_yaw > 0:  # a heading per start
+            w = self.randomize.reset_yaw
+            starts = [turn_about_vertical(s, float(self._rng(int(i)).uniform(-w, w))) for s, i in zip(starts, index)]
         pos = np.stack([s.pos for s in starts])
         quat = np.stack([s.quat for s in starts])
         quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)

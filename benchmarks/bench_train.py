@@ -19,8 +19,10 @@ more process busy on one core (a Python busy loop this script starts and stops: 
   each).
 
 Only the number of envs differs (the same transitions per update, ``--rollout``, over all envs).
-Each training's wall clock is split into: the twin's compilation (``torch.compile`` of its substep,
-first step), the env's steps (the twin's engine and the env around it / waiting for the plant's
+Each training's wall clock is split into: the twin's compilation (its compiled substep loaded
+from the cache on disk, :mod:`tensegrity_gym.backends.substep_cache`, or compiled and stored there
+when no earlier run of the same model stored it: the table says which; with
+``TENSEGRITY_TWIN_CACHE=0`` a plain ``torch.compile`` from inductor's own cache), the env's steps (the twin's engine and the env around it / waiting for the plant's
 worker processes), SB3's own work while collecting (policy forward pass, action sampling, rollout
 buffer, VecNormalize, VecMonitor, callbacks: the rest of ``collect_rollouts``) and PPO's updates
 (``PPO.train``: the gradient epochs). CPU time counts this process, its children and the
@@ -67,6 +69,8 @@ COLLECTION = {"episodes": 10, "physics_steps": 3000, "physics_dt_s": 0.001}
 WORKER_CPU = [0.0]
 #: Seconds spent in each part of the current training (see :func:`instrument`).
 PARTS: dict[str, float] = {}
+#: Where the twin's compiled substep came from in the current training (``TwinPhysics.cache_status``).
+CACHE_STATUS: list[str | None] = []
 
 
 def _proc_cpu_s(pid: int) -> float:
@@ -96,6 +100,7 @@ def instrument() -> None:
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
+    from tensegrity_gym.backends import twin_physics
     from tensegrity_gym.backends.twin_physics import TwinPhysics
     from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
 
@@ -105,6 +110,25 @@ def instrument() -> None:
     _timed(SubprocVecEnv, "step_wait", "env")
     _timed(SubprocVecEnv, "step_async", "env")
     _timed(TwinPhysics, "_compile_and_advance", "compile")
+    compile_and_advance = TwinPhysics._compile_and_advance
+
+    def recorded(self, *args, **kwargs):
+        try:
+            return compile_and_advance(self, *args, **kwargs)
+        finally:
+            CACHE_STATUS.append(self.cache_status)
+
+    TwinPhysics._compile_and_advance = recorded  # type: ignore[method-assign]
+    prefetch = twin_physics.prefetch
+
+    def timed_prefetch() -> None:  # the start of the twin's compilation, while its env is built
+        t0 = time.perf_counter()
+        try:
+            prefetch()
+        finally:
+            PARTS["prefetch"] = PARTS.get("prefetch", 0.0) + time.perf_counter() - t0
+
+    twin_physics.prefetch = timed_prefetch
     close = SubprocVecEnv.close
 
     def counted(self) -> None:
@@ -148,14 +172,16 @@ def train_timed(cfg, out: str) -> dict:
     r = train(cfg, out, progress=False)
     wall, cpu = time.perf_counter() - t0, cpu_s() - c0
     parts = dict(PARTS)
-    compile_s = parts.get("compile", 0.0)
-    env = parts.get("env", 0.0) - compile_s
+    first_step = parts.get("compile", 0.0)  # the first step: load or compile, inside an env step
+    prefetch = parts.get("prefetch", 0.0)  # its start, while the env is built
+    env = parts.get("env", 0.0) - first_step
     collect = parts.get("collect", 0.0)
     updates = parts.get("updates", 0.0)
     return {"wall_s": wall, "cpu_s": cpu, "timesteps": int(r.timesteps), "envs": cfg.n_envs,
             "steps_per_s": r.timesteps / wall, "policy": out, "load_before": load0, "load_after": os.getloadavg()[0],
-            "compile_s": compile_s, "env_s": env, "sb3_collect_s": collect - env - compile_s, "updates_s": updates,
-            "other_s": wall - collect - updates, "hyperparameters": cfg.algo_kwargs()}
+            "compile_s": first_step + prefetch, "compile_cache": CACHE_STATUS[0] if CACHE_STATUS else None,
+            "env_s": env, "sb3_collect_s": collect - env - first_step, "updates_s": updates,
+            "other_s": wall - collect - updates - prefetch, "hyperparameters": cfg.algo_kwargs()}
 
 
 class Busy:
@@ -194,6 +220,9 @@ def print_table(runs: dict) -> None:
     for c in conds:
         r = runs[c]
         share = r["twin"]["updates_s"] + r["twin"]["sb3_collect_s"]
+        print(f"{c}: the twin's compiled substep: {r['twin'].get('compile_cache')} "
+              f"({r['twin']['compile_s']:.1f} s; 'hit': loaded from the cache on disk, 'stored': compiled "
+              "now, the first run of this model)")
         print(f"{c}: the twin trains {r['plant']['wall_s'] / r['twin']['wall_s']:.2f}x faster than the plant "
               f"(wall clock); SB3's own work (updates + collection overhead) is {100 * share / r['twin']['wall_s']:.0f} % "
               f"of the twin's wall clock, the twin's engine and env {100 * r['twin']['env_s'] / r['twin']['wall_s']:.0f} %")
@@ -317,8 +346,8 @@ def main() -> None:
     for cond in conds:
         runs[cond] = {}
         for where in ("twin", "plant"):
-            # each training in a fresh process, as 'tensegrity train' runs: the twin compiles (from
-            # inductor's on-disk cache) every time, and nothing one training warmed helps the next
+            # each training in a fresh process, as 'tensegrity train' runs: the twin loads its compiled
+            # substep from the cache on disk (or compiles and stores it), nothing else carries over
             out = os.path.join(args.out, f"{where}-{cond}.zip")
             child = [sys.executable, os.path.abspath(__file__), "--one", where, "--policy-out", out,
                      *sys.argv[1:]]
@@ -334,7 +363,8 @@ def main() -> None:
             row["process_wall_s"] = time.perf_counter() - t0
             runs[cond][where] = row
             print(f"{cond:5s} {where:5s}: {row['timesteps']} steps, {row['envs']} envs: {row['wall_s']:.1f} s wall "
-                  f"({row['steps_per_s']:.0f} steps/s; compile {row['compile_s']:.1f}, env {row['env_s']:.1f}, SB3 "
+                  f"({row['steps_per_s']:.0f} steps/s; compile {row['compile_s']:.1f}"
+                  f"{' (' + row['compile_cache'] + ')' if row.get('compile_cache') else ''}, env {row['env_s']:.1f}, SB3 "
                   f"collecting {row['sb3_collect_s']:.1f}, updates {row['updates_s']:.1f} s), {row['cpu_s']:.0f} s CPU; "
                   f"process {row['process_wall_s']:.1f} s; load {row['load_before']:.1f} -> {row['load_after']:.1f}",
                   flush=True)

@@ -22,8 +22,12 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
 * **Compilation** (``compile``, default ``"auto"``): one substep (motors + engine step) is compiled
   once with ``torch.compile`` (inductor: the substep's hundreds of small kernels become a few fused
   loops), on CPU and CUDA alike; a substep function, not an unrolled rollout, so it compiles once
-  (timed in :attr:`TwinPhysics.compile_seconds`: ~30 s with a cold inductor cache, 1.6-5 s warm,
-  measured on 2 loaded cores) and inductor's on-disk cache makes the next process faster. The
+  (timed in :attr:`TwinPhysics.compile_seconds`). The compiled substep is kept in a cache on disk
+  (:mod:`tensegrity_gym.backends.substep_cache`, keyed by the model's structure and constants, the
+  shapes and the code): the first process that steps a model compiles it ahead of time and stores
+  it (~35-45 s on 2 loaded cores), the next ones load it (measured 1.4-1.9 s on 2 cores at load 3,
+  against 8 s for a plain ``torch.compile`` served from inductor's own cache; :attr:`TwinPhysics.cache_status`
+  says which). ``TENSEGRITY_TWIN_CACHE=0`` turns the cache off (a plain ``torch.compile``). The
   substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
   one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
   rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect
@@ -59,6 +63,7 @@ from identified.engine import SpringRodEngine, SpringRodParams
 from identified.engine.actuators import ActuatorBank
 from identified.state import RodState
 from identified.threads import torch_threads
+from tensegrity_gym.backends.substep_cache import load_or_compile, prefetch
 from tensegrity_gym.cables import MotorSpec, motor_step
 
 __all__ = ["COMPILE_ENV", "TwinPhysics", "compiler_available", "resolve_threads", "torch_threads"]
@@ -149,6 +154,10 @@ class TwinPhysics:
         self.compiled = _wants_compile(compile, dev)
         #: seconds spent compiling the substep (first step; 0 when eager)
         self.compile_seconds = 0.0
+        #: where the compiled substep came from (:func:`~tensegrity_gym.backends.substep_cache.load_or_compile`):
+        #: ``"hit"`` (the cache on disk), ``"stored"`` (compiled and stored), ``"off"``/``"failed"``/
+        #: ``"unsaved"`` (compiled in this process only); ``None`` before the first compiled step
+        self.cache_status: str | None = None
         self._act = torch.as_tensor(np.asarray(actuated_index, dtype=np.int64), device=dev)
         self._all_actuated = bool(np.array_equal(np.asarray(actuated_index), np.arange(engine.n_springs)))
         self._lo = torch.as_tensor(motor.rest_min, dtype=dt, device=dev)
@@ -170,6 +179,8 @@ class TwinPhysics:
         self._compiled_substep: Callable[..., tuple[torch.Tensor, ...]] | None = None
         self._first_call = True
         self._fused = engine.fused
+        if self.compiled and dev.type == "cpu":
+            prefetch()
 
     # ------------------------------------------------------------------ conversions
     def tensor(self, x: Any) -> torch.Tensor:
@@ -371,9 +382,16 @@ class TwinPhysics:
         # filled inside the traced call is numpy work that breaks the graph)
         self._eager_substep(comps, rest, rest_act, target, pf, pp, *extra)
         t0 = time.perf_counter()
+        args = (comps, rest, rest_act, target, pf, pp, *extra)
         try:
-            fn = torch.compile(self._eager_substep, dynamic=False, options=self._inductor_options())
-            out = fn(comps, rest, rest_act, target, pf, pp, *extra)
+            options = self._inductor_options()
+
+            def plain() -> Callable[..., tuple]:
+                return torch.compile(self._eager_substep, dynamic=False, options=options)
+
+            fn, self.cache_status = load_or_compile(TwinPhysics._eager_substep, self, args, options, plain,
+                                                    self._substep_reads())
+            out = fn(*args)
         except Exception as exc:  # noqa: BLE001 - inductor raises assorted types (no compiler, codegen)
             self._fall_back(exc)
             return self._advance(n, _stack(comps), rest, rest_act, target, pf, pp, act, ctrl)
@@ -386,6 +404,12 @@ class TwinPhysics:
             else:
                 x, rest, rest_act, a = fn(x, rest, rest_act, target, pf, pp, a, ctrl)
         return _stack(x), rest, rest_act, a
+
+    def _substep_reads(self) -> dict[str, Any]:
+        """The attributes :meth:`_eager_substep` reads: what shapes its compiled code besides its
+        arguments (the key of :func:`~tensegrity_gym.backends.substep_cache.load_or_compile`)."""
+        return {k: getattr(self, k) for k in ("engine", "motor", "actuators", "_speed", "_lo", "_hi", "_act",
+                                              "_all_actuated", "_rest_offset", "_fused")}
 
     def _inductor_options(self) -> dict[str, Any]:
         """Inductor settings for the substep. On a CPU, a C++ wrapper (``cpp_wrapper``): the

@@ -10,6 +10,8 @@ then the RMS and largest |z| over all datasets.
 
     python benchmarks/bench_recordings.py --datasets 10 --episodes 10 --seconds 10        # the full table
     python benchmarks/bench_recordings.py --datasets 2 --episodes 4 --seconds 5 --quick   # a look
+    python benchmarks/bench_recordings.py --datasets 1 --episodes 4 --seconds 5 --quick --output-error
+        # the regression, then the output-error refinement against the markers (both rows)
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import re
 import sys
 import tempfile
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -85,6 +88,10 @@ def main() -> None:
     ap.add_argument("--unlabelled", action="store_true",
                     help="anonymous markers, identities shuffled every 0.5 s, one ghost per frame (labelled by the fit)")
     ap.add_argument("--quick", action="store_true", help="skip the fit on full states")
+    ap.add_argument("--output-error", action="store_true",
+                    help="refine against the markers (identified.fit.output_error) and print the regression too")
+    ap.add_argument("--oe-windows", type=int, default=256, help="windows the output-error refinement uses")
+    ap.add_argument("--oe-frames", type=int, default=10, help="frames per output-error window")
     args = ap.parse_args()
     effects = args.effects if args.effects in ("auto", "none") else args.effects.split(",")
     steps = round(args.seconds / 0.001)
@@ -100,12 +107,24 @@ def main() -> None:
             scale = ScaleSpec(total_mass=float(truth[2].sum()))
             t0 = time.perf_counter()
             try:
-                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1)
+                oe = {"max_windows": args.oe_windows, "frames": args.oe_frames} if args.output_error else False
+                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1, output_error=oe)
             except IdentifiabilityError as exc:  # what the recording cannot tell, said as the fit says it
                 print(f"dataset {k}: not identifiable from the recording ({time.perf_counter() - t0:.1f} s): {exc}",
                       flush=True)
                 continue
             secs = time.perf_counter() - t0
+            if args.output_error:
+                o = m.metrics["output_error"]
+                reg = replace(m, stiffness=np.array(o["regression"]["stiffness"]),
+                              damping=np.array(o["regression"]["damping"]), mass=np.array(o["regression"]["mass"]),
+                              stderr={k: np.array(o["regression"][f"{k}_stderr"]) for k in ("stiffness", "damping", "mass")})
+                rs = scores(reg, truth)
+                zr = np.concatenate([rs[key]["z"] for key in "KcM"])
+                print(f"dataset {k} regression: K {100 * rs['K']['rel']:.2f} %, c {100 * rs['c']['rel']:.2f} %, "
+                      f"M {100 * rs['M']['rel']:.2f} %, RMS z {np.sqrt(np.nanmean(zr ** 2)):.2f}, max |z| "
+                      f"{np.nanmax(np.abs(zr)):.2f}; output error: {o['windows']} windows of {o['frames_per_window']} "
+                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm", flush=True)
             sc = scores(m, truth)
             for key in "KcM":
                 zs[key].append(sc[key]["z"])

@@ -305,16 +305,19 @@ class _Problem:
 def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
                    jacobians: int = 2, chord_steps: int = 4, sigma: float | None = None, order: int = 2,
-                   fit_params: bool = True, progress: bool = False) -> IdentifiedModel:
+                   fit_params: bool = True, known_noise: bool = False, progress: bool = False) -> IdentifiedModel:
     """The model with K, c, M and the observable moments of inertia refined against the markers
     (the module docstring), with Gauss-Newton standard errors.
 
     Up to ``max_windows`` windows of ``frames`` frames, spread evenly over the recording.  The
     Jacobian is computed ``jacobians`` times; after each, ``chord_steps`` Gauss-Newton steps reuse
     it (the chord method: each step costs one run of the windows), a step taken only where it
-    lowers the cost.  The standard errors come from the last Jacobian."""
+    lowers the cost.  The standard errors come from the last Jacobian, scaled by the residual's
+    variance (``known_noise``: by ``sigma`` itself -- with ``fit_params`` false and the true
+    parameters, the Cramer-Rao bound of the windows' markers)."""
     t0 = time.perf_counter()
     win = marker_windows(rec, data, starts, model.topology, mjcf, frames)
+    available = win.n_windows
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
     sig = float(sigma or rec.noise_pos or 1e-3)
@@ -387,8 +390,10 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     simulated = torch.ones_like(win.free) if order > 0 else win.free
     n_x = float((simulated * per_rod).sum()) + 6 * order * float(near.sum())
     dof = m_obs - n_x - (P - 1)
-    s2 = history[-1] / max(dof, 1.0)  # the residual variance in units of σ²
-    return _result(model, prob, theta, cov * s2, history, win, s2, sig, time.perf_counter() - t0)
+    s2 = 1.0 if known_noise else history[-1] / max(dof, 1.0)  # the residual variance in units of σ²
+    out = _result(model, prob, theta, cov * s2, history, win, s2, sig, time.perf_counter() - t0)
+    out.metrics["output_error"]["windows_available"] = available
+    return out
 
 
 def _result(model: IdentifiedModel, prob: _Problem, theta: torch.Tensor, cov: torch.Tensor, history: list[float],

@@ -10,6 +10,8 @@ then the RMS and largest |z| over all datasets.
 
     python benchmarks/bench_recordings.py --datasets 10 --episodes 10 --seconds 10        # the full table
     python benchmarks/bench_recordings.py --datasets 2 --episodes 4 --seconds 5 --quick   # a look
+    python benchmarks/bench_recordings.py --datasets 1 --episodes 4 --seconds 5 --quick --output-error
+        # the regression, then the output-error refinement against the markers (both rows)
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import re
 import sys
 import tempfile
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -63,6 +66,39 @@ def varied_robot(path: str, seed: int | None) -> tuple[np.ndarray, np.ndarray, n
     return np.array(K), np.array(c), np.array(M)
 
 
+def recording_bound(path: str, data, args, seed: int) -> dict:
+    """The Cramer-Rao bound of a recording at the truth (relative standard error of every K, c, M):
+    the Fisher information of the marker positions (``args.noise`` per coordinate, the recording's
+    rate and missing samples) for the parameters, with every window's initial state and the
+    ground's wrench on the rods near it unknown (:mod:`identified.fit.output_error` at the plant's
+    own parameters and states).  No estimator that does not know the contact law can do better on
+    windows of ``args.oe_frames`` frames."""
+    import mujoco
+
+    from identified.fit.output_error import refine_markers
+    from identified.model import IdentifiedModel
+    from identified.topology import Topology
+
+    m = mujoco.MjModel.from_xml_path(path)
+    topo = Topology.from_mjcf(path)
+    tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, n) for n in topo.spring_names]
+    bid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in topo.rod_names]
+    truth = IdentifiedModel(topology=topo, stiffness=m.tendon_stiffness[tid].copy(), damping=m.tendon_damping[tid].copy(),
+                            rest_length=np.zeros(len(tid)), mass=m.body_mass[bid].copy(),
+                            inertia=m.body_inertia[bid].copy(), dt=float(m.opt.timestep), gravity=m.opt.gravity.copy(),
+                            scale={"anchor": "total_mass"})
+    clean = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=0.0, dropout=args.dropout), seed=seed)
+    held = [(i, 2) for i in range(topo.n_rods)]  # end caps on the rods' axes
+    out = refine_markers(truth, clean, data, [0.0] * data.n_episodes, path, held, frames=args.oe_frames,
+                         max_windows=args.oe_windows, jacobians=1, chord_steps=6, sigma=args.noise, fit_params=False,
+                         known_noise=True)
+    o = out.metrics["output_error"]
+    used = o["windows"] / max(o.get("windows_available", o["windows"]), 1)
+    return {k: float(np.max(out.stderr[a] / getattr(out, a))) * np.sqrt(used)
+            for k, a in zip("KcM", ("stiffness", "damping", "mass"))} | {"windows": o["windows"],
+                                                                        "residual_mm": 1e3 * o["residual_rms_m"]}
+
+
 def scores(model, truth) -> dict:
     out = {}
     for key, attr, se_key, tru in zip("KcM", ("stiffness", "damping", "mass"), ("stiffness", "damping", "mass"), truth):
@@ -85,6 +121,12 @@ def main() -> None:
     ap.add_argument("--unlabelled", action="store_true",
                     help="anonymous markers, identities shuffled every 0.5 s, one ghost per frame (labelled by the fit)")
     ap.add_argument("--quick", action="store_true", help="skip the fit on full states")
+    ap.add_argument("--output-error", action="store_true",
+                    help="refine against the markers (identified.fit.output_error) and print the regression too")
+    ap.add_argument("--oe-windows", type=int, default=256, help="windows the output-error refinement uses")
+    ap.add_argument("--oe-frames", type=int, default=10, help="frames per output-error window")
+    ap.add_argument("--bound", action="store_true",
+                    help="only the Cramer-Rao bound of each recording at the truth (no fit; recording_bound)")
     args = ap.parse_args()
     effects = args.effects if args.effects in ("auto", "none") else args.effects.split(",")
     steps = round(args.seconds / 0.001)
@@ -97,15 +139,35 @@ def main() -> None:
             rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=args.dropout,
                                                               unlabelled=args.unlabelled, ghosts=int(args.unlabelled)),
                                  seed=k)
+            if args.bound:
+                t0 = time.perf_counter()
+                b = recording_bound(path, data, args, k)
+                print(f"dataset {k}: Cramer-Rao bound (largest relative standard error) K {100 * b['K']:.2f} %, "
+                      f"c {100 * b['c']:.2f} %, M {100 * b['M']:.2f} % ({b['windows']} windows of {args.oe_frames} "
+                      f"frames; clean markers left at {b['residual_mm']:.3f} mm; {time.perf_counter() - t0:.0f} s)",
+                      flush=True)
+                continue
             scale = ScaleSpec(total_mass=float(truth[2].sum()))
             t0 = time.perf_counter()
             try:
-                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1)
+                oe = {"max_windows": args.oe_windows, "frames": args.oe_frames} if args.output_error else False
+                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1, output_error=oe)
             except IdentifiabilityError as exc:  # what the recording cannot tell, said as the fit says it
                 print(f"dataset {k}: not identifiable from the recording ({time.perf_counter() - t0:.1f} s): {exc}",
                       flush=True)
                 continue
             secs = time.perf_counter() - t0
+            if args.output_error:
+                o = m.metrics["output_error"]
+                reg = replace(m, stiffness=np.array(o["regression"]["stiffness"]),
+                              damping=np.array(o["regression"]["damping"]), mass=np.array(o["regression"]["mass"]),
+                              stderr={k: np.array(o["regression"][f"{k}_stderr"]) for k in ("stiffness", "damping", "mass")})
+                rs = scores(reg, truth)
+                zr = np.concatenate([rs[key]["z"] for key in "KcM"])
+                print(f"dataset {k} regression: K {100 * rs['K']['rel']:.2f} %, c {100 * rs['c']['rel']:.2f} %, "
+                      f"M {100 * rs['M']['rel']:.2f} %, RMS z {np.sqrt(np.nanmean(zr ** 2)):.2f}, max |z| "
+                      f"{np.nanmax(np.abs(zr)):.2f}; output error: {o['windows']} windows of {o['frames_per_window']} "
+                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm", flush=True)
             sc = scores(m, truth)
             for key in "KcM":
                 zs[key].append(sc[key]["z"])

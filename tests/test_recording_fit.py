@@ -176,3 +176,40 @@ def test_noisy_markers_fit_calibrated(tmp_path):
             assert np.abs(est / value - 1).max() < 0.05
     z = np.concatenate(z)
     assert np.abs(z).max() < 3.0 and np.sqrt(np.mean(z ** 2)) < 1.5
+
+
+def test_weak_form_is_the_windowed_sum():
+    """Each weak-form row is the Hann-weighted sum of the equation rows over its window, windows
+    every quarter window within an episode, never across one."""
+    import torch
+
+    from identified.fit.derivatives import weak_form
+
+    rng = np.random.default_rng(0)
+    for T, window, stride in ((1000, 7, None), (999, 301, None), (500, 31, 1), (301, 301, None), (2000, 11, 3)):
+        A = torch.as_tensor(rng.normal(size=(3 * T, 4, 5)))
+        got = weak_form(A, 3, window, stride)
+        s = stride or max(1, window // 4)
+        phi = np.hanning(window + 2)[1:-1]
+        phi = phi / phi.sum()
+        starts = range(0, T - window + 1, s)
+        want = np.stack([np.einsum("t,tij->ij", phi, A.numpy()[e * T + a:e * T + a + window])
+                         for e in range(3) for a in starts])
+        np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-14)
+
+
+def test_one_smoothing_splines_columns_together():
+    """Columns with one smoothing are splined together, exactly as one by one."""
+    from scipy.interpolate import make_smoothing_spline
+
+    from identified.fit.markers import _smooth
+
+    rng = np.random.default_rng(1)
+    t = np.sort(rng.uniform(0, 5, 300))
+    y = rng.normal(size=(300, 3)).cumsum(0)
+    y[[5, 77, 200]] = np.nan
+    grid = np.linspace(0.1, 4.9, 2000)
+    got = _smooth(t, y, grid, [1e-4] * 3)
+    ok = np.isfinite(y).all(-1)
+    want = np.stack([make_smoothing_spline(t[ok], y[ok, k], lam=1e-4)(grid) for k in range(3)], -1)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)

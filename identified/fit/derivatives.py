@@ -41,7 +41,19 @@ def weak_form(A: torch.Tensor, n_episodes: int, window: int, stride: int | None 
     stride = stride or max(1, window // 4)
     phi = torch.hann_window(window + 2, periodic=False, dtype=A.dtype, device=A.device)[1:-1]
     phi = phi / phi.sum()
-    x = A.reshape(n_episodes, T, -1).transpose(1, 2).reshape(-1, 1, T)
-    y = torch.nn.functional.conv1d(x, phi.view(1, 1, -1), stride=stride)  # (E*F, 1, W)
-    W = y.shape[-1]
-    return y.reshape(n_episodes, -1, W).transpose(1, 2).reshape(n_episodes * W, *A.shape[1:])
+    W = (T - window) // stride + 1
+    # the windows start every `stride` samples: cut each episode into blocks of `stride` samples,
+    # and a window is the sum over the `nb` blocks it spans of each block against its piece of the
+    # bump -- one matrix-vector product per piece, over the rows as they lie (no transposed copy)
+    nb = -(-window // stride)
+    bump = torch.zeros(nb * stride, dtype=A.dtype, device=A.device)
+    bump[:window] = phi
+    x = A.reshape(n_episodes, T, -1)
+    need = (W - 1 + nb) * stride
+    if need > T:  # the last window's block runs past the episode: zeros where the bump is zero
+        x = torch.cat([x, x.new_zeros(n_episodes, need - T, x.shape[-1])], 1)
+    blocks = x[:, :need].reshape(n_episodes, W - 1 + nb, stride, -1)
+    y = torch.matmul(bump[:stride], blocks[:, :W])
+    for j in range(1, nb):
+        y = y + torch.matmul(bump[j * stride:(j + 1) * stride], blocks[:, j:j + W])
+    return y.reshape(n_episodes * W, *A.shape[1:])

@@ -274,6 +274,10 @@ def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray, lam: list[float | No
     ok = np.isfinite(y).all(-1)
     if ok.sum() < 5:
         raise RecordingError("a marker is seen in fewer than 5 frames of the take")
+    if all(x is not None for x in lam) and len(set(lam)) == 1:
+        # one smoothing for every column: one spline of the columns together (the same linear
+        # smoother, whose basis scipy builds in a pure-Python loop once instead of per column)
+        return make_smoothing_spline(t[ok], y[ok], lam=lam[0])(grid)
     out = np.empty((grid.size, y.shape[1]))
     for k in range(y.shape[1]):
         if lam[k] is None:
@@ -426,10 +430,13 @@ def labelled(rec: Recording, topology: Topology, mjcf: str) -> Recording:
 
 
 def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[float, float, float] = GRAVITY,
-                  weak_window: int | None = None, noise_copies: int = 1, **fit_kwargs):
+                  weak_window: int | None = None, noise_copies: int = 1, output_error: bool | dict = False,
+                  **fit_kwargs):
     """Identify a model from a recording: labelled if need be, rod states reconstructed
     (:func:`states_from_recording`), then :func:`identified.fit.pipeline.fit_model` with the weak
-    form and the unobservable moments held.  ``fit_kwargs`` go to ``fit_model``."""
+    form and the unobservable moments held.  ``fit_kwargs`` go to ``fit_model``.  ``output_error``
+    (true, or the options of :func:`identified.fit.output_error.refine_markers`): then K, c, M and
+    the observable moments refined against the markers themselves."""
     from identified.fit.derivatives import default_window
     from identified.fit.pipeline import fit_model
 
@@ -448,6 +455,12 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes,
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
+    if output_error:
+        from identified.fit.output_error import refine_markers
+
+        opts = output_error if isinstance(output_error, dict) else {}
+        model = refine_markers(model, rec, ms.data, ms.starts, mjcf, ms.unobservable, sigma=ms.marker_noise,
+                               progress=bool(fit_kwargs.get("progress")), **opts)
     return model
 
 

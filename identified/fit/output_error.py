@@ -1,0 +1,438 @@
+"""Output-error refinement against the markers: the spring-rod parameters that best predict the
+recorded marker positions through the engine's own steps.
+
+The regression (:mod:`identified.fit.regression`) fits equations built from states that splines
+reconstruct from the markers (:mod:`identified.fit.markers`).  Its estimate is consistent but not
+efficient: the splines spread every impact, gap and cable snap over several frames, and the
+equations near them are weighed out.  Here the markers themselves are the measurement:
+
+* the recording is cut into windows of ``frames`` consecutive frames (each frame in one window);
+* in each window the rods are stepped by the identified engine (semi-implicit Euler at the fit's
+  ``dt``, the encoders' rest lengths as the inputs) from a *free* initial state per window and rod
+  (position, rotation, velocity, angular velocity: multiple shooting, so no error accumulates from
+  one window into the next), and each site's simulated position is compared with its marker at
+  every frame where it is seen;
+* a rod near the ground during a window (an end sphere within ``CONTACT_MARGIN`` of it, as in the
+  regression) feels, besides its cables and gravity, a free wrench from the ground in that window,
+  linear in time (``order=2``; ``1``: constant): the contact law is not needed to fit the
+  spring-rod parameters, and a contact law's error cannot bias them.  (``order=0`` moves such a
+  rod as the smoothed states say instead, out of the cost: cheaper, but its cables then act on
+  the others through the splines' errors, which biases the fit.)
+* the cost, ``Σ |site(θ, x₀) - marker|² / σ²`` over every seen marker sample, is minimised over the
+  parameters ``θ`` (the logarithms of K, c, M and the observable moments of inertia) and every
+  window's initial state and ground wrench by Gauss-Newton (a Jacobian reused for a few steps, each
+  step halved until it lowers the cost), the windows' unknowns eliminated by their Schur
+  complement (each window's residuals depend on its own unknowns only).
+
+The Jacobian is exact (forward-mode automatic differentiation through the engine,
+:func:`torch.func.jvp` batched over tangents with :func:`torch.func.vmap`).  The standard errors
+are the Gauss-Newton ones: ``σ̂² (JᵀJ)⁻¹`` with the windows' states marginalised, ``σ̂²`` the cost
+per degree of freedom at the optimum (the markers' noise, plus whatever the model leaves).
+
+The global scale is invisible to marker positions (every force and mass scaled by one factor
+gives the same accelerations): the parameters move in the subspace orthogonal to that direction
+and are rescaled at the end to the regression's anchor (a known total mass); the covariance is
+carried through the rescaling (delta method).
+
+Paper: the engine's eqs. 1-4 and its semi-implicit Euler; the cost is the output-error
+maximum-likelihood estimate for Gaussian marker noise (Ljung 1999, *System Identification*,
+sec. 7.3), multiple shooting after Bock and Plitt (1984).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+from torch.func import jvp, vmap
+
+from identified.dataset import Dataset
+from identified.engine import SpringRodEngine, SpringRodParams
+from identified.model import IdentifiedModel
+from identified.recording import Recording
+from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
+from identified.twin import params_from_model
+
+__all__ = ["MarkerWindows", "marker_windows", "refine_markers"]
+
+#: a rod with an end sphere this close to the ground (m) is moved as recorded, not simulated
+CONTACT_MARGIN = 0.01
+
+
+@dataclass
+class MarkerWindows:
+    """The recording cut into windows, aligned with the reconstructed states.
+
+    ``W`` windows, ``H`` engine steps each, ``L`` frames observed, ``N`` sites, ``R`` rods.
+    ``x0`` (W, R, 13): each window's initial state from the reconstruction (pos, quat, vel, angvel);
+    ``states`` (W, H + 1, R, 13): the reconstructed states over the window (the moves of the rods
+    that are not simulated); ``rest`` (W, H, S); ``step`` (L,) engine step of each observed frame;
+    ``obs`` (W, L, N, 3) marker positions, ``seen`` (W, L, N) float (1 where seen and its rod is
+    simulated); ``free`` (W, R) bool: the rods simulated in each window; ``site_rod`` (N,),
+    ``site_offset`` (N, 3); ``window_time`` (W,) the recording's time of each window's start.
+    """
+
+    x0: torch.Tensor
+    states: torch.Tensor
+    rest: torch.Tensor
+    step: torch.Tensor
+    obs: torch.Tensor
+    seen: torch.Tensor
+    free: torch.Tensor
+    site_rod: torch.Tensor
+    site_offset: torch.Tensor
+    window_time: np.ndarray
+
+    @property
+    def n_windows(self) -> int:
+        return int(self.x0.shape[0])
+
+    def subset(self, keep: np.ndarray) -> MarkerWindows:
+        k = torch.as_tensor(keep)
+        return replace(self, x0=self.x0[k], states=self.states[k], rest=self.rest[k], obs=self.obs[k],
+                       seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep])
+
+
+def _near_ground(mjcf: str, topology, data: Dataset) -> np.ndarray | None:
+    """(E, T + 1, R) bool: rods with an end sphere within :data:`CONTACT_MARGIN` of the ground
+    (``None`` when the model has no ground plane)."""
+    from identified.effects import GeometryError
+    from identified.effects.ground_contact import GroundContact
+    from identified.state import RodState
+
+    try:
+        eff = GroundContact.for_system(topology, mjcf)
+    except GeometryError:
+        return None
+    pos, quat = torch.as_tensor(data.pos), torch.as_tensor(data.quat)
+
+    state = RodState(pos, quat, torch.as_tensor(data.vel), torch.as_tensor(data.angvel))
+    return eff.rows_affected(state, SimpleNamespace(rot=quat_to_matrix(quat)), CONTACT_MARGIN).numpy()
+
+
+def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology, mjcf: str | None,
+                   frames: int = 10, contact_frames: int = 3) -> MarkerWindows:
+    """Cut a labelled recording into windows of ``frames`` frames over the reconstructed states
+    ``data`` (take ``e``'s state ``n`` at the time ``starts[e] + n dt``).  A rod near the ground
+    within ``contact_frames`` frames of a window is not simulated in it.  Frames must fall on the
+    engine's steps (a rate that divides 1 / dt)."""
+    dt = data.dt
+    sites = [(i, k, s) for i, r in enumerate(topology.rods) for k, s in enumerate(r.sites) if s in rec.marker_names]
+    col = [rec.marker_names.index(s) for _, _, s in sites]
+    site_rod = torch.as_tensor([i for i, _, _ in sites])
+    site_offset = torch.as_tensor(np.array([topology.rods[i].site_offsets[k] for i, k, _ in sites]), dtype=torch.float64)
+    near = _near_ground(mjcf, topology, data) if mjcf else None
+    state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
+    T = data.n_steps
+    x0, sts, rest, obs, seen, free, wt = [], [], [], [], [], [], []
+    H = None
+    for e, rows in enumerate(rec.episodes()):
+        t = rec.time[rows]
+        n = (t - starts[e]) / dt
+        inside = (n > -1e-6) & (n < T + 1e-6)
+        rows, n = rows[inside], n[inside]
+        if np.any(np.abs(n - np.round(n)) > 1e-6):
+            raise ValueError("the recording's frames do not fall on the engine's steps (a rate that divides 1/dt)")
+        n = np.round(n).astype(int)
+        for f in range(0, n.size - frames + 1, frames):
+            steps = n[f:f + frames] - n[f]
+            if H is None:
+                H = int(steps[-1])
+                step = steps
+            if steps[-1] != H or np.any(steps != step):
+                continue  # an irregular stretch of frames (a dropped frame): skipped
+            a, b = n[f], n[f] + H
+            lo, hi = max(0, a - contact_frames * (H // (frames - 1))), min(T, b + contact_frames * (H // (frames - 1)))
+            fr = np.ones(topology.n_rods, dtype=bool) if near is None else ~near[e, lo:hi + 1].any(0)
+            if not fr.any():
+                continue
+            m = rec.markers[rows[f:f + frames]][:, col]  # (L, N, 3)
+            ok = np.isfinite(m).all(-1)
+            x0.append(state[e, a])
+            sts.append(state[e, a:b + 1])
+            rest.append(data.rest_length[e, a:b])
+            obs.append(np.nan_to_num(m))
+            seen.append(ok.astype(float))
+            free.append(fr)
+            wt.append(float(t[inside][f]))
+    if not x0:
+        raise ValueError("no window of the recording has a rod off the ground to simulate")
+    tt = lambda x, dtype=torch.float64: torch.as_tensor(np.array(x), dtype=dtype)
+    return MarkerWindows(tt(x0), tt(sts), tt(rest), torch.as_tensor(step), tt(obs), tt(seen), tt(free, torch.bool),
+                         site_rod, site_offset, np.array(wt))
+
+
+#: units of the ground's free wrench in the unknowns (N, N m): of the order of a rod's weight
+WRENCH_UNIT = 10.0
+
+
+class _Wrench:
+    """An engine effect: the free wrench on the rods near the ground, a polynomial in time over the
+    window (Legendre: constant, then linear), world frame; ``n`` the step about to be taken."""
+
+    def __init__(self, coef: torch.Tensor, steps: int, held_axis: torch.Tensor) -> None:
+        self.coef, self.steps, self.n, self.held_axis = coef, steps, 0, held_axis
+
+    def __call__(self, state, ctx) -> tuple[torch.Tensor, torch.Tensor]:
+        s = 2.0 * (self.n + 0.5) / self.steps - 1.0
+        w = self.coef[..., 0, :]
+        if self.coef.shape[-2] > 1:
+            w = w + s * self.coef[..., 1, :]
+        if self.coef.shape[-2] > 2:
+            w = w + 0.5 * (3 * s * s - 1) * self.coef[..., 2, :]
+        # no torque about a rod's axis where its markers cannot see the spin about it
+        axis = (ctx.rot @ self.held_axis.unsqueeze(-1)).squeeze(-1)
+        torque = w[..., 3:] - (w[..., 3:] * axis).sum(-1, keepdim=True) * axis
+        return w[..., :3], torque
+
+
+class _Problem:
+    """The residuals of every window as a function of the parameters' logarithms and the windows'
+    initial-state corrections."""
+
+    def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
+                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2) -> None:
+        self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
+        self.order = wrench_order
+        self.n_x = 12 + 6 * wrench_order  # unknowns per window and rod
+        self.base = params_from_model(model)
+        if self.base.com is not None or self.base.inertia_products is not None:
+            raise ValueError("the output-error refinement takes rods with a diagonal inertia at the frame's origin")
+        R, S = model.topology.n_rods, model.topology.n_springs
+        held = {(i, ax) for i, ax in hold_inertia}
+        # inertia: one parameter per rod and observable group of axes; a rod whose spin about an
+        # axis is not observable has its two other moments tied (its frame about that axis is arbitrary)
+        groups: list[tuple[int, list[int]]] = []
+        for i in range(R):
+            ax_held = [ax for ax in range(3) if (i, ax) in held]
+            if ax_held:
+                groups.append((i, [ax for ax in range(3) if ax not in ax_held]))
+            else:
+                groups += [(i, [ax]) for ax in range(3)]
+        self.groups = groups
+        inertia = self.base.inertia
+        theta0 = [self.base.stiffness.log(), self.base.damping.log(), self.base.mass.log(),
+                  torch.stack([inertia[i, axes].mean().log() for i, axes in groups])]
+        self.sizes = [S, S, R, len(groups)]
+        self.theta0 = torch.cat(theta0)
+        self.names = ["stiffness"] * S + ["damping"] * S + ["mass"] * R + ["inertia"] * len(groups)
+        gi = torch.zeros(R, 3, len(groups), dtype=torch.float64)
+        for g, (i, axes) in enumerate(groups):
+            gi[i, axes, g] = 1.0
+        self.gi = gi  # (R, 3, G): which group sets each moment
+        self.inertia_fixed = inertia * (gi.sum(-1) == 0)
+        # a rod whose spin about a body axis is not observable keeps its initial state's spin about
+        # it as reconstructed (none): the corrections of its rotation and angular velocity are
+        # taken across that axis only
+        self.axial = torch.zeros(win.n_windows, R, 3, dtype=torch.float64)
+        self.held_axis = torch.zeros(R, 3, dtype=torch.float64)
+        for i, ax in held:
+            self.held_axis[i, ax] = 1.0
+        rot0 = quat_to_matrix(win.x0[..., 3:7])  # (W, R, 3, 3)
+        for i, ax in held:
+            self.axial[:, i] = rot0[:, i, :, ax]
+
+    def params(self, theta: torch.Tensor) -> SpringRodParams:
+        K, c, M, Ig = torch.split(theta.exp(), self.sizes)
+        inertia = self.inertia_fixed + (self.gi * Ig).sum(-1)
+        return replace(self.base, stiffness=K, damping=c, mass=M, inertia=inertia)
+
+    def residuals(self, theta: torch.Tensor, dx: torch.Tensor, win: MarkerWindows | None = None,
+                  axial: torch.Tensor | None = None) -> torch.Tensor:
+        """(W, L, N, 3) weighted residuals (site - marker) / σ at the seen samples of simulated rods;
+        ``dx`` (W, R, 12): corrections of each window's initial state (position, rotation vector,
+        velocity, angular velocity, world frame)."""
+        win = self.win if win is None else win
+        free = win.free.unsqueeze(-1)
+        H = int(win.step[-1])
+        wrench = None
+        if self.order > 0:  # the ground's wrench on each rod near it: free, polynomial in time
+            coef = dx[..., 12:].unflatten(-1, (self.order, 6)) * (~free).unsqueeze(-1) * WRENCH_UNIT
+            wrench = _Wrench(coef, H, self.held_axis)
+        eng = SpringRodEngine(self.model.topology, self.params(theta), self.dt, effects=() if wrench is None else [wrench])
+        x0 = win.x0
+        axial = self.axial if axial is None else axial
+        across = lambda v: v - (v * axial).sum(-1, keepdim=True) * axial
+        dx = torch.cat([dx[..., 0:3], across(dx[..., 3:6]), dx[..., 6:9], across(dx[..., 9:12])], -1)
+        q0 = quat_multiply(quat_exp(dx[..., 3:6]), x0[..., 3:7])
+        q0 = q0 / q0.norm(dim=-1, keepdim=True)
+        state = eng.state(x0[..., 0:3] + dx[..., 0:3], q0, x0[..., 7:10] + dx[..., 6:9], x0[..., 10:13] + dx[..., 9:12])
+        want = set(win.step.tolist())
+        out = {}
+        for n in range(H + 1):
+            if n > 0:
+                if wrench is not None:
+                    wrench.n = n - 1
+                state = eng.step(state, win.rest[:, n - 1])
+                if self.order == 0:  # the rods near the ground move as reconstructed
+                    rec = win.states[:, n]
+                    state = type(state)(torch.where(free, state.pos, rec[..., 0:3]),
+                                        torch.where(free, state.quat, rec[..., 3:7]),
+                                        torch.where(free, state.vel, rec[..., 7:10]),
+                                        torch.where(free, state.angvel, rec[..., 10:13]))
+            if n in want:
+                rot = quat_to_matrix(state.quat)[:, win.site_rod]  # (W, N, 3, 3)
+                out[n] = state.pos[:, win.site_rod] + (rot @ win.site_offset.unsqueeze(-1)).squeeze(-1)
+        pred = torch.stack([out[int(n)] for n in win.step], dim=1)
+        seen = win.seen if self.order > 0 else win.seen * win.free[:, win.site_rod].unsqueeze(1)
+        return (pred - win.obs) * seen.unsqueeze(-1) / self.sigma
+
+    def jacobians(self, theta: torch.Tensor, dx: torch.Tensor, chunk: int | None = None) -> tuple[torch.Tensor, ...]:
+        """Residuals r (W, m), their Jacobian with respect to each window's own state (W, m, 12 R)
+        and with respect to the parameters (W, m, P), by forward-mode differentiation."""
+        W, R = dx.shape[0], dx.shape[1]
+        P = theta.numel()
+        f = lambda th, d: self.residuals(th, d).reshape(W, -1)
+        r = f(theta, dx).detach()
+        k = self.n_x
+        nx = k * R
+        tangents_x = torch.eye(nx, dtype=dx.dtype).reshape(nx, 1, R, k).expand(nx, W, R, k)
+        tangents = [(torch.zeros(P, dtype=theta.dtype).expand(nx, P), tangents_x),
+                    (torch.eye(P, dtype=theta.dtype), torch.zeros(P, W, R, k, dtype=dx.dtype))]
+        chunk = chunk or max(16, 60_000 // max(W * R, 1))  # tangents per batched pass (bounded memory)
+        cols = []
+        for tth, tdx in tangents:
+            for k in range(0, tth.shape[0], chunk):
+                push = lambda a, b: jvp(f, (theta, dx), (a, b))[1]
+                cols.append(vmap(push)(tth[k:k + chunk], tdx[k:k + chunk]))
+        J = torch.cat(cols, 0).permute(1, 2, 0)  # (W, m, nx + P)
+        return r, J[..., :nx], J[..., nx:]
+
+
+def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
+                   hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
+                   jacobians: int = 2, chord_steps: int = 4, sigma: float | None = None, order: int = 2,
+                   fit_params: bool = True, known_noise: bool = False, progress: bool = False) -> IdentifiedModel:
+    """The model with K, c, M and the observable moments of inertia refined against the markers
+    (the module docstring), with Gauss-Newton standard errors.
+
+    Up to ``max_windows`` windows of ``frames`` frames, spread evenly over the recording.  The
+    Jacobian is computed ``jacobians`` times; after each, ``chord_steps`` Gauss-Newton steps reuse
+    it (the chord method: each step costs one run of the windows), a step taken only where it
+    lowers the cost.  The standard errors come from the last Jacobian, scaled by the residual's
+    variance (``known_noise``: by ``sigma`` itself -- with ``fit_params`` false and the true
+    parameters, the Cramer-Rao bound of the windows' markers)."""
+    t0 = time.perf_counter()
+    win = marker_windows(rec, data, starts, model.topology, mjcf, frames)
+    available = win.n_windows
+    if win.n_windows > max_windows:
+        win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
+    sig = float(sigma or rec.noise_pos or 1e-3)
+    prob = _Problem(model, win, data.dt, sig, list(hold_inertia), order)
+    theta = prob.theta0.clone()
+    W, R = win.n_windows, model.topology.n_rods
+    dx = torch.zeros(W, R, prob.n_x, dtype=torch.float64)
+    if order > 0:  # the ground starts out carrying the weight of the rods near it
+        weight = -torch.as_tensor(model.mass)[:, None] * torch.as_tensor(np.asarray(model.gravity, dtype=float))
+        dx[..., 12:15] = weight / WRENCH_UNIT
+    P = theta.numel()
+    u = torch.ones(P, 1, dtype=torch.float64) / np.sqrt(P)  # the global scale: invisible
+    proj = torch.eye(P, dtype=torch.float64) - u @ u.T
+    # the unknowns of each window that act: every simulated rod's state, the wrench of a rod near the ground
+    near = ~win.free
+    k = prob.n_x
+    free_x = torch.cat([(win.free | (order > 0)).unsqueeze(-1).expand(W, R, 12),
+                        near.unsqueeze(-1).expand(W, R, k - 12) & (order > 0)], -1).reshape(W, R * k).to(torch.float64)
+
+    def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return prob.residuals(th, d).reshape(W, -1)
+
+    r = residuals(theta, dx)
+    history = [float(r.square().sum())]
+    cov = None
+    for j in range(jacobians):
+        _, Jx, Jp = prob.jacobians(theta, dx)
+        Jp = Jp @ proj
+        # each window's normal matrix; the states of the rods it does not simulate held by a unit
+        # diagonal, the directions no marker sees (a rod's spin about its markers' line) by a ridge
+        A = Jx.transpose(1, 2) @ Jx + torch.diag_embed(1.0 - free_x)
+        A = A + torch.diag_embed(1e-10 * torch.diagonal(A, dim1=-2, dim2=-1).amax(-1, keepdim=True).expand(-1, A.shape[-1]))
+        L = torch.linalg.cholesky(A)
+        B = Jx.transpose(1, 2) @ Jp  # (W, nx, P)
+        AiB = torch.cholesky_solve(B, L)
+        Ssc = (Jp.transpose(1, 2) @ Jp).sum(0) - (B.transpose(1, 2) @ AiB).sum(0)
+        Ssc = 0.5 * (Ssc + Ssc.T)
+        Sreg = Ssc + (u @ u.T) * Ssc.diagonal().mean()
+        if j == jacobians - 1:
+            cov = proj @ torch.linalg.pinv(proj @ Ssc @ proj, hermitian=True) @ proj
+        for _ in range(chord_steps):
+            gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
+            Aig = torch.cholesky_solve(gx, L)
+            gp = (Jp.transpose(1, 2) @ r.unsqueeze(-1)).sum(0) - (B.transpose(1, 2) @ Aig).sum(0)
+            dp = -torch.linalg.solve(Sreg, gp) * float(fit_params)
+            dxs = -(Aig + AiB @ dp)
+            step = 1.0
+            while step > 0.1:
+                th_new = theta + step * (proj @ dp).squeeze(-1)
+                dx_new = dx + step * (dxs.squeeze(-1) * free_x).reshape(W, R, k)
+                r_new = residuals(th_new, dx_new)
+                c_new = float(r_new.square().sum())
+                if np.isfinite(c_new) and c_new < history[-1]:
+                    break
+                step *= 0.5
+            if step <= 0.1:
+                break
+            theta, dx, r = th_new, dx_new, r_new
+            gain = history[-1] - c_new
+            history.append(c_new)
+            if progress:
+                print(f"output-error: Jacobian {j + 1}, cost {c_new:.6g} (step {step:g})", flush=True)
+            if gain < 1e-7 * c_new:
+                break
+    seen = win.seen if order > 0 else win.seen * win.free[:, win.site_rod].unsqueeze(1)
+    m_obs = float(seen.sum()) * 3
+    held_rods = {i for i, _ in hold_inertia}
+    per_rod = torch.tensor([10.0 if i in held_rods else 12.0 for i in range(R)], dtype=torch.float64)
+    simulated = torch.ones_like(win.free) if order > 0 else win.free
+    n_x = float((simulated * per_rod).sum()) + 6 * order * float(near.sum())
+    dof = m_obs - n_x - (P - 1)
+    s2 = 1.0 if known_noise else history[-1] / max(dof, 1.0)  # the residual variance in units of σ²
+    out = _result(model, prob, theta, cov * s2, history, win, s2, sig, time.perf_counter() - t0)
+    out.metrics["output_error"]["windows_available"] = available
+    return out
+
+
+def _result(model: IdentifiedModel, prob: _Problem, theta: torch.Tensor, cov: torch.Tensor, history: list[float],
+            win: MarkerWindows, s2: float, sigma: float, seconds: float) -> IdentifiedModel:
+    """The refined model rescaled to the regression's anchor, with its standard errors."""
+    R = model.topology.n_rods
+    S = model.topology.n_springs
+    th = theta.clone()
+    P = th.numel()
+    # rescale: the total mass of the regression (its anchor) kept
+    msl = slice(2 * S, 2 * S + R)
+    M = th[msl].exp()
+    shift = float(np.log(model.mass.sum()) - torch.log(M.sum()))
+    th = th + shift
+    w = (M / M.sum()).numpy()
+    G = np.eye(P)
+    G[:, msl] -= w[None, :]  # d(th + log Mtot - log Σ M)/d th
+    C = G @ cov.numpy() @ G.T
+    se_log = np.sqrt(np.clip(np.diag(C), 0, None))
+    vals = th.exp().numpy()
+    p = prob.params(th)
+    K, c, Mv = p.stiffness.numpy(), p.damping.numpy(), p.mass.numpy()
+    inertia = p.inertia.detach().numpy()
+    se = {"stiffness": K * se_log[:S], "damping": c * se_log[S:2 * S], "mass": Mv * se_log[2 * S:2 * S + R]}
+    ise = np.full((R, 3), np.nan)
+    for g, (i, axes) in enumerate(prob.groups):
+        ise[i, axes] = vals[2 * S + R + g] * se_log[2 * S + R + g]
+    old = dict(model.stderr)
+    stderr = dict(old)
+    stderr.update(se)
+    if "inertia" in old:
+        ise = np.where(np.isnan(ise), np.asarray(old["inertia"], dtype=float), ise)
+    stderr["inertia"] = ise
+    out = replace(model, stiffness=K, damping=c, mass=Mv, inertia=inertia, stderr=stderr, metrics=dict(model.metrics))
+    out.metrics["output_error"] = {
+        "regression": {k: np.asarray(getattr(model, k)).tolist() for k in ("stiffness", "damping", "mass")}
+        | {f"{k}_stderr": np.asarray(old[k]).tolist() for k in ("stiffness", "damping", "mass") if k in old},
+        "windows": win.n_windows, "frames_per_window": int(win.step.numel()),
+        "cost_before": history[0], "cost_after": history[-1], "iterations": len(history) - 1,
+        "residual_rms_m": float(np.sqrt(s2) * sigma), "seconds": round(seconds, 3),
+    }
+    return out

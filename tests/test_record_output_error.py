@@ -1,0 +1,98 @@
+"""The output-error refinement against the markers (identified.fit.output_error), against known truth."""
+
+from __future__ import annotations
+
+import re
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from identified.fit.markers import states_from_recording
+from identified.fit.output_error import _Problem, marker_windows, refine_markers
+from identified.model import IdentifiedModel
+from identified.topology import Topology
+from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
+from tensegrity_gym.models import write_model
+
+
+def _truth(path: str) -> IdentifiedModel:
+    """The plant's own values as a model (the test knows the truth; the refinement never reads it)."""
+    m = mujoco.MjModel.from_xml_path(path)
+    topo = Topology.from_mjcf(path)
+    tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, n) for n in topo.spring_names]
+    bid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in topo.rod_names]
+    return IdentifiedModel(topology=topo, stiffness=m.tendon_stiffness[tid].copy(), damping=m.tendon_damping[tid].copy(),
+                           rest_length=np.zeros(len(tid)), mass=m.body_mass[bid].copy(),
+                           inertia=m.body_inertia[bid].copy(), dt=float(m.opt.timestep), gravity=m.opt.gravity.copy(),
+                           scale={"anchor": "total_mass"})
+
+
+def _robot(tmp_path, floor: bool) -> str:
+    path = str(tmp_path / "robot.xml")
+    write_model(path, "ico", preset="robot")
+    if not floor:
+        with open(path) as fh:
+            text = re.sub(r'<geom name="ground"[^>]*/>', "", fh.read())
+        with open(path, "w") as fh:
+            fh.write(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def floorless(tmp_path_factory):
+    """The robot without its ground, falling for 0.6 s while its cables move: clean 100 Hz markers."""
+    path = _robot(tmp_path_factory.mktemp("oe"), floor=False)
+    data = collect(path, CollectConfig(episodes=1, steps=600, seed=3))
+    rec = record_markers(data, path, RecordConfig(rate=100, dropout=0.02), seed=3)
+    topo = Topology.from_mjcf(path)
+    return path, topo, rec, states_from_recording(rec, topo, data.dt, lam=1e-12)
+
+
+def test_jacobian_matches_finite_differences(floorless):
+    """The forward-mode Jacobian of the marker residuals against central differences, in the
+    parameters and in a window's initial state."""
+    path, topo, rec, ms = floorless
+    win = marker_windows(rec, ms.data, ms.starts, topo, None, frames=4).subset(np.array([0, 5]))
+    prob = _Problem(_truth(path), win, ms.data.dt, 1e-3, ms.unobservable, wrench_order=0)
+    theta = prob.theta0.clone()
+    dx = torch.zeros(win.n_windows, topo.n_rods, prob.n_x, dtype=torch.float64)
+    r, Jx, Jp = prob.jacobians(theta, dx)
+    h = 1e-6
+    for k in (0, 30, 49, 55):  # a stiffness, a damping, a mass, an inertia
+        e = torch.zeros_like(theta)
+        e[k] = h
+        fd = (prob.residuals(theta + e, dx) - prob.residuals(theta - e, dx)).reshape(r.shape) / (2 * h)
+        np.testing.assert_allclose(Jp[..., k].numpy(), fd.detach().numpy(), rtol=1e-5, atol=1e-5 * float(fd.abs().max()))
+    for rod, comp in ((0, 0), (2, 4), (5, 7), (3, 10)):  # position, rotation, velocity, angular velocity
+        e = torch.zeros_like(dx)
+        e[:, rod, comp] = h
+        fd = (prob.residuals(theta, dx + e) - prob.residuals(theta, dx - e)).reshape(r.shape) / (2 * h)
+        col = Jx[..., rod * prob.n_x + comp]
+        np.testing.assert_allclose(col.numpy(), fd.detach().numpy(), rtol=1e-5, atol=1e-5 * float(fd.abs().max()) + 1e-9)
+
+
+@pytest.mark.expensive
+def test_refinement_recovers_the_truth_from_clean_markers(floorless):
+    """From K, c, M and inertia 4-10 % off (the total mass kept), clean markers of the floorless
+    robot bring every parameter back to the plant's values."""
+    path, _, rec, ms = floorless
+    truth = _truth(path)
+    rng = np.random.default_rng(0)
+    start = IdentifiedModel(**truth.__dict__)
+    start.stiffness = truth.stiffness * (1 + 0.04 * rng.choice([-1, 1], truth.stiffness.shape))
+    start.damping = truth.damping * (1 + 0.10 * rng.choice([-1, 1], truth.damping.shape))
+    start.mass = truth.mass * (1 + 0.05 * rng.choice([-1, 1], truth.mass.shape))
+    start.mass *= truth.mass.sum() / start.mass.sum()
+    start.inertia = truth.inertia * 1.05
+    out = refine_markers(start, rec, ms.data, ms.starts, None, ms.unobservable, frames=10, jacobians=2,
+                         chord_steps=4, sigma=1e-3)
+    # what is left is the encoders': rest lengths read at 100 Hz, interpolated between frames
+    # (measured: K 3e-4, c 4e-3, M 3e-4, I 2e-3, 11 um of marker residual)
+    assert np.abs(out.stiffness / truth.stiffness - 1).max() < 1e-3
+    assert np.abs(out.damping / truth.damping - 1).max() < 1e-2
+    assert np.abs(out.mass / truth.mass - 1).max() < 1e-3
+    assert np.abs(out.inertia[:, :2] / truth.inertia[:, :2] - 1).max() < 5e-3
+    assert out.metrics["output_error"]["residual_rms_m"] < 3e-5
+    assert out.metrics["output_error"]["cost_after"] < 1e-4 * out.metrics["output_error"]["cost_before"]

@@ -90,7 +90,7 @@ def recording_bound(path: str, data, args, seed: int) -> dict:
     clean = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=0.0, dropout=args.dropout), seed=seed)
     held = [(i, 2) for i in range(topo.n_rods)]  # end caps on the rods' axes
     out = refine_markers(truth, clean, data, [0.0] * data.n_episodes, path, held, frames=args.oe_frames,
-                         max_windows=args.oe_windows, jacobians=1, chord_steps=6, sigma=args.noise, fit_params=False,
+                         max_windows=args.oe_windows, jacobians=2, chord_steps=6, sigma=args.noise, fit_params=False,
                          known_noise=True)
     o = out.metrics["output_error"]
     used = o["windows"] / max(o.get("windows_available", o["windows"]), 1)

@@ -96,3 +96,19 @@ def test_refinement_recovers_the_truth_from_clean_markers(floorless):
     assert np.abs(out.inertia[:, :2] / truth.inertia[:, :2] - 1).max() < 5e-3
     assert out.metrics["output_error"]["residual_rms_m"] < 3e-5
     assert out.metrics["output_error"]["cost_after"] < 1e-4 * out.metrics["output_error"]["cost_before"]
+
+
+def test_bound_scales_with_the_marker_noise(floorless):
+    """With the true parameters held and the noise known, the standard errors are the Cramer-Rao
+    bound of the windows' markers: proportional to the noise, and the parameters left at the truth."""
+    path, _, rec, ms = floorless
+    truth = _truth(path)
+    se = []
+    for sigma in (1e-3, 4e-3):
+        out = refine_markers(truth, rec, ms.data, ms.starts, None, ms.unobservable, frames=10, max_windows=1,
+                             jacobians=1, chord_steps=1, sigma=sigma, fit_params=False, known_noise=True)
+        np.testing.assert_allclose(out.stiffness, truth.stiffness, rtol=1e-12)
+        np.testing.assert_allclose(out.mass, truth.mass, rtol=1e-12)
+        se.append(np.concatenate([out.stderr[k] for k in ("stiffness", "damping", "mass")]))
+    assert np.all(se[0] > 0)
+    np.testing.assert_allclose(se[1], 4 * se[0], rtol=1e-6)

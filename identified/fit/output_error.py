@@ -391,7 +391,8 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     n_x = float((simulated * per_rod).sum()) + 6 * order * float(near.sum())
     dof = m_obs - n_x - (P - 1)
     s2 = 1.0 if known_noise else history[-1] / max(dof, 1.0)  # the residual variance in units of σ²
-    out = _result(model, prob, theta, cov * s2, history, win, s2, sig, time.perf_counter() - t0)
+    fit_s2 = history[-1] / max(dof, 1.0)
+    out = _result(model, prob, theta, cov * s2, history, win, fit_s2, sig, time.perf_counter() - t0)
     out.metrics["output_error"]["windows_available"] = available
     return out
 

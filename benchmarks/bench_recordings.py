@@ -167,7 +167,8 @@ def main() -> None:
                 print(f"dataset {k} regression: K {100 * rs['K']['rel']:.2f} %, c {100 * rs['c']['rel']:.2f} %, "
                       f"M {100 * rs['M']['rel']:.2f} %, RMS z {np.sqrt(np.nanmean(zr ** 2)):.2f}, max |z| "
                       f"{np.nanmax(np.abs(zr)):.2f}; output error: {o['windows']} windows of {o['frames_per_window']} "
-                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm", flush=True)
+                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm"
+                      + (f"; kept the regression: {o['kept_regression']}" if "kept_regression" in o else ""), flush=True)
             sc = scores(m, truth)
             for key in "KcM":
                 zs[key].append(sc[key]["z"])

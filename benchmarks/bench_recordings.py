@@ -90,7 +90,7 @@ def recording_bound(path: str, data, args, seed: int) -> dict:
     clean = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=0.0, dropout=args.dropout), seed=seed)
     held = [(i, 2) for i in range(topo.n_rods)]  # end caps on the rods' axes
     out = refine_markers(truth, clean, data, [0.0] * data.n_episodes, path, held, frames=args.oe_frames,
-                         max_windows=args.oe_windows, jacobians=1, chord_steps=6, sigma=args.noise, fit_params=False,
+                         max_windows=args.oe_windows, jacobians=2, chord_steps=6, sigma=args.noise, fit_params=False,
                          known_noise=True)
     o = out.metrics["output_error"]
     used = o["windows"] / max(o.get("windows_available", o["windows"]), 1)
@@ -167,7 +167,8 @@ def main() -> None:
                 print(f"dataset {k} regression: K {100 * rs['K']['rel']:.2f} %, c {100 * rs['c']['rel']:.2f} %, "
                       f"M {100 * rs['M']['rel']:.2f} %, RMS z {np.sqrt(np.nanmean(zr ** 2)):.2f}, max |z| "
                       f"{np.nanmax(np.abs(zr)):.2f}; output error: {o['windows']} windows of {o['frames_per_window']} "
-                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm", flush=True)
+                      f"frames, {o['seconds']:.1f} s, marker residual {1e3 * o['residual_rms_m']:.3f} mm"
+                      + (f"; kept the regression: {o['kept_regression']}" if "kept_regression" in o else ""), flush=True)
             sc = scores(m, truth)
             for key in "KcM":
                 zs[key].append(sc[key]["z"])

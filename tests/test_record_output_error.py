@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from identified.fit.markers import states_from_recording
-from identified.fit.output_error import _Problem, marker_windows, refine_markers
+from identified.fit.output_error import DISAGREE, _disagreement, _Problem, marker_windows, refine_markers
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
@@ -96,3 +96,35 @@ def test_refinement_recovers_the_truth_from_clean_markers(floorless):
     assert np.abs(out.inertia[:, :2] / truth.inertia[:, :2] - 1).max() < 5e-3
     assert out.metrics["output_error"]["residual_rms_m"] < 3e-5
     assert out.metrics["output_error"]["cost_after"] < 1e-4 * out.metrics["output_error"]["cost_before"]
+
+
+def test_bound_scales_with_the_marker_noise(floorless):
+    """With the true parameters held and the noise known, the standard errors are the Cramer-Rao
+    bound of the windows' markers: proportional to the noise, and the parameters left at the truth."""
+    path, _, rec, ms = floorless
+    truth = _truth(path)
+    se = []
+    for sigma in (1e-3, 4e-3):
+        out = refine_markers(truth, rec, ms.data, ms.starts, None, ms.unobservable, frames=10, max_windows=1,
+                             jacobians=1, chord_steps=1, sigma=sigma, fit_params=False, known_noise=True)
+        np.testing.assert_allclose(out.stiffness, truth.stiffness, rtol=1e-12)
+        np.testing.assert_allclose(out.mass, truth.mass, rtol=1e-12)
+        se.append(np.concatenate([out.stderr[k] for k in ("stiffness", "damping", "mass")]))
+    assert np.all(se[0] > 0)
+    np.testing.assert_allclose(se[1], 4 * se[0], rtol=1e-6)
+
+
+def test_disagreement_in_combined_standard_errors(tmp_path):
+    """How far apart two estimates are, in their combined standard errors (the refinement's guard)."""
+    truth = _truth(_robot(tmp_path, floor=True))
+    a = IdentifiedModel(**truth.__dict__)
+    b = IdentifiedModel(**truth.__dict__)
+    a.stderr = {k: 0.03 * getattr(truth, k) for k in ("stiffness", "damping", "mass")}
+    b.stderr = {k: 0.04 * getattr(truth, k) for k in ("stiffness", "damping", "mass")}
+    b.damping = truth.damping.copy()
+    b.damping[3] *= 1.10  # 0.1 c apart, combined standard error 0.05 c: 2
+    assert _disagreement(a, b) == pytest.approx(2.0)
+    b.mass = truth.mass * 1.3  # 0.3 M apart: 6, beyond the guard
+    assert _disagreement(a, b) == pytest.approx(6.0) and _disagreement(a, b) > DISAGREE
+    b.stderr = {}
+    assert _disagreement(a, b) == 0.0  # no error bars to judge by

@@ -461,6 +461,11 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
         opts = output_error if isinstance(output_error, dict) else {}
         model = refine_markers(model, rec, ms.data, ms.starts, mjcf, ms.unobservable, sigma=ms.marker_noise,
                                progress=bool(fit_kwargs.get("progress")), **opts)
+        from identified.fit.checks import refresh_physics
+        from identified.predict import attach_metrics
+
+        refresh_physics(model)  # the checks and errors of the refined values
+        attach_metrics(model, ms.data)
     return model
 
 

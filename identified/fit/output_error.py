@@ -391,9 +391,36 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     n_x = float((simulated * per_rod).sum()) + 6 * order * float(near.sum())
     dof = m_obs - n_x - (P - 1)
     s2 = 1.0 if known_noise else history[-1] / max(dof, 1.0)  # the residual variance in units of σ²
-    out = _result(model, prob, theta, cov * s2, history, win, s2, sig, time.perf_counter() - t0)
+    fit_s2 = history[-1] / max(dof, 1.0)
+    out = _result(model, prob, theta, cov * s2, history, win, fit_s2, sig, time.perf_counter() - t0)
     out.metrics["output_error"]["windows_available"] = available
+    if fit_params:
+        moved = _disagreement(model, out)
+        if moved > DISAGREE:  # two estimates of the same data that their error bars cannot reconcile
+            kept = replace(model, metrics=dict(model.metrics))
+            kept.metrics["output_error"] = out.metrics["output_error"] | {
+                "kept_regression": f"the refinement moved a parameter {moved:.1f} combined standard errors from the "
+                                   f"regression (more than {DISAGREE:g}): too few windows for its linearisation"}
+            return kept
     return out
+
+
+#: combined standard errors by which the refinement may move a parameter from the regression
+#: before its result is distrusted (its Gauss-Newton error bars assume it is near linear)
+DISAGREE = 5.0
+
+
+def _disagreement(a: IdentifiedModel, b: IdentifiedModel) -> float:
+    """The largest |a - b| / sqrt(se_a² + se_b²) over K, c and M where both have error bars."""
+    worst = 0.0
+    for k in ("stiffness", "damping", "mass"):
+        if k not in a.stderr or k not in b.stderr:
+            continue
+        se = np.hypot(np.asarray(a.stderr[k], dtype=float), np.asarray(b.stderr[k], dtype=float))
+        z = np.abs(np.asarray(getattr(a, k)) - np.asarray(getattr(b, k))) / se
+        z = z[np.isfinite(z)]
+        worst = max(worst, float(z.max()) if z.size else 0.0)
+    return worst
 
 
 def _result(model: IdentifiedModel, prob: _Problem, theta: torch.Tensor, cov: torch.Tensor, history: list[float],

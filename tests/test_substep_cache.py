@@ -165,9 +165,34 @@ def test_key_holds_constants_by_value_and_tensors_by_layout():
     assert key(Obj(0.001, torch.ones(3, dtype=torch.float64))) != base  # a dtype
     assert key(Obj(0.001, None)) != base  # an optional part missing
     assert sc.call_key(TwinPhysics._eager_substep, (Obj(0.001, torch.ones(3)),), {}) != base  # options
+    # every part is walked, also where a walked object's id is free again (no false "seen")
+    assert key(Obj(Obj(0.001, None), Obj(0.002, None))) != key(Obj(Obj(0.001, None), Obj(0.003, None)))
     d1 = {Addressed(): 1.0, Addressed(): 2.0}
     d2 = {Addressed(): 1.0, Addressed(): 2.0}
     assert key(d1) == key(d2)
+
+
+def test_twins_of_one_model_share_one_key():
+    """Identical twins built one after the other (objects at other addresses, ids freed and reused
+    while the key is computed) get one key; another time step is another key."""
+    import gymnasium as gym
+
+    from tensegrity_gym.backends.twin_physics import _split
+
+    def key(ph):
+        args = (_split(ph.state), ph.rest, ph.rest_act, ph.target, None, None)
+        return sc.call_key(TwinPhysics._eager_substep, (ph._substep_reads(), *args), ph._inductor_options())
+
+    def twin():
+        return gym.make_vec("TensegrityIco-v0", num_envs=4, vectorization_mode="vector_entry_point",
+                            backend="identified").physics
+
+    twins = [twin() for _ in range(3)]
+    keys = {key(ph) for ph in twins for _ in range(3)}
+    assert len(keys) == 1
+    ph = twin()
+    ph.engine.dt *= 2
+    assert key(ph) not in keys
 
 
 def test_substep_reads_list_every_attribute_the_substep_reads():

@@ -243,3 +243,30 @@ def test_twin_substep_loaded_by_a_second_process_steps_bit_identically(tmp_path)
     assert [r["status"] for r in runs] == ["stored", "hit"]
     np.testing.assert_array_equal(np.array(runs[1]["obs"]), np.array(runs[0]["obs"]))
     np.testing.assert_array_equal(np.array(runs[1]["pos"]), np.array(runs[0]["pos"]))
+
+
+ISA = textwrap.dedent('''
+    import sys
+    import torch  # noqa: F401
+    sys.path.insert(0, sys.argv[1])
+    from tensegrity_gym.backends import substep_cache as sc
+    if sys.argv[2] == "prefetch":
+        sc.prefetch()
+        for thread in sc._PREFETCH:
+            thread.join()
+    from torch._inductor import cpu_vec_isa as c
+    print(repr([(str(i), getattr(i, "_is_avx512_bf16_supported", None), i.build_arch_flags())
+                for i in c.valid_vec_isa_list()] + [str(c.pick_vec_isa())]))
+''')
+
+
+@needs_compiler
+def test_prefetch_finds_the_instruction_sets_inductor_finds(tmp_path):
+    """The prefetch probes the instruction sets side by side; the compiled code's flags must be
+    those inductor's own pass, one by one, would choose."""
+    script = tmp_path / "isa.py"
+    script.write_text(ISA)
+    env = {**os.environ, sc.CACHE_ENV: str(tmp_path / "cache")}
+    out = [subprocess.run([sys.executable, str(script), ROOT, mode], capture_output=True, text=True, env=env,
+                          timeout=300, check=True).stdout.strip().splitlines()[-1] for mode in ("prefetch", "plain")]
+    assert out[0] == out[1]

@@ -188,8 +188,22 @@ def prefetch() -> None:
     except Exception:  # noqa: BLE001 - no inductor here: nothing to prefetch
         return
 
-    def probe() -> None:
+    def check(isa: Any) -> None:
         with contextlib.suppress(Exception):  # the load probes again and reports what fails
+            bool(isa)  # inductor's probe of one instruction set (cached on the instance)
+
+    def probe() -> None:
+        # the instruction sets the CPU reports, probed side by side (each probe mostly waits for
+        # its child process); inductor's own pass over them then finds every answer cached
+        with contextlib.suppress(Exception):
+            flags = cpu_vec_isa.x86_isa_checker()
+            sets = [isa for isa in cpu_vec_isa.supported_vec_isa_list if all(f in flags for f in str(isa).split())]
+            workers = [threading.Thread(target=check, args=(isa,), daemon=True) for isa in sets]
+            for w in workers:
+                w.start()
+            for w in workers:
+                w.join()
+        with contextlib.suppress(Exception):
             cpu_vec_isa.pick_vec_isa()
 
     thread = threading.Thread(target=probe, name="twin-substep-prefetch", daemon=True)

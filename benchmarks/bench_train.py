@@ -22,7 +22,9 @@ Only the number of envs differs (the same transitions per update, ``--rollout``,
 Each training's wall clock is split into: the twin's compilation (its compiled substep loaded
 from the cache on disk, :mod:`tensegrity_gym.backends.substep_cache`, or compiled and stored there
 when no earlier run of the same model stored it: the table says which; with
-``TENSEGRITY_TWIN_CACHE=0`` a plain ``torch.compile`` from inductor's own cache), the env's steps (the twin's engine and the env around it / waiting for the plant's
+``TENSEGRITY_TWIN_CACHE=0`` a plain ``torch.compile`` from inductor's own cache; a short warm-up
+training of the twin first stores it where no earlier run did, its time printed apart, unless
+``--cold-twin``), the env's steps (the twin's engine and the env around it / waiting for the plant's
 worker processes), SB3's own work while collecting (policy forward pass, action sampling, rollout
 buffer, VecNormalize, VecMonitor, callbacks: the rest of ``collect_rollouts``) and PPO's updates
 (``PPO.train``: the gradient epochs). CPU time counts this process, its children and the
@@ -310,6 +312,9 @@ def main() -> None:
     ap.add_argument("--out", default=os.path.join(ROOT, "runs", "bench_train"))
     ap.add_argument("--updates", action="store_true",
                     help="only time PPO's update alone per mini-batch size (seconds; no training)")
+    ap.add_argument("--cold-twin", action="store_true",
+                    help="no warm-up training of the twin first: the first twin training may compile its substep "
+                         "(a model's first training; by default a short warm-up training compiles and stores it)")
     ap.add_argument("--one", choices=("twin", "plant"), default=None, help=argparse.SUPPRESS)  # a child: one training
     ap.add_argument("--policy-out", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -340,6 +345,18 @@ def main() -> None:
         print(json.dumps(train_timed(cfg, args.policy_out), default=str))
         return
     conds = {"both": ("quiet", "busy"), "none": ("quiet",), "only": ("busy",)}[args.busy]
+    if not args.cold_twin:
+        # the twin's compiled substep, from the cache on disk or compiled and stored now: a model's
+        # first training pays this once; the timed trainings below then load it (a short twin
+        # training, its own process; its figures are printed, not part of the table)
+        warm = [sys.executable, os.path.abspath(__file__), "--one", "twin", "--policy-out",
+                os.path.join(args.out, "twin-warmup.zip"), *sys.argv[1:], "--timesteps", str(2 * rollout)]
+        proc = subprocess.run(warm, check=False, capture_output=True, text=True)
+        if proc.returncode != 0:
+            sys.exit(f"bench_train: the twin's warm-up failed:\n{proc.stderr[-3000:]}")
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"twin warm-up ({2 * rollout} steps): compiled substep {row['compile_cache']} in {row['compile_s']:.1f} s "
+              "('stored': compiled now, a model structure's first training; 'hit': from the cache on disk)", flush=True)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
           f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}", flush=True)
     runs: dict = {}

@@ -165,9 +165,34 @@ def test_key_holds_constants_by_value_and_tensors_by_layout():
     assert key(Obj(0.001, torch.ones(3, dtype=torch.float64))) != base  # a dtype
     assert key(Obj(0.001, None)) != base  # an optional part missing
     assert sc.call_key(TwinPhysics._eager_substep, (Obj(0.001, torch.ones(3)),), {}) != base  # options
+    # every part is walked, also where a walked object's id is free again (no false "seen")
+    assert key(Obj(Obj(0.001, None), Obj(0.002, None))) != key(Obj(Obj(0.001, None), Obj(0.003, None)))
     d1 = {Addressed(): 1.0, Addressed(): 2.0}
     d2 = {Addressed(): 1.0, Addressed(): 2.0}
     assert key(d1) == key(d2)
+
+
+def test_twins_of_one_model_share_one_key():
+    """Identical twins built one after the other (objects at other addresses, ids freed and reused
+    while the key is computed) get one key; another time step is another key."""
+    import gymnasium as gym
+
+    from tensegrity_gym.backends.twin_physics import _split
+
+    def key(ph):
+        args = (_split(ph.state), ph.rest, ph.rest_act, ph.target, None, None)
+        return sc.call_key(TwinPhysics._eager_substep, (ph._substep_reads(), *args), ph._inductor_options())
+
+    def twin():
+        return gym.make_vec("TensegrityIco-v0", num_envs=4, vectorization_mode="vector_entry_point",
+                            backend="identified").physics
+
+    twins = [twin() for _ in range(3)]
+    keys = {key(ph) for ph in twins for _ in range(3)}
+    assert len(keys) == 1
+    ph = twin()
+    ph.engine.dt *= 2
+    assert key(ph) not in keys
 
 
 def test_substep_reads_list_every_attribute_the_substep_reads():
@@ -218,3 +243,30 @@ def test_twin_substep_loaded_by_a_second_process_steps_bit_identically(tmp_path)
     assert [r["status"] for r in runs] == ["stored", "hit"]
     np.testing.assert_array_equal(np.array(runs[1]["obs"]), np.array(runs[0]["obs"]))
     np.testing.assert_array_equal(np.array(runs[1]["pos"]), np.array(runs[0]["pos"]))
+
+
+ISA = textwrap.dedent('''
+    import sys
+    import torch  # noqa: F401
+    sys.path.insert(0, sys.argv[1])
+    from tensegrity_gym.backends import substep_cache as sc
+    if sys.argv[2] == "prefetch":
+        sc.prefetch()
+        for thread in sc._PREFETCH:
+            thread.join()
+    from torch._inductor import cpu_vec_isa as c
+    print(repr([(str(i), getattr(i, "_is_avx512_bf16_supported", None), i.build_arch_flags())
+                for i in c.valid_vec_isa_list()] + [str(c.pick_vec_isa())]))
+''')
+
+
+@needs_compiler
+def test_prefetch_finds_the_instruction_sets_inductor_finds(tmp_path):
+    """The prefetch probes the instruction sets side by side; the compiled code's flags must be
+    those inductor's own pass, one by one, would choose."""
+    script = tmp_path / "isa.py"
+    script.write_text(ISA)
+    env = {**os.environ, sc.CACHE_ENV: str(tmp_path / "cache")}
+    out = [subprocess.run([sys.executable, str(script), ROOT, mode], capture_output=True, text=True, env=env,
+                          timeout=300, check=True).stdout.strip().splitlines()[-1] for mode in ("prefetch", "plain")]
+    assert out[0] == out[1]

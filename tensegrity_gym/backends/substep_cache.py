@@ -49,7 +49,7 @@ __all__ = ["CACHE_ENV", "CachedSubstep", "cache_dir", "call_key", "load_or_compi
 #: Environment variable: the cache folder, or ``0``/``off`` for no cache.
 CACHE_ENV = "TENSEGRITY_TWIN_CACHE"
 #: Bumped when the entry's layout changes.
-FORMAT = 1
+FORMAT = 2
 
 
 def cache_dir() -> str | None:
@@ -63,8 +63,9 @@ def cache_dir() -> str | None:
     return os.path.join(base, "tensegrity-gym", "twin-substep")
 
 
-def _walk(x: Any, out: list[str], seen: set[int], depth: int = 0) -> None:
-    """Append what a compiled function can depend on in ``x`` to ``out`` (see :func:`call_key`)."""
+def _walk(x: Any, out: list[str], seen: dict[int, Any], depth: int = 0) -> None:
+    """Append what a compiled function can depend on in ``x`` to ``out`` (see :func:`call_key`).
+    ``seen``: the objects walked so far, by id (held, so that no id is reused while walking)."""
     if depth > 12:
         out.append("<deep>")
         return
@@ -80,7 +81,7 @@ def _walk(x: Any, out: list[str], seen: set[int], depth: int = 0) -> None:
     if id(x) in seen:
         out.append("<seen>")
         return
-    seen.add(id(x))
+    seen[id(x)] = x
     name = f"{type(x).__module__}.{type(x).__qualname__}"
     if isinstance(x, (list, tuple)):
         out.append(f"{name}[{len(x)}")
@@ -92,7 +93,7 @@ def _walk(x: Any, out: list[str], seen: set[int], depth: int = 0) -> None:
         items = []
         for k, v in x.items():  # in the order of the keys' fingerprints (a repr may hold an address)
             kparts: list[str] = []
-            _walk(k, kparts, set(), depth + 1)
+            _walk(k, kparts, {}, depth + 1)
             items.append(("\n".join(kparts), v))
         for ktext, v in sorted(items, key=lambda kv: kv[0]):
             out.append(ktext)
@@ -119,7 +120,7 @@ def call_key(fn: Callable[..., Any], inputs: Sequence[Any], options: dict[str, A
     parts = [f"format {FORMAT}", f"torch {torch.__version__}", f"python {sys.version}",
              f"machine {platform.machine()} {sys.platform}", f"options {sorted(options.items())!r}",
              f"fn {fn.__module__}.{fn.__qualname__}"]
-    _walk(list(inputs), parts, set())
+    _walk(list(inputs), parts, {})
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
@@ -187,8 +188,22 @@ def prefetch() -> None:
     except Exception:  # noqa: BLE001 - no inductor here: nothing to prefetch
         return
 
-    def probe() -> None:
+    def check(isa: Any) -> None:
         with contextlib.suppress(Exception):  # the load probes again and reports what fails
+            bool(isa)  # inductor's probe of one instruction set (cached on the instance)
+
+    def probe() -> None:
+        # the instruction sets the CPU reports, probed side by side (each probe mostly waits for
+        # its child process); inductor's own pass over them then finds every answer cached
+        with contextlib.suppress(Exception):
+            flags = cpu_vec_isa.x86_isa_checker()
+            sets = [isa for isa in cpu_vec_isa.supported_vec_isa_list if all(f in flags for f in str(isa).split())]
+            workers = [threading.Thread(target=check, args=(isa,), daemon=True) for isa in sets]
+            for w in workers:
+                w.start()
+            for w in workers:
+                w.join()
+        with contextlib.suppress(Exception):
             cpu_vec_isa.pick_vec_isa()
 
     thread = threading.Thread(target=probe, name="twin-substep-prefetch", daemon=True)

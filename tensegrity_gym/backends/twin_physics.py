@@ -25,9 +25,10 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   (timed in :attr:`TwinPhysics.compile_seconds`). The compiled substep is kept in a cache on disk
   (:mod:`tensegrity_gym.backends.substep_cache`, keyed by the model's structure and constants, the
   shapes and the code): the first process that steps a model compiles it ahead of time and stores
-  it (~35-45 s on 2 loaded cores), the next ones load it (measured 1.4-1.9 s on 2 cores at load 3,
-  against 8 s for a plain ``torch.compile`` served from inductor's own cache; :attr:`TwinPhysics.cache_status`
-  says which). ``TENSEGRITY_TWIN_CACHE=0`` turns the cache off (a plain ``torch.compile``). The
+  it (31-60 s on 2 cores at load 3-4), the next ones load it (the first step 0.24-0.29 s, 3-4 s
+  with inductor's imports while the env is built, on 2 cores at load 3-6, against 8-11 s for a
+  plain ``torch.compile`` served from inductor's own cache; :attr:`TwinPhysics.cache_status` says
+  which). ``TENSEGRITY_TWIN_CACHE=0`` turns the cache off (a plain ``torch.compile``). The
   substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
   one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
   rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect

@@ -260,6 +260,7 @@ ISA = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.expensive  # 11-13 s: two fresh processes importing inductor
 @needs_compiler
 def test_prefetch_finds_the_instruction_sets_inductor_finds(tmp_path):
     """The prefetch probes the instruction sets side by side; the compiled code's flags must be

@@ -384,8 +384,8 @@ def test_refinement_moves_effect_parameters_back_to_the_truth(ico, tmp_path):
 
 
 def test_effect_names_and_bad_input(ico, tmp_path):
-    assert set(EFFECTS) | {"actuator_lag"} == {"ground_contact", "linear_drag", "quadratic_drag", "cable_friction",
-                                               "cable_slack", "constant_force", "actuator_lag"}
+    assert set(EFFECTS) | {"actuator_lag"} == {"ground_contact", "pyramid_contact", "linear_drag", "quadratic_drag",
+                                               "cable_friction", "cable_slack", "constant_force", "actuator_lag"}
     with pytest.raises(ValueError, match="unknown effect 'drag'"):
         parse_effects("drag")
     with pytest.raises(ValueError, match="ground plane"):

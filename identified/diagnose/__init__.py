@@ -270,8 +270,11 @@ def _candidates(model: IdentifiedModel, added: list[str], src: str | None
     """The library's effects the model does not have, made for its system, and those that cannot
     be (with the reason)."""
     candidates, skipped = [], []
-    for name in EFFECTS:
+    for name, cls in EFFECTS.items():
         if name in added:
+            continue
+        if not cls.searched:  # named by the user only (its own docstring says why)
+            skipped.append({"name": name, "reason": "not tried as a candidate: name it with --effects"})
             continue
         try:
             eff = make_effect(name, model.topology, src)

@@ -20,6 +20,7 @@ from identified.effects.cable_slack import CableSlack
 from identified.effects.constant_force import ConstantForce
 from identified.effects.ground_contact import GeometryError, GroundContact, read_contact_geometry
 from identified.effects.linear_drag import LinearDrag
+from identified.effects.pyramid_contact import PyramidContact
 from identified.effects.quadratic_drag import QuadraticDrag
 
 __all__ = [
@@ -39,8 +40,8 @@ __all__ = [
 ]
 
 #: the library, in the order the effect search tries it
-LIBRARY: tuple[type[Effect], ...] = (GroundContact, LinearDrag, QuadraticDrag, CableFriction, CableSlack,
-                                     ConstantForce)
+LIBRARY: tuple[type[Effect], ...] = (GroundContact, PyramidContact, LinearDrag, QuadraticDrag, CableFriction,
+                                     CableSlack, ConstantForce)
 #: every effect by its JSON name (the library and registered plug-ins)
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in LIBRARY}
 #: names the model file format reserves without an effect behind them, and why

@@ -26,7 +26,7 @@ TRUTH = np.array([2 / (0.95 * 0.02), 1 / (0.95 ** 2 * 0.02 ** 2), 0.9, 0.95, 1e-
 @pytest.fixture(scope="module")
 def wrenches():
     """MuJoCo's contact wrench (force, torque about the centre of mass, world) on every rod at
-    every 8th step of a short pushed run, with the acceleration every other force gives it."""
+    every 12th step of a short pushed run, with the acceleration every other force gives it."""
     torch.set_num_threads(1)
     xml = build_model("ico", "robot")
     data = collect(xml, CollectConfig(episodes=2, steps=800, seed=3, push_every=200))
@@ -36,7 +36,7 @@ def wrenches():
     out = {k: [] for k in ("pos", "quat", "vel", "angvel", "lin", "ang", "force", "torque", "episode")}
     c6 = np.zeros(6)
     for e in range(data.rest_length.shape[0]):
-        for t in range(0, data.rest_length.shape[1], 8):
+        for t in range(0, data.rest_length.shape[1], 12):
             plant._write_rest(data.rest_length[e, t])
             d.xfrc_applied[:] = 0.0
             d.xfrc_applied[plant._bid] = plant._push_wrench(data.push_force[e, t], data.push_point[e, t])
@@ -70,7 +70,7 @@ def wrenches():
     law = PyramidContact(plant.n_rods, len(plant.tendon_names), options=read_contact_geometry(xml, plant.rod_names))
     force, torque = t(out["force"]), t(out["torque"])
     touching = force.norm(dim=-1) > 0
-    assert int(touching.sum()) > 200  # rod-instants in contact
+    assert int(touching.sum()) > 150  # rod-instants in contact
     return law, state, ctx, force, torque, touching, np.asarray(out["episode"])
 
 
@@ -123,3 +123,31 @@ def test_fit_finds_the_contact_parameters(wrenches):
     assert stats["explained_variance"] > 1 - 1e-10
     np.testing.assert_allclose(fresh.values, TRUTH, rtol=1e-5)
     assert np.all(np.isfinite(fresh.stderr)) and np.all(fresh.stderr >= 0)
+
+
+def test_engine_with_the_law_rolls_as_the_plant():
+    """The shipped model's springs and rods (identified to rounding) with the plant's contact in this
+    law: the engine's free run from a recorded state follows the plant through contact, pushes and
+    rolling to rounding -- the law sits in the engine as it does in MuJoCo's step (after every
+    other force, on the rods' own M and inertia)."""
+    import dataclasses
+    from pathlib import Path
+
+    from identified.evaluate import rollout_errors
+    from identified.model import load_model
+
+    torch.set_num_threads(1)
+    xml = build_model("ico", "robot")
+    shipped = load_model(Path(__file__).resolve().parents[1] / "identified" / "data" / "robot.json")
+    law = PyramidContact(shipped.topology.n_rods, shipped.topology.n_springs, values=TRUTH,
+                         options=read_contact_geometry(xml, shipped.topology.rod_names))
+    model = dataclasses.replace(shipped, effects=[law.to_json()])
+    data = collect(xml, CollectConfig(episodes=1, steps=200, seed=5, push_every=60))
+    from identified.rotation import quat_to_matrix
+
+    state = RodState(*(torch.as_tensor(getattr(data, k)[0]) for k in ("pos", "quat", "vel", "angvel")))
+    _, depth = law._end_spheres(state, torch.as_tensor(quat_to_matrix(data.quat[0])))
+    caps = (depth > 0).sum((-1, -2))
+    assert bool((caps >= 1).all()) and float(caps.double().mean()) >= 2  # end caps on the ground throughout
+    err = rollout_errors(model, data, horizon=200)
+    assert err["pos_final"] < 1e-9 and err["quat_final"] < 1e-9

@@ -46,7 +46,7 @@ from identified.effects.ground_contact import GeometryError, read_contact_geomet
 __all__ = ["PyramidContact"]
 
 #: Newton iterations of the per-rod problem (2) and the line search's step sizes
-NEWTON_ITERATIONS = 12
+NEWTON_ITERATIONS = 8
 STEPS = (1.0, 0.5, 0.25, 0.1, 0.03)
 #: where the fit starts (the law's order of magnitude for a hard floor), then its transforms:
 #: logarithms of the positive parameters, logits of the impedances
@@ -71,6 +71,26 @@ def _trail(x: torch.Tensor, k: int) -> torch.Tensor:
     """A parameter, a scalar or one per env (N,), with ``k`` trailing axes to broadcast over the
     rods' axis and those after it."""
     return x if x.dim() == 0 else x.reshape(x.shape + (1,) * k)
+
+
+def _spd_solve(H: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``H⁻¹ b`` for symmetric positive definite ``H`` (..., n, n), ``b`` (..., n): Cholesky written
+    out over the (small) size, elementwise over the batch, so that a compiled step fuses it."""
+    n = H.shape[-1]
+    L: list[list[torch.Tensor]] = [[None] * n for _ in range(n)]  # type: ignore[list-item]
+    for j in range(n):
+        d = H[..., j, j] - sum((L[j][k] * L[j][k] for k in range(j)), torch.zeros_like(H[..., j, j]))
+        L[j][j] = torch.sqrt(d)
+        inv = 1.0 / L[j][j]
+        for i in range(j + 1, n):
+            L[i][j] = (H[..., i, j] - sum((L[i][k] * L[j][k] for k in range(j)), torch.zeros_like(d))) * inv
+    y: list[torch.Tensor] = []
+    for i in range(n):  # L y = b
+        y.append((b[..., i] - sum((L[i][k] * y[k] for k in range(i)), torch.zeros_like(b[..., i]))) / L[i][i])
+    x: list[torch.Tensor] = [None] * n  # type: ignore[list-item]
+    for i in reversed(range(n)):  # Lᵀ x = y
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), torch.zeros_like(y[i]))) / L[i][i]
+    return torch.stack(x, -1)
 
 
 class PyramidContact(Effect):
@@ -170,17 +190,20 @@ class PyramidContact(Effect):
             return torch.cat((zero, u), -1).unsqueeze(-2).expand(rho_.shape[:-1] + (6,))
 
         beta, kappa, d0, dw, width, mu, mu_t, mu_r = (th[..., k] for k in range(8))
-        Jn = lin(nn)
-        dirs = [(lin(along), mu), (lin(across), mu), (ang(nn), mu_t), (ang(along), mu_r), (ang(across), mu_r)]
-        J = torch.stack([Jn + s * _trail(m, 3) * Jk for Jk, m in dirs for s in (1.0, -1.0)], -2)  # (..., R, 2, 10, 6)
+        # the contact frame's six rows (force along n, t1, t2; torque about n, t1, t2), (..., R, 2, 6, 6);
+        # edge (k, ±) is row 0 ± μ_k row k
+        rows = torch.stack((lin(nn), lin(along), lin(across), ang(nn), ang(along), ang(across)), -2)
+        mus = torch.stack(torch.broadcast_tensors(mu, mu, mu_t, mu_r, mu_r), -1)  # (5,) or (N, 5)
+        mus = mus if mus.dim() == 1 else mus.reshape(mus.shape[:1] + (1, 1, 5))
         vg = torch.cat((state.vel, state.angvel), -1)  # (..., R, 6)
         imp = impedance(depth.clamp_min(0.0), _trail(d0, 2), _trail(dw, 2), _trail(width, 2))  # (..., R, 2)
-        aref = (-_trail(beta, 3) * (J @ vg.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
-                + (_trail(kappa, 2) * imp * depth).unsqueeze(-1))
+        # the reference accelerations (1) of the six rows: a_ref,(k,±) = ref_0 ± μ_k ref_k
+        ref = -_trail(beta, 3) * (rows @ vg.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
+        ref = torch.cat(((ref[..., 0] + _trail(kappa, 2) * imp * depth).unsqueeze(-1), ref[..., 1:]), -1)
         mass = p.mass
         mu2 = _trail(mu, 2) ** 2
         R = 2 * mu2 * (1 + mu2) / mass.unsqueeze(-1) * (1 - imp) / imp  # (..., R, 2)
-        D = torch.where(depth > 0, 1.0 / R, torch.zeros_like(R)).unsqueeze(-1).expand(J.shape[:-1])
+        D = torch.where(depth > 0, 1.0 / R, torch.zeros_like(R))
         products = getattr(p, "inertia_products", None)
         if products is None:
             Ib = torch.diag_embed(p.inertia)
@@ -194,26 +217,42 @@ class PyramidContact(Effect):
         Mg[..., 3:, 3:] = Iw
         alpha0 = (rot @ ctx.base_ang_acc_body.unsqueeze(-1)).squeeze(-1)
         a0 = torch.cat((ctx.base_lin_acc, alpha0), -1)
-        return {"J": J.flatten(-3, -2), "aref": aref.flatten(-2, -1), "D": D.flatten(-2, -1), "M": Mg, "a0": a0}
+        return {"rows": rows, "ref": ref, "mu": mus, "D": D, "M": Mg, "a0": a0}
 
     @staticmethod
     def _solve(e: dict[str, torch.Tensor]) -> torch.Tensor:
         """Newton's method on problem (2), batched: the contact's change of the rod's acceleration
-        ``a - a0`` (..., R, 6)."""
-        J, aref, D, Mg, a0 = e["J"], e["aref"], e["D"], e["M"], e["a0"]
+        ``a - a0`` (..., R, 6).  Written on each contact's six frame rows (an edge is row 0 ± μ_k
+        row k), so the Hessian ``𝕄 + Σ_e D J_eᵀ J_e`` is ``𝕄 + Bᵀ W B`` with ``W`` an arrowhead."""
+        B, ref, mu, D, Mg, a0 = e["rows"], e["ref"], e["mu"], e["D"], e["M"], e["a0"]
+        Dk = D.unsqueeze(-1)  # (..., R, 2, 1)
+
+        def violations(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            r = ref - (B @ a.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)  # (..., R, 2, 6)
+            return r[..., :1] + mu * r[..., 1:], r[..., :1] - mu * r[..., 1:]  # (..., R, 2, 5) each
 
         def cost(a: torch.Tensor) -> torch.Tensor:
             da = a - a0
-            viol = (aref - (J @ a.unsqueeze(-1)).squeeze(-1)).clamp_min(0.0)
-            return 0.5 * (da * (Mg @ da.unsqueeze(-1)).squeeze(-1)).sum(-1) + 0.5 * (D * viol * viol).sum(-1)
+            vp, vm = violations(a)
+            edges = (Dk * (vp.clamp_min(0.0) ** 2 + vm.clamp_min(0.0) ** 2)).sum((-1, -2))
+            return 0.5 * (da * (Mg @ da.unsqueeze(-1)).squeeze(-1)).sum(-1) + 0.5 * edges
 
         a = a0
         for _ in range(NEWTON_ITERATIONS):
-            viol = aref - (J @ a.unsqueeze(-1)).squeeze(-1)
-            w = D * (viol > 0).to(D.dtype)  # active edges
-            grad = (Mg @ (a - a0).unsqueeze(-1)).squeeze(-1) - (J.transpose(-1, -2) @ (w * viol).unsqueeze(-1)).squeeze(-1)
-            H = Mg + J.transpose(-1, -2) @ (w.unsqueeze(-1) * J)
-            step = -torch.linalg.solve(H, grad.unsqueeze(-1)).squeeze(-1)
+            vp, vm = violations(a)
+            wp, wm = Dk * (vp > 0).to(D.dtype), Dk * (vm > 0).to(D.dtype)  # active edges
+            fp, fm = wp * vp, wm * vm  # the edges' forces
+            g6 = torch.cat(((fp + fm).sum(-1, keepdim=True), mu * (fp - fm)), -1)  # (..., R, 2, 6)
+            grad = (Mg @ (a - a0).unsqueeze(-1)).squeeze(-1) - (B.transpose(-1, -2) @ g6.unsqueeze(-1)).squeeze(-1).sum(-2)
+            w0 = (wp + wm).sum(-1)  # (..., R, 2)
+            w0k = mu * (wp - wm)
+            wkk = mu * mu * (wp + wm)
+            b0, bk = B[..., 0, :], B[..., 1:, :]  # (..., R, 2, 6), (..., R, 2, 5, 6)
+            cross = (w0k.unsqueeze(-1) * bk).sum(-2)  # Σ_k W_0k b_k
+            outer = lambda x, y: x.unsqueeze(-1) * y.unsqueeze(-2)
+            H6 = (w0.unsqueeze(-1).unsqueeze(-1) * outer(b0, b0) + outer(b0, cross) + outer(cross, b0)
+                  + bk.transpose(-1, -2) @ (wkk.unsqueeze(-1) * bk))  # (..., R, 2, 6, 6)
+            step = -_spd_solve(Mg + H6.sum(-3), grad)
             best, best_c = a, cost(a)
             for s in STEPS:
                 cand = a + s * step

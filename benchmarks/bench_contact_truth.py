@@ -7,12 +7,12 @@ never does): the robot preset is collected as ``tensegrity collect`` does (rando
 pushes every 200 steps); at every ``--stride``-th step the plant is put in the recorded state and
 ``mj_forward`` gives MuJoCo's contact wrench on each rod (``mj_contactForce``, summed over its
 contacts, torque about its centre of mass) and the acceleration every other force gives it
-(``qacc_smooth``). The law (:class:`identified.effects.ground_contact.GroundContact`) is then fitted
-*directly* to that wrench with the true masses, inertias and ``qacc_smooth``, so everything it
+(``qacc_smooth``). Each law (:class:`identified.effects.ground_contact.GroundContact`,
+:class:`identified.effects.pyramid_contact.PyramidContact`) is then fitted *directly* to that wrench with the true masses, inertias and ``qacc_smooth``, so everything it
 leaves is its form's: printed as the relative RMS error of force and torque over the rod-instants
 in contact, split into normal and tangential force and by the state of MuJoCo's pyramidal friction
 cone (a friction or rolling edge at zero force: the contact slides or rolls at its bound).
-About 1 min on one core. Figures, not assertions.
+About 2 min on one core. Figures, not assertions.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from identified.effects.ground_contact import GroundContact, read_contact_geometry
+from identified.effects.pyramid_contact import PyramidContact
 from identified.rotation import quat_to_matrix
 from identified.state import RodState
 from tensegrity_gym.collect import CollectConfig, collect
@@ -110,12 +111,27 @@ def main() -> None:
     print(f"explained variance: force law {stats['explained_variance']:.4f}, torques about the contact point "
           f"{stats['torque_explained_variance']:.4f}")
 
-    def rel(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
-        return float(((a - b)[mask] ** 2).sum() / (a[mask] ** 2).sum()) ** 0.5
-
+    pyramid = PyramidContact(plant.n_rods, len(plant.tendon_names), options=law.options)
+    pstats = pyramid.fit_residual(state, ctx, F, T, np.array(w["episode"]), touching)
+    with torch.no_grad():
+        fp, taup = pyramid.wrench(state, ctx)
+    print("pyramid_contact fitted to the same wrench:", ", ".join(
+        f"{n.split('.')[-1]} {v:.6g}" for n, v in zip(pyramid.param_names(plant.rod_names, plant.tendon_names),
+                                                      pyramid.values)), f"(explained variance {pstats['explained_variance']:.12f})")
     slide, roll = torch.as_tensor(np.array(w["slide"])), torch.as_tensor(np.array(w["roll"]))
-    print(f"{'rod-instants in contact':34s} {'n':>6s} {'force':>7s} {'normal':>7s} {'tangent':>7s} {'torque':>7s}")
-    for label, mask in (("all", touching), ("two contacts on the rod", touching & t(w["count"]).ge(2)),
+    for name, (fl, taul) in (("ground_contact", (f, tau)), ("pyramid_contact", (fp, taup))):
+        table(name, F, T, fl, taul, touching, slide, roll, t(w["count"]))
+
+
+def rel(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    return float(((a - b)[mask] ** 2).sum() / (a[mask] ** 2).sum()) ** 0.5
+
+
+def table(name: str, F: torch.Tensor, T: torch.Tensor, f: torch.Tensor, tau: torch.Tensor, touching: torch.Tensor,
+          slide: torch.Tensor, roll: torch.Tensor, count: torch.Tensor) -> None:
+    """The relative residual of one law's fit, by the state of MuJoCo's cone."""
+    print(f"{name + ': rod-instants in contact':34s} {'n':>6s} {'force':>9s} {'normal':>9s} {'tangent':>9s} {'torque':>9s}")
+    for label, mask in (("all", touching), ("two contacts on the rod", touching & count.ge(2)),
                         ("a friction edge at zero (sliding)", touching & slide),
                         ("no friction edge at zero", touching & ~slide),
                         ("a rolling edge at zero (rolling)", touching & roll),
@@ -124,8 +140,8 @@ def main() -> None:
         if n == 0:
             print(f"{label:34s} {0:6d}")
             continue
-        print(f"{label:34s} {n:6d} {rel(F, f, mask):7.3f} {rel(F[..., 2], f[..., 2], mask):7.3f} "
-              f"{rel(F[..., :2], f[..., :2], mask):7.3f} {rel(T, tau, mask):7.3f}")
+        print(f"{label:34s} {n:6d} {rel(F, f, mask):9.2e} {rel(F[..., 2], f[..., 2], mask):9.2e} "
+              f"{rel(F[..., :2], f[..., :2], mask):9.2e} {rel(T, tau, mask):9.2e}")
 
 
 if __name__ == "__main__":

@@ -53,6 +53,7 @@ file written before the torques loads with none (:data:`TORQUE_DEFAULTS`).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -234,9 +235,11 @@ class GroundContact(Effect):
         LAPACK); the twin's step solves the same system by 3x3 blocks (:func:`_masked_block_solve`)."""
         m = active.reshape(active.shape[:-1] + (2, 1)).expand(active.shape[:-1] + (2, 3))
         m = m.reshape(active.shape[:-1] + (6,)).to(A.dtype)  # (..., R, 6)
-        A = A + eps * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1))
-        Am = A * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
-        return torch.linalg.inv(Am) * m.unsqueeze(-1) * m.unsqueeze(-2)
+        mm = m.unsqueeze(-1) * m.unsqueeze(-2)
+        d = torch.diagonal(A, dim1=-2, dim2=-1)
+        Am = A * mm  # the inactive rows and columns the identity's, ε on the diagonal
+        Am.diagonal(dim1=-2, dim2=-1).copy_((d + eps * d) * m + (1.0 - m))
+        return torch.linalg.inv(Am) * mm
 
     def _references(self, state: Any, ctx: Any, c: dict) -> torch.Tensor:
         """Reference accelerations per unit of each linear parameter, (..., R, 2, 7, 3) contact frame."""
@@ -449,38 +452,39 @@ class GroundContact(Effect):
         of each instant (cluster-robust standard errors).  Sets ``values``/``stderr`` and
         returns fit statistics.
         """
-        # only the instants where some rod touches: everything below runs on those
-        sel = rows & (self.contacts(state, ctx)["depth"] > 0).any(-1)
-        keep_t = sel.any(-1)
-        sub = lambda x: None if x is None else x[keep_t]
-        state = type(state)(*(sub(x) for x in state))
-        ctx = ctx._replace(rot=sub(ctx.rot), angvel_body=sub(ctx.angvel_body), base_lin_acc=sub(ctx.base_lin_acc),
-                           base_ang_acc_body=sub(ctx.base_ang_acc_body))
-        force, torque, sel, groups = force[keep_t], torque[keep_t], sel[keep_t], groups[keep_t.numpy()]
+        # only the rod equations that touch: everything below runs on those, packed rod by rod
+        sel = rows & (self._end_spheres(state, ctx.rot)[1] > 0).any(-1)
+        law, state, ctx, force, torque, sel, groups = _pack_rows(self, state, ctx, force, torque, sel, groups)
         scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
         Yw = torch.cat((force, torque / scale), -1)[sel]  # (rows, 6)
         Y = Yw.reshape(-1).numpy()
-        g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 6)
+        g = np.repeat(groups[sel.numpy()], 6)
         if Y.shape[0] < 50 * 6:
             raise ValueError("too few contact rows to identify ground_contact")
         # first the friction torques, on the residual torque about the contact point (the force
         # law's wrench has none there), then the force law on what they leave
         omegas = [float(self.options["omega_slip"])] if "omega_slip" in self.options else OMEGA_GRID
         with torch.no_grad():
-            tq = _fit_torques(self, state, ctx, force, torque, sel, groups, omegas)
+            tq = _fit_torques(law, state, ctx, force, torque, sel, groups, omegas)
         spin = torch.cat((torch.zeros_like(tq["torque"]), tq["torque"] / scale), -1)  # (rows, 6)
         Yf = Yw - spin
         Y = Yf.reshape(-1).numpy()
         best = (np.inf, None, None, None, None)
         with torch.no_grad():
             grid = [float(self.options["epsilon"])] if "epsilon" in self.options else EPSILONS
+            # the geometry and the reference accelerations do not depend on ε: formed once
+            c = law.contacts(state, ctx)
+            refs = law._references(state, ctx, c)  # (L, C, 2, 7, 3)
             for eps in grid:  # profile over the regulariser: a linear fit and a μ scan for each
-                c, terms = self._linear_terms(state, ctx, eps)
-                F, T = self._to_wrench(c, terms)  # (N, R, 7, 3)
+                Ainv = self._inverse(c["A"], c["active"], eps)
+                F, T = self._to_wrench(c, self._apply(Ainv, refs))  # (L, C, 7, 3)
                 X = torch.cat((F, T / scale), -1)[sel].transpose(-1, -2).reshape(-1, NL).numpy()
                 theta = np.linalg.lstsq(X, Y, rcond=None)[0]
-                cc, raw = self._unbounded(state, ctx, torch.as_tensor(np.concatenate([theta, [1.0, eps]])))
-                sse, mu = _mu_scan(cc, raw, sel, Yf, scale)
+                # the law before its bound (as :meth:`_unbounded`, with μ = 1 and this ε)
+                gref = (refs * torch.as_tensor(theta, dtype=refs.dtype)[:, None]).sum(-2)
+                raw = self._apply(Ainv, gref)
+                raw = self._apply(self._inverse(c["A"], c["active"] & (raw[..., 0] > 0), eps), gref)
+                sse, mu = _mu_scan(c, raw, sel, Yf, scale)
                 if sse < best[0]:
                     best = (sse, theta, mu, eps, X)
         sse, theta, mu, eps, X = best
@@ -499,6 +503,50 @@ class GroundContact(Effect):
         """As :meth:`Effect.flatten`; a model file written before the contact torques (no
         ``mu_torsion``, ``mu_rolling``, ``omega_slip``) loads with none (:data:`TORQUE_DEFAULTS`)."""
         return super().flatten({**TORQUE_DEFAULTS, **obj} if "kappa" in obj else obj)
+
+
+#: the context's per-rod fields (..., R, ·) that :func:`_pack_rows` gathers
+_ROD_FIELDS = ("rot", "angvel_body", "push_force", "push_point", "base_lin_acc", "base_ang_acc_body",
+               "recorded_lin_acc", "recorded_ang_acc_body")
+
+
+def _pack_rows(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
+               sel: torch.Tensor, groups: np.ndarray
+               ) -> tuple[GroundContact, Any, Any, torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]:
+    """The selected rod equations ``sel`` (N, R) packed into columns of one rod each, (L, C): rod
+    ``r``'s selected instants in order, cut into columns of ``L`` rows (the last padded with its
+    first row), ``L`` a quarter of an even share (at most a fifth of the packed rows are padding).
+    The law, elementwise over rows, then runs on the rows it is fitted to (on the robot a fifth
+    of the rod equations touch the ground).  Each column is a rod of its own to the law: returns
+    an effect of the columns' geometry, the packed state, the context with the columns' rod
+    parameters and per-rod fields (:data:`_ROD_FIELDS`), the packed force and torque, the mask
+    of the real rows (L, C) and each row's group from ``groups`` (N,), the instant's."""
+    R = sel.shape[1]
+    counts = [int(x) for x in sel.sum(0)]
+    L = max(1, -(-sum(counts) // (4 * R)))
+    rod, cols, real = [], [], []
+    for r in range(R):
+        t = torch.nonzero(sel[:, r]).flatten()
+        for k in range(0, len(t), L):
+            piece = t[k:k + L]
+            real.append(torch.arange(L, device=sel.device) < len(piece))
+            cols.append(torch.cat((piece, piece[:1].expand(L - len(piece)))))
+            rod.append(r)
+    if not rod:  # nothing selected: one empty column
+        rod, cols, real = [0], [torch.zeros(L, dtype=torch.long, device=sel.device)], [torch.zeros(L, dtype=torch.bool)]
+    idx, real = torch.stack(cols, -1), torch.stack(real, -1)  # (L, C)
+    rods = torch.as_tensor(rod, device=sel.device)
+    take = lambda x: None if x is None else x[idx, rods]
+    state = type(state)(*(take(x) for x in state))
+    ctx = ctx._replace(**{f: take(getattr(ctx, f)) for f in _ROD_FIELDS if getattr(ctx, f, None) is not None})
+    p = ctx.params
+    per_rod = {f: getattr(p, f)[..., rods] if f == "mass" else getattr(p, f)[..., rods, :]
+               for f in ("mass", "inertia", "com", "inertia_products") if getattr(p, f, None) is not None}
+    ctx = ctx._replace(params=replace(p, **per_rod))
+    o = eff.options
+    view = GroundContact(len(rod), eff.n_springs, options={
+        **o, "radius": [o["radius"][r] for r in rod], "segment": [o["segment"][r] for r in rod]})
+    return view, state, ctx, take(force), take(torque), real, np.asarray(groups)[idx.cpu().numpy()]
 
 
 def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,
@@ -528,7 +576,7 @@ def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, 
         if sse < best[0]:
             best = (sse, coef, om, X)
     sse, coef, om, X = best
-    g = np.repeat(np.broadcast_to(groups[:, None], sel.shape)[sel.numpy()], 3)
+    g = np.repeat(groups[sel.numpy()], 3)
     free = coef > 0  # a coefficient held at its bound has no standard error
     se = np.full(2, np.nan)
     if free.any():
@@ -592,11 +640,16 @@ def _mu_scan(c: dict, raw: torch.Tensor, sel: torch.Tensor, target: torch.Tensor
     w_n = end_wrench(torch.stack((fn, zero, zero), -1))
     w_t = end_wrench(torch.cat((zero.unsqueeze(-1), raw[..., 1:]), -1))
     base = target - w_n.sum(-2)  # (S, 6)
+    # the squared residual |base - s_0 w_0 - s_1 w_1|² expanded: its products formed once, each μ
+    # costs a few operations on (S, 2) scalars
+    bb = float((base * base).sum())
+    bw = (base.unsqueeze(-2) * w_t).sum(-1)  # (S, 2)
+    ww = (w_t * w_t).sum(-1)  # (S, 2)
+    w01 = (w_t[:, 0] * w_t[:, 1]).sum(-1)  # (S,)
     best = (np.inf, float(mus[0]))
     for mu in mus:
         s = torch.clamp(float(mu) * fn / tnorm, max=1.0)  # (S, 2)
-        r = base - (s.unsqueeze(-1) * w_t).sum(-2)
-        sse = float((r * r).sum())
+        sse = bb + float((s * (s * ww - 2.0 * bw)).sum() + 2.0 * (s[:, 0] * s[:, 1] * w01).sum())
         if sse < best[0]:
             best = (sse, float(mu))
     return best

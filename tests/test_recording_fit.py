@@ -213,3 +213,22 @@ def test_one_smoothing_splines_columns_together():
     ok = np.isfinite(y).all(-1)
     want = np.stack([make_smoothing_spline(t[ok], y[ok, k], lam=1e-4)(grid) for k in range(3)], -1)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_effect_search_fits_a_recording_on_a_part_without_replicas(robot, monkeypatch):
+    """The effect search fits its candidates on the first steps of a recording's training takes
+    (RECORDING_SEARCH_STEPS in all, at least 1000 a take), without the noise replicas; rod
+    states not reconstructed from markers (no replicas) are searched on in full."""
+    from identified.fit import pipeline
+
+    path, topo, data = robot
+    assert pipeline.search_part(data) is None
+    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001), seed=2)
+    ms = states_from_recording(rec, topo, dt=data.dt, replicas=1)
+    assert len(ms.data.replicas) == 1 and ms.data.n_steps > 1500
+    monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 1000)
+    part = pipeline.search_part(ms.data)
+    assert part.replicas == () and part.n_episodes == 2 and part.n_steps == 1000
+    np.testing.assert_array_equal(part.pos, ms.data.pos[:, :1001])
+    monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 3000)
+    assert pipeline.search_part(ms.data).n_steps == min(1500, ms.data.n_steps)

@@ -67,6 +67,32 @@ def test_axial_inertia_is_not_identifiable(robot):
     m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
     assert len(m.metrics["not_identifiable"]) == 6
     assert np.isnan(m.stderr["inertia"][:, 2]).all() and np.isfinite(m.stderr["inertia"][:, :2]).all()
+    from identified.fit.contact_damping import FACTORS
+
+    assert m.metrics["recording"]["friction_damping"]["factor"] in FACTORS
+
+
+def test_friction_damping_from_short_free_runs(robot):
+    """The contact law's friction damping chosen by the short free runs: a law fitted on the
+    plant's full states with its beta_a, beta_p divided by 4 is scaled back by the factor whose
+    free runs from those states err least (3-8: the free runs' best is near, not at, the least
+    squares' value), well below the divided law's error, and its standard errors become null."""
+    from identified.fit.contact_damping import refine_friction_damping
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.pipeline import fit_model
+
+    path, _, data = robot
+    m = fit_model(data, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), weak_window=None, jobs=1)
+    law = m.effects[0]
+    fitted = {k: law["parameters"][k] for k in ("beta_a", "beta_p")}
+    law["parameters"].update({k: v / 4 for k, v in fitted.items()})
+    out = refine_friction_damping(m, data)
+    errors = out["errors"]
+    assert errors[str(out["factor"])] == min(errors.values()), errors
+    assert 3.0 <= out["factor"] <= 8.0 and errors["1.0"] > 1.2 * min(errors.values()), errors
+    for k, v in fitted.items():
+        assert law["parameters"][k] == pytest.approx(out["factor"] * v / 4, rel=1e-12)
+        assert law["stderr"][k] is None
 
 
 def test_noisy_markers_are_smoothed(robot):

@@ -67,6 +67,32 @@ def test_axial_inertia_is_not_identifiable(robot):
     m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
     assert len(m.metrics["not_identifiable"]) == 6
     assert np.isnan(m.stderr["inertia"][:, 2]).all() and np.isfinite(m.stderr["inertia"][:, :2]).all()
+    from identified.fit.contact_damping import FACTORS
+
+    assert m.metrics["recording"]["friction_damping"]["factor"] in FACTORS
+
+
+def test_friction_damping_from_short_free_runs(robot):
+    """The contact law's friction damping chosen by the short free runs: a law fitted on the
+    plant's full states with its beta_a, beta_p divided by 4 is scaled back by the factor whose
+    free runs from those states err least (3-8: the free runs' best is near, not at, the least
+    squares' value), well below the divided law's error, and its standard errors become null."""
+    from identified.fit.contact_damping import refine_friction_damping
+    from identified.fit.identify import ScaleSpec
+    from identified.fit.pipeline import fit_model
+
+    path, _, data = robot
+    m = fit_model(data, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), weak_window=None, jobs=1)
+    law = m.effects[0]
+    fitted = {k: law["parameters"][k] for k in ("beta_a", "beta_p")}
+    law["parameters"].update({k: v / 4 for k, v in fitted.items()})
+    out = refine_friction_damping(m, data)
+    errors = out["errors"]
+    assert errors[str(out["factor"])] == min(errors.values()), errors
+    assert 3.0 <= out["factor"] <= 8.0 and errors["1.0"] > 1.2 * min(errors.values()), errors
+    for k, v in fitted.items():
+        assert law["parameters"][k] == pytest.approx(out["factor"] * v / 4, rel=1e-12)
+        assert law["stderr"][k] is None
 
 
 def test_noisy_markers_are_smoothed(robot):
@@ -213,3 +239,22 @@ def test_one_smoothing_splines_columns_together():
     ok = np.isfinite(y).all(-1)
     want = np.stack([make_smoothing_spline(t[ok], y[ok, k], lam=1e-4)(grid) for k in range(3)], -1)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_effect_search_fits_a_recording_on_a_part_without_replicas(robot, monkeypatch):
+    """The effect search fits its candidates on the first steps of a recording's training takes
+    (RECORDING_SEARCH_STEPS in all, at least 1000 a take), without the noise replicas; rod
+    states not reconstructed from markers (no replicas) are searched on in full."""
+    from identified.fit import pipeline
+
+    path, topo, data = robot
+    assert pipeline.search_part(data) is None
+    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001), seed=2)
+    ms = states_from_recording(rec, topo, dt=data.dt, replicas=1)
+    assert len(ms.data.replicas) == 1 and ms.data.n_steps > 1500
+    monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 1000)
+    part = pipeline.search_part(ms.data)
+    assert part.replicas == () and part.n_episodes == 2 and part.n_steps == 1000
+    np.testing.assert_array_equal(part.pos, ms.data.pos[:, :1001])
+    monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 3000)
+    assert pipeline.search_part(ms.data).n_steps == min(1500, ms.data.n_steps)

@@ -436,7 +436,9 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
     (:func:`states_from_recording`), then :func:`identified.fit.pipeline.fit_model` with the weak
     form and the unobservable moments held.  ``fit_kwargs`` go to ``fit_model``.  ``output_error``
     (true, or the options of :func:`identified.fit.output_error.refine_markers`): then K, c, M and
-    the observable moments refined against the markers themselves."""
+    the observable moments refined against the markers themselves.  A ground contact law's friction
+    damping is then chosen by the short free runs from the reconstructed states
+    (:mod:`identified.fit.contact_damping`)."""
     from identified.fit.derivatives import default_window
     from identified.fit.pipeline import fit_model
 
@@ -455,6 +457,15 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes,
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
+    from identified.fit.contact_damping import refine_friction_damping
+
+    damping = refine_friction_damping(model, ms.data)  # the contact's friction damping, from short free runs
+    if damping is not None:
+        model.metrics["recording"]["friction_damping"] = damping
+        if not output_error:
+            from identified.predict import attach_metrics
+
+            attach_metrics(model, ms.data)  # the errors of the law as refined
     if output_error:
         from identified.fit.output_error import refine_markers
 

@@ -44,7 +44,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -77,6 +77,11 @@ ONE_STEP_FLOOR = 1e-6
 #: ratio (measured: exact models leave 3e-16 to 1e-15 m, and among several candidates judged by
 #: their free run one could halve it by chance: cable_slack's exact model got quadratic_drag)
 FREE_RUN_FLOOR = 1e-10
+#: the effect search on a recording (rod states reconstructed from markers, with noise replicas)
+#: fits its candidates on at most this many steps of the training takes, each take's first part,
+#: and without the replicas (no errors-in-variables correction: it moves K by a fraction of a
+#: percent, far below the factor the search asks of an effect); the final fit uses all of it
+RECORDING_SEARCH_STEPS = 20_000
 
 
 def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
@@ -165,6 +170,12 @@ def fit_model(
     if spec == "auto":
         model.metrics["effect_search"] = {"explained": explained, "candidates": list(search_labels()),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
+        E = data.n_episodes
+        part = search_part(data.select(episodes=slice(0, E - max(1, E // 4))))
+        if part is not None:
+            model.metrics["effect_search"]["fitted_on"] = (
+                f"the first {part.n_steps * data.dt:g} s of each of {part.n_episodes} training takes, "
+                "without noise replicas")
     if refine:
         from identified.fit.refine import refine as refine_model
 
@@ -259,6 +270,9 @@ def select_effects(
     n_hold = max(1, E // 4)
     train = data.select(episodes=slice(0, E - n_hold))
     held = data.select(episodes=slice(E - n_hold, E))
+    part = search_part(train)
+    if part is not None:  # a recording: the candidates' fits on a part of it, without its replicas
+        train, fit_kwargs = part, {**fit_kwargs, "noise_copies": 0}
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
     candidates = []
     for name in search_labels():
@@ -270,7 +284,23 @@ def select_effects(
     ctx = _Search(train, held, topo, mjcf, fit_kwargs, H)
     jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
     with TaskPool(_fit_task, ctx, jobs) as pool:
-        return _search(ctx, pool, candidates, min_gain, progress)
+        names, loop, explained, fixed = _search(ctx, pool, candidates, min_gain, progress)
+    if part is not None:  # what a profile scan settled on the part is scanned again on all the data
+        fixed = {label: {k: v for k, v in opts.items() if k not in EFFECTS[label.split(":")[0]].profiled}
+                 for label, opts in fixed.items()}
+        fixed = {label: opts for label, opts in fixed.items() if opts}
+    return names, loop, explained, fixed
+
+
+def search_part(train: Dataset) -> Dataset | None:
+    """The part of a recording's training takes the effect search fits its candidates on: each
+    take's first steps, :data:`RECORDING_SEARCH_STEPS` in all (at least 1000 a take), without the
+    noise replicas; ``None`` for rod states that are not reconstructed from markers (no replicas:
+    the search fits on all of them)."""
+    if not train.replicas:
+        return None
+    steps = min(train.n_steps, max(RECORDING_SEARCH_STEPS // max(train.n_episodes, 1), 1000))
+    return replace(train, replicas=()).select(steps=steps)
 
 
 def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float, progress: bool

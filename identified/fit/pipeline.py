@@ -81,7 +81,7 @@ FREE_RUN_FLOOR = 1e-10
 #: fits its candidates on at most this many steps of the training takes, each take's first part,
 #: and without the replicas (no errors-in-variables correction: it moves K by a fraction of a
 #: percent, far below the factor the search asks of an effect); the final fit uses all of it
-RECORDING_SEARCH_STEPS = 20_000
+RECORDING_SEARCH_STEPS = 8_000
 
 
 def parse_effects(spec: str | Sequence[str]) -> str | list[str]:

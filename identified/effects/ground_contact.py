@@ -80,7 +80,7 @@ from identified.engine.smallmat import (
 )
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
-__all__ = ["GroundContact", "read_contact_geometry"]
+__all__ = ["CapsuleOnPlane", "GroundContact", "capsule_geometry", "read_contact_geometry"]
 
 #: the regulariser ε (relative, on the diagonal of the contact-space inverse mass) is identified
 #: by a profile scan over these values; MuJoCo's own is (1 - d) / d ≈ 0.05 at its default impedance
@@ -132,7 +132,50 @@ def read_contact_geometry(mjcf: str, rod_names: tuple[str, ...]) -> dict[str, An
     return {"radius": radius, "segment": segment, "ground_height": float(height), "normal": normal.tolist()}
 
 
-class GroundContact(Effect):
+def capsule_geometry(options: dict[str, Any], like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The geometry of :func:`read_contact_geometry` as tensors in ``like``'s dtype and device:
+    radius (R,), segment ends (R, 2, 3) in the rod frames, the plane's normal ``n`` and two tangents
+    ``t1``, ``t2`` (3,), and its height."""
+    t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
+    # the plane's frame in numpy (no tensor-to-float inside a compiled step)
+    n_np = np.asarray(options["normal"], dtype=float)
+    a = np.array([1.0, 0, 0]) if abs(n_np[0]) < 0.9 else np.array([0, 1.0, 0])
+    t1_np = np.cross(n_np, a)
+    t1_np /= np.linalg.norm(t1_np)
+    return (t(options["radius"]), t(options["segment"]), t(n_np), t(t1_np), t(np.cross(n_np, t1_np)),
+            t(options["ground_height"]))
+
+
+class CapsuleOnPlane(Effect):
+    """What the ground-contact laws share: the rods' collision capsules on the MJCF's ground plane
+    (:func:`read_contact_geometry`, geometry only), each capsule's end spheres and their depths."""
+
+    @classmethod
+    def for_system(cls, topology: Any, mjcf: str | None = None) -> CapsuleOnPlane:
+        if mjcf is None:
+            raise GeometryError(f"{cls.name} needs the MJCF's geometry (capsules and ground plane)")
+        return cls(topology.n_rods, topology.n_springs, options=read_contact_geometry(mjcf, topology.rod_names))
+
+    # ------------------------------------------------------------------ geometry
+    def _geom(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        key = ("geom", like.dtype, like.device)
+        if key not in self._cache:
+            self._cache[key] = capsule_geometry(self.options, like)
+        return self._cache[key]
+
+    def _end_spheres(self, state: Any, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World centre (..., R, 2, 3) and penetration depth (..., R, 2) of every capsule end sphere."""
+        radius, seg, n, _, _, height = self._geom(state.pos)
+        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)
+        return centre, radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+
+    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
+        """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
+        _, depth = self._end_spheres(state, ctx.rot)
+        return (depth > -margin).any(-1)
+
+
+class GroundContact(CapsuleOnPlane):
     name = "ground_contact"
     description = ("rod capsules on a ground plane: constraint-like normal force, saturating friction, and "
                    "torsional and rolling friction torques")
@@ -157,32 +200,6 @@ class GroundContact(Effect):
     profiled = ("epsilon", "omega_slip")  # profile scans (mu's is redone at every fit)
     fit_cost = 10.0  # its friction coefficient is scanned (measured ~12x a drag fit on the robot)
 
-    @classmethod
-    def for_system(cls, topology: Any, mjcf: str | None = None) -> GroundContact:
-        if mjcf is None:
-            raise GeometryError("ground_contact needs the MJCF's geometry (capsules and ground plane)")
-        return cls(topology.n_rods, topology.n_springs, options=read_contact_geometry(mjcf, topology.rod_names))
-
-    # ------------------------------------------------------------------ geometry
-    def _geom(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        key = ("geom", like.dtype, like.device)
-        if key not in self._cache:
-            t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
-            # the plane's frame in numpy (no tensor-to-float inside a compiled step)
-            n_np = np.asarray(self.options["normal"], dtype=float)
-            a = np.array([1.0, 0, 0]) if abs(n_np[0]) < 0.9 else np.array([0, 1.0, 0])
-            t1_np = np.cross(n_np, a)
-            t1_np /= np.linalg.norm(t1_np)
-            n, t1, t2 = t(n_np), t(t1_np), t(np.cross(n_np, t1_np))
-            self._cache[key] = (t(self.options["radius"]), t(self.options["segment"]), n, t1, t2,
-                                t(self.options["ground_height"]))
-        return self._cache[key]
-
-    def _end_spheres(self, state: Any, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World centre (..., R, 2, 3) and penetration depth (..., R, 2) of every capsule end sphere."""
-        radius, seg, n, _, _, height = self._geom(state.pos)
-        centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)
-        return centre, radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
 
     def contacts(self, state: Any, ctx: Any) -> dict[str, torch.Tensor]:
         """Per end sphere (..., R, 2): depth, active, lever ρ (..., R, 2, 3); per rod the
@@ -436,11 +453,6 @@ class GroundContact(Effect):
         c = self.contacts(state, ctx)
         active = c["active"].to(state.pos.dtype)  # (..., R, 2)
         return (active.unsqueeze(-1) * c["lever"]).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
-
-    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
-        """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
-        _, depth = self._end_spheres(state, ctx.rot)
-        return (depth > -margin).any(-1)
 
     # ------------------------------------------------------------------ fit on the residual
     def fit_residual(self, state: Any, ctx: Any, force: torch.Tensor, torque: torch.Tensor,

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from identified.effects.base import Effect, ParamBlock
-from identified.effects.ground_contact import GeometryError, read_contact_geometry
+from identified.effects.base import ParamBlock
+from identified.effects.ground_contact import CapsuleOnPlane
 
 __all__ = ["PyramidContact"]
 
@@ -93,7 +93,7 @@ def _spd_solve(H: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.stack(x, -1)
 
 
-class PyramidContact(Effect):
+class PyramidContact(CapsuleOnPlane):
     name = "pyramid_contact"
     description = ("rod capsules on a ground plane: a soft unilateral constraint at the capsule's surface "
                    "with a pyramidal friction cone (sliding, torsional and rolling edges)")
@@ -116,36 +116,6 @@ class PyramidContact(Effect):
     searched = False
     fit_cost = 10.0
 
-    @classmethod
-    def for_system(cls, topology: Any, mjcf: str | None = None) -> PyramidContact:
-        if mjcf is None:
-            raise GeometryError("pyramid_contact needs the MJCF's geometry (capsules and ground plane)")
-        return cls(topology.n_rods, topology.n_springs, options=read_contact_geometry(mjcf, topology.rod_names))
-
-    # ------------------------------------------------------------------ geometry
-    def _geom(self, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        key = ("geom", like.dtype, like.device)
-        if key not in self._cache:
-            t = lambda x: torch.as_tensor(np.asarray(x, dtype=float), dtype=like.dtype, device=like.device)
-            n_np = np.asarray(self.options["normal"], dtype=float)
-            a = np.array([1.0, 0, 0]) if abs(n_np[0]) < 0.9 else np.array([0, 1.0, 0])
-            t1_np = np.cross(n_np, a)
-            t1_np /= np.linalg.norm(t1_np)
-            self._cache[key] = (t(self.options["radius"]), t(self.options["segment"]), t(n_np), t(t1_np),
-                                t(self.options["ground_height"]))
-        return self._cache[key]
-
-    def _end_spheres(self, state: Any, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World centre (..., R, 2, 3) and penetration depth (..., R, 2) of every capsule end sphere."""
-        radius, seg, n, _, height = self._geom(state.pos)
-        centre = state.pos.unsqueeze(-2) + (rot.unsqueeze(-3) @ seg.unsqueeze(-1)).squeeze(-1)
-        return centre, radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
-
-    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
-        """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
-        _, depth = self._end_spheres(state, ctx.rot)
-        return (depth > -margin).any(-1)
-
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
         """Each rod's contact point, the lever from its frame origin (..., R, 3) world: on the
         capsule's surface below its end sphere in contact (the mean of both when both are; 0 when
@@ -156,7 +126,7 @@ class PyramidContact(Effect):
         return (active.unsqueeze(-1) * lever).sum(-2) / active.sum(-1).clamp_min(1.0).unsqueeze(-1)
 
     def _points(self, state: Any, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        radius, _, n, _, _ = self._geom(state.pos)
+        radius, _, n, _, _, _ = self._geom(state.pos)
         centre, depth = self._end_spheres(state, rot)
         return centre - (radius.unsqueeze(-1) - depth / 2).unsqueeze(-1) * n, depth
 
@@ -165,7 +135,7 @@ class PyramidContact(Effect):
         coordinates (two end spheres x ten edges), their reference accelerations (..., R, 20),
         inverse regularisers ``D`` (..., R, 20; 0 at an end not in contact), the mass matrix
         (..., R, 6, 6) and ``a0`` (..., R, 6)."""
-        _, _, n, t1, _ = self._geom(state.pos)
+        _, _, n, t1, _, _ = self._geom(state.pos)
         rot = ctx.rot
         points, depth = self._points(state, rot)
         p = ctx.params

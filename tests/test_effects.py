@@ -550,7 +550,12 @@ def test_the_classification_search_grows_its_part_of_the_data():
     assert shape(2 * SEARCH_STEPS, 3) == [(1, SEARCH_STEPS), (2, SEARCH_STEPS), (3, SEARCH_STEPS)]
 
 
+@pytest.mark.expensive
 def test_robot_twin_stands_like_the_plant(robot, tmp_path):
+    """~27 s (a fit and a compiled twin env); the default run keeps its parts cheaply:
+    test_robot_contact_leaves_springs_and_rods_exact_and_explains_the_ground (the fit on the robot)
+    and tests/test_randomize.py (the compiled twin env steps as the engine); benchmarks/bench_robot_twin.py
+    measures the standing."""
     import gymnasium as gym
 
     import tensegrity_gym  # noqa: F401

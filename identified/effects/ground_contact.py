@@ -80,7 +80,7 @@ from identified.engine.smallmat import (
 )
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
-__all__ = ["CapsuleOnPlane", "GroundContact", "capsule_geometry", "read_contact_geometry"]
+__all__ = ["CapsuleOnPlane", "GroundContact", "capsule_geometry", "cluster_covariance", "read_contact_geometry"]
 
 #: the regulariser ε (relative, on the diagonal of the contact-space inverse mass) is identified
 #: by a profile scan over these values; MuJoCo's own is (1 - d) / d ≈ 0.05 at its default impedance
@@ -173,6 +173,12 @@ class CapsuleOnPlane(Effect):
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
         _, depth = self._end_spheres(state, ctx.rot)
         return (depth > -margin).any(-1)
+
+    @property
+    def torque_scale(self) -> float:
+        """The capsules' mean half length (m): the fits divide residual torques by it to weigh them
+        with the forces."""
+        return float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
 
 
 class GroundContact(CapsuleOnPlane):
@@ -467,7 +473,7 @@ class GroundContact(CapsuleOnPlane):
         # only the rod equations that touch: everything below runs on those, packed rod by rod
         sel = rows & (self._end_spheres(state, ctx.rot)[1] > 0).any(-1)
         law, state, ctx, force, torque, sel, groups = _pack_rows(self, state, ctx, force, torque, sel, groups)
-        scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
+        scale = self.torque_scale
         Yw = torch.cat((force, torque / scale), -1)[sel]  # (rows, 6)
         Y = Yw.reshape(-1).numpy()
         g = np.repeat(groups[sel.numpy()], 6)
@@ -500,7 +506,7 @@ class GroundContact(CapsuleOnPlane):
                 if sse < best[0]:
                     best = (sse, theta, mu, eps, X)
         sse, theta, mu, eps, X = best
-        cov = _cluster_cov(X, Y - X @ theta, g)
+        cov = cluster_covariance(X, Y - X @ theta, g)
         self.values = np.concatenate([theta, [mu, eps], tq["values"]])
         # μ, ε and ω_s: profile scans, no standard error (null in the JSON)
         self.stderr = np.concatenate([np.sqrt(np.clip(np.diag(cov), 0, None)), [np.nan, np.nan], tq["stderr"], [np.nan]])
@@ -592,7 +598,7 @@ def _fit_torques(eff: GroundContact, state: Any, ctx: Any, force: torch.Tensor, 
     free = coef > 0  # a coefficient held at its bound has no standard error
     se = np.full(2, np.nan)
     if free.any():
-        se[free] = np.sqrt(np.clip(np.diag(_cluster_cov(X[:, free], y - X @ coef, g)), 0, None))
+        se[free] = np.sqrt(np.clip(np.diag(cluster_covariance(X[:, free], y - X @ coef, g)), 0, None))
     return {"values": np.array([coef[0], coef[1], om]), "stderr": se,
             "torque": torch.as_tensor((X @ coef).reshape(-1, 3)),
             "explained_variance": float(1 - sse / max(float(y @ y), 1e-300))}
@@ -691,7 +697,7 @@ def _masked_block_solve(P: Mat, Q: Mat, W: Mat, active: tuple[torch.Tensor, torc
     return vscale(x0, m0), vscale(x1, m1)
 
 
-def _cluster_cov(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:
+def cluster_covariance(X: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:
     """Cluster-robust (sandwich) covariance of least squares, clusters = episodes."""
     XtX_inv = np.linalg.pinv(X.T @ X)
     meat = np.zeros((X.shape[1], X.shape[1]))

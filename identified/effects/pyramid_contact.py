@@ -41,7 +41,9 @@ import numpy as np
 import torch
 
 from identified.effects.base import ParamBlock
-from identified.effects.ground_contact import CapsuleOnPlane
+from identified.effects.ground_contact import CapsuleOnPlane, cluster_covariance
+from identified.engine.accelerations import inertia_matrix
+from identified.engine.smallmat import unvec, vec
 
 __all__ = ["PyramidContact"]
 
@@ -149,15 +151,14 @@ class PyramidContact(CapsuleOnPlane):
         across = torch.linalg.cross(n.expand_as(along), along)
         nn = n.expand_as(along)
         zero = torch.zeros_like(along)
-        rho_ = rho
         th = th if th.dim() == 1 else th.squeeze(-2)  # (P,) or per env (N, 1, P) -> (N, P)
 
         def lin(u: torch.Tensor) -> torch.Tensor:  # (..., R, 3) -> (..., R, 2, 6)
-            u2 = u.unsqueeze(-2).expand_as(rho_)
-            return torch.cat((u2, torch.linalg.cross(rho_, u2)), -1)
+            u2 = u.unsqueeze(-2).expand_as(rho)
+            return torch.cat((u2, torch.linalg.cross(rho, u2)), -1)
 
         def ang(u: torch.Tensor) -> torch.Tensor:
-            return torch.cat((zero, u), -1).unsqueeze(-2).expand(rho_.shape[:-1] + (6,))
+            return torch.cat((zero, u), -1).unsqueeze(-2).expand(rho.shape[:-1] + (6,))
 
         beta, kappa, d0, dw, width, mu, mu_t, mu_r = (th[..., k] for k in range(8))
         # the contact frame's six rows (force along n, t1, t2; torque about n, t1, t2), (..., R, 2, 6, 6);
@@ -178,8 +179,6 @@ class PyramidContact(CapsuleOnPlane):
         if products is None:
             Ib = torch.diag_embed(p.inertia)
         else:
-            from identified.engine.accelerations import inertia_matrix
-            from identified.engine.smallmat import unvec, vec
             Ib = unvec(inertia_matrix(vec(p.inertia), vec(products))).unflatten(-1, (3, 3))
         Iw = rot @ Ib @ rot.transpose(-1, -2)
         Mg = torch.zeros(Iw.shape[:-2] + (6, 6), dtype=Iw.dtype, device=Iw.device)
@@ -256,14 +255,12 @@ class PyramidContact(CapsuleOnPlane):
         ``values``/``stderr``; returns ``rows``, ``explained_variance`` (on every contact row)."""
         from scipy.optimize import least_squares
 
-        from identified.effects.ground_contact import _cluster_cov
-
         _, depth = self._end_spheres(state, ctx.rot)
         sel = rows & (depth > 0).any(-1)
         idx = torch.nonzero(sel)  # (K, 2): instant, rod
         if len(idx) < 50:
             raise ValueError("too few contact rows to identify pyramid_contact")
-        scale = float(np.mean([np.linalg.norm(np.asarray(s)[1] - np.asarray(s)[0]) for s in self.options["segment"]])) / 2
+        scale = self.torque_scale
 
         def pick(k: torch.Tensor) -> tuple[Any, Any, torch.Tensor]:
             t, r = k[:, 0], k[:, 1]
@@ -311,7 +308,7 @@ class PyramidContact(CapsuleOnPlane):
         values = natural(sol.x)
         # the standard errors, natural units (the delta method through the transforms)
         g = np.repeat(groups[sub[:, 0].numpy()], 6)
-        cov_x = _cluster_cov(sol.jac, sol.fun, g)
+        cov_x = cluster_covariance(sol.jac, sol.fun, g)
         dv = values.copy()
         dv[2:4] = values[2:4] * (1 - values[2:4])
         self.values = values

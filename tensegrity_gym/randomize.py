@@ -14,9 +14,11 @@ What is drawn (every width a half-width; ``0`` leaves that quantity at the ident
 ``mass``            each rod's ``M`` times ``1 + U(-w, w)``
 ``inertia``         each rod's ``I`` (all three moments) times ``1 + U(-w, w)``
 ``rest_offset``     each cable's rest length plus ``U(-w, w)`` m: the spool's calibration
-``contact``         per ground-contact parameter (``kappa``, ``beta_n``, ``gamma_n``, ``beta_a``,
-                    ``gamma_a``, ``beta_p``, ``gamma_p``, ``mu``, ``epsilon``, ``mu_torsion``,
-                    ``mu_rolling``, ``omega_slip``): times ``1 + U(-w, w)``
+``contact``         per parameter of the model's ground-contact law (``ground_contact``: ``kappa``,
+                    ``beta_n``, ``gamma_n``, ``beta_a``, ``gamma_a``, ``beta_p``, ``gamma_p``,
+                    ``mu``, ``epsilon``, ``mu_torsion``, ``mu_rolling``, ``omega_slip``;
+                    ``pyramid_contact``: ``beta``, ``kappa``, ``imp_min``, ``imp_max``,
+                    ``imp_width``, ``mu``, ``mu_torsion``, ``mu_rolling``): times ``1 + U(-w, w)``
 ``motor_speed``     the cable motors' speed times ``1 + U(-w, w)`` (one factor per env)
 ``latency``         the command takes effect after ``k`` control steps, ``k`` uniform in
                     ``0..latency`` (drawn per env and episode)
@@ -48,7 +50,9 @@ from the plant's MJCF:
   ``omega_slip``) are fitted on the residual torque about the contact point and explain a fraction
   ``EV_t`` of it (``torque_explained_variance``): their width is ``CONTACT_FACTOR sqrt(1 - EV_t)``
   the same way (or 3 standard errors), between the floor and 0.5. A coefficient the fit holds at 0
-  (the data show none) stays 0: a relative width cannot move it;
+  (the data show none) stays 0: a relative width cannot move it. ``pyramid_contact``'s parameters,
+  fitted together on the residual wrench, all take its ``EV`` the same way; its impedances
+  (``imp_min``, ``imp_max``, below 1) at most half their distance to 1;
 * observation noise: what the twin gets wrong over one control period. Velocities: its one-step
   error (``metrics.one_step_rms``, one physics step, on the fit's data) grown as a random walk
   over the control period (``sqrt(frame_skip)``); positions and orientations, whose one-step
@@ -99,8 +103,12 @@ __all__ = [
     "resolve_randomization",
 ]
 
+#: the ground-contact laws' parameters (``ground_contact``'s, then those only ``pyramid_contact`` has)
 CONTACT_PARAMETERS = ("kappa", "beta_n", "gamma_n", "beta_a", "gamma_a", "beta_p", "gamma_p", "mu", "epsilon",
-                      "mu_torsion", "mu_rolling", "omega_slip")
+                      "mu_torsion", "mu_rolling", "omega_slip", "beta", "imp_min", "imp_max", "imp_width")
+#: the impedances (``pyramid_contact``'s ``imp_min``, ``imp_max``): below 1, their width at most half
+#: the way to 1
+IMPEDANCES = ("imp_min", "imp_max")
 #: the contact torques' parameters (their width comes from the torque's unexplained variance)
 CONTACT_TORQUE_PARAMETERS = ("mu_torsion", "mu_rolling", "omega_slip")
 OBS_GROUPS = ("pos", "rot", "vel", "angvel", "rest")
@@ -116,6 +124,8 @@ PRIOR_WIDTH = 0.05
 PRIOR_REST_OFFSET = 0.002
 #: the relative width of the motors' speed under ``auto`` (a prior: it is not identified)
 PRIOR_MOTOR_SPEED = 0.1
+#: the ground-contact laws whose parameters ``contact`` draws
+CONTACT_LAWS = ("ground_contact", "pyramid_contact")
 _SCALARS = ("stiffness", "damping", "mass", "inertia", "rest_offset", "motor_speed", "push_force",
             "push_probability", "reset_yaw")
 
@@ -206,7 +216,7 @@ class Randomization:
         return cls(**kw, source=obj.get("source", source), notes=dict(obj.get("notes") or {}))
 
     # ------------------------------------------------------------------ drawing
-    def draw(self, rng: np.random.Generator, n_rods: int, n_springs: int, n_contact: int = 0) -> Draw:
+    def draw(self, rng: np.random.Generator, n_rods: int, n_springs: int) -> Draw:
         """One env's sample: factors and offsets (:class:`Draw`). The generator is advanced by the
         same number of values whatever the widths, so that changing one width leaves the others'
         draws the same."""
@@ -217,14 +227,13 @@ class Randomization:
         w = np.array([self.contact.get(name, 0.0) for name in CONTACT_PARAMETERS])
         return Draw(stiffness=1 + self.stiffness * k, damping=1 + self.damping * c, mass=1 + self.mass * m,
                     inertia=1 + self.inertia * i, rest_offset=self.rest_offset * off,
-                    motor_speed=float(1 + self.motor_speed * ms), latency=int(lat),
-                    contact=(1 + w * cont)[:n_contact] if n_contact else np.ones(0))
+                    motor_speed=float(1 + self.motor_speed * ms), latency=int(lat), contact=1 + w * cont)
 
 
 @dataclass
 class Draw:
     """One env's draw: relative factors (``stiffness``, ``damping`` (S,), ``mass``, ``inertia``
-    (R,), ``contact`` (12,) in :data:`CONTACT_PARAMETERS` order, ``motor_speed``), the cables' rest
+    (R,), ``contact`` (16,) in :data:`CONTACT_PARAMETERS` order, ``motor_speed``), the cables' rest
     offsets (S,) m and the latency in control steps."""
 
     stiffness: np.ndarray
@@ -264,9 +273,9 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
                       mass=width("mass", model.mass), inertia=width("inertia", model.inertia),
                       rest_offset=PRIOR_REST_OFFSET, motor_speed=PRIOR_MOTOR_SPEED, latency=1, source="auto")
     metrics = getattr(model, "metrics", None) or {}
-    contact = next((e for e in getattr(model, "effects", []) if e.get("name") == "ground_contact"), None)
+    contact = next((e for e in getattr(model, "effects", []) if e.get("name") in CONTACT_LAWS), None)
     if contact is not None and contact.get("parameters"):
-        stage = (metrics.get("residual_stage", {}) or {}).get("ground_contact", {}) or {}
+        stage = (metrics.get("residual_stage", {}) or {}).get(contact["name"], {}) or {}
 
         def base_width(key: str) -> float:
             ev = stage.get(key)
@@ -275,7 +284,8 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
                 return CONTACT_FLOOR
             return max(CONTACT_FACTOR * math.sqrt(max(0.0, 1.0 - float(ev))), CONTACT_FLOOR)
 
-        force_base, torque_base = base_width("explained_variance"), base_width("torque_explained_variance")
+        force_base = base_width("explained_variance")
+        torque_base = base_width("torque_explained_variance") if contact["name"] == "ground_contact" else force_base
         widths = {}
         vals, ses = contact["parameters"], contact.get("stderr") or {}
         for name in CONTACT_PARAMETERS:
@@ -284,6 +294,8 @@ def auto_randomization(model: Any, frame_skip: int = 20) -> Randomization:
             v, s = vals.get(name), ses.get(name)
             rel = 3.0 * abs(float(s) / float(v)) if s is not None and v not in (None, 0) else 0.0
             cap = GAMMA_MAX if name.startswith("gamma") else 0.5
+            if name in IMPEDANCES and v is not None:
+                cap = min(cap, 0.5 * (1.0 - float(v)) / float(v))
             base = torque_base if name in CONTACT_TORQUE_PARAMETERS else force_base
             widths[name] = float(min(max(base, rel), cap))
         r.contact = widths

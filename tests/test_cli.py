@@ -169,7 +169,8 @@ def test_fit_effects_bad_names_are_refused_before_anything_runs(tmp_path, monkey
                  "--quiet"]) == 0
     capsys.readouterr()
     for bad, words in (("drag", "unknown effect 'drag'"), ("actuator_lag", "actuator_lag"),
-                       ("linear_drag,linear_drag", "twice"), ("ground_contact", "ground plane")):
+                       ("linear_drag,linear_drag", "twice"), ("ground_contact", "ground plane"),
+                       ("ground_contact,pyramid_contact", "ground_contact and pyramid_contact are two laws of one thing")):
         assert main(["fit", "D.npz", "--model", "M.xml", "--effects", bad, "--out", "F.json"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("tensegrity: error: ") and words in err and err.count("\n") == 1, err

@@ -167,3 +167,15 @@ def test_the_twin_env_runs_a_registered_effect(registered, tmp_path):
     shipped = run(None)
     np.testing.assert_array_equal(run(np.zeros((R, 3))), shipped)
     assert np.abs(run(np.full((R, 3), 2.0)) - shipped).max() > 1e-3
+
+
+def test_two_laws_of_one_thing_are_rivals():
+    """The two ground-contact laws model one thing: a model holds one, the search and the diagnosis
+    do not offer the other beside it; other effects are no one's rivals."""
+    from identified.effects import rival
+
+    assert rival("pyramid_contact", ["linear_drag", "ground_contact"]) == "ground_contact"
+    assert rival("ground_contact", ["pyramid_contact"]) == "pyramid_contact"
+    assert rival("ground_contact", ["ground_contact", "linear_drag"]) is None  # itself is not its rival
+    assert rival("linear_drag", ["ground_contact", "linear_drag:implicit"]) is None
+    assert rival("linear_drag:implicit", ["pyramid_contact"]) is None

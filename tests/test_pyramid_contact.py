@@ -151,3 +151,84 @@ def test_engine_with_the_law_rolls_as_the_plant():
     assert bool((caps >= 1).all()) and float(caps.double().mean()) >= 2  # end caps on the ground throughout
     err = rollout_errors(model, data, horizon=200)
     assert err["pos_final"] < 1e-9 and err["quat_final"] < 1e-9
+
+
+def test_law_does_not_depend_on_where_the_rod_frame_is(wrenches):
+    """The same rods described from frames shifted off their centres of mass (the model's ``com``):
+    the law's force is the same and its torque about the new origins is the old torque plus the
+    lever's (rigid-body kinematics: the origin's velocity and acceleration carry the shift).  A law
+    that took the origin's motion for the centre of mass's is percents off here."""
+    from identified.engine.smallmat import mat, unvec, vec
+    from identified.rotation import matrix_apply
+
+    law, state, ctx, _, _, touching, _ = wrenches
+    th = torch.as_tensor(TRUTH)
+    p = ctx.params
+    force0, torque0 = (unvec(x) for x in law._law(th, vec(state.pos), vec(state.vel), vec(state.angvel), mat(ctx.rot),
+                                                  vec(ctx.base_lin_acc), vec(ctx.base_ang_acc_body), p.mass,
+                                                  vec(p.inertia), None, None))
+    c = torch.as_tensor(np.random.default_rng(4).normal(0, 0.05, (law.n_rods, 3)))  # com in the new frames
+    rot = ctx.rot
+    rc = matrix_apply(rot, c)  # new origin -> centre of mass, world
+    w = state.angvel
+    w_b = torch.einsum("...ji,...j->...i", rot, w)
+    alpha_b = ctx.base_ang_acc_body
+    lin = ctx.base_lin_acc - matrix_apply(rot, torch.linalg.cross(alpha_b, c.expand_as(alpha_b))
+                                          + torch.linalg.cross(w_b, torch.linalg.cross(w_b, c.expand_as(w_b))))
+    shifted = PyramidContact(law.n_rods, law.n_springs, options={
+        **law.options, "segment": (np.asarray(law.options["segment"]) + c.numpy()[:, None, :]).tolist()})
+    force1, torque1 = (unvec(x) for x in shifted._law(
+        th, vec(state.pos - rc), vec(state.vel - torch.linalg.cross(w, rc)), vec(w), mat(rot), vec(lin), vec(alpha_b),
+        p.mass, vec(p.inertia), vec(c), None))
+    assert float(force0[touching].norm(dim=-1).max()) > 10  # N: rods pressed into the ground
+    scale = float(force0.abs().max())
+    torch.testing.assert_close(force1, force0, rtol=0, atol=1e-9 * scale)
+    torch.testing.assert_close(torque1, torque0 + torch.linalg.cross(rc, force0), rtol=0, atol=1e-9 * scale)
+
+
+def test_each_env_its_own_contact_parameters(wrenches):
+    """Parameters bound per environment (N, 1, P), as the randomized twin binds them: each env's
+    wrench is the law's with its own parameters."""
+    from identified.engine.smallmat import mat, unvec, vec
+
+    law, state, ctx, _, _, _, _ = wrenches
+    p = ctx.params
+    k = 3
+    sl = lambda x: x[:k]
+    thetas = torch.as_tensor(np.stack([TRUTH, TRUTH * [1.3, 0.7, 1, 1, 2, 0.5, 1.5, 0.8],
+                                       TRUTH * [0.8, 1.2, 0.99, 1, 0.5, 1.1, 0.5, 2]]))
+    args = lambda j: (vec(sl(state.pos)[j]), vec(sl(state.vel)[j]), vec(sl(state.angvel)[j]), mat(sl(ctx.rot)[j]),
+                      vec(sl(ctx.base_lin_acc)[j]), vec(sl(ctx.base_ang_acc_body)[j]), p.mass, vec(p.inertia), None, None)
+    batch = [unvec(x) for x in law._law(thetas.unsqueeze(1), *args(slice(None)))]
+    for j in range(k):
+        one = [unvec(x) for x in law._law(thetas[j], *args(j))]
+        for b, o in zip(batch, one):
+            torch.testing.assert_close(b[j], o, rtol=1e-12, atol=1e-12)
+    at_truth = unvec(law._law(thetas[0], *args(1))[0])
+    assert float((batch[0][1] - at_truth).abs().max()) > 1.0  # N: the parameters matter here
+
+
+def test_twin_steps_the_law_in_its_fused_form():
+    """An engine holding the law is fused (the twin's compiled substep steps it in component form),
+    and its component step equals its tensor step on robot states pressed into the ground, pushed."""
+    import dataclasses
+    from pathlib import Path
+
+    from identified.engine.smallmat import unvec, vec
+    from identified.model import load_model
+    from identified.twin import engine_from_model
+
+    xml = build_model("ico", "robot")
+    shipped = load_model(Path(__file__).resolve().parents[1] / "identified" / "data" / "robot.json")
+    law = PyramidContact(shipped.topology.n_rods, shipped.topology.n_springs, values=TRUTH,
+                         options=read_contact_geometry(xml, shipped.topology.rod_names))
+    e = engine_from_model(dataclasses.replace(shipped, effects=[law.to_json()]))
+    assert e.fused
+    data = collect(xml, CollectConfig(episodes=1, steps=120, seed=8, push_every=30))
+    s = e.state(*(getattr(data, k)[0, :-1] for k in ("pos", "quat", "vel", "angvel")))
+    s.pos[..., 2] -= 0.004  # 4 mm deeper: every contact's impedance on its rising part
+    rest, push = torch.as_tensor(data.rest_length[0]), torch.as_tensor(data.push_force[0])
+    want = e.step(s, rest, push)
+    got = e.step_components(vec(s.pos), tuple(s.quat.unbind(-1)), vec(s.vel), vec(s.angvel), rest, push)
+    for a, w in zip(got, want):
+        torch.testing.assert_close(unvec(a), w, rtol=1e-12, atol=1e-12 * float(w.abs().max()))

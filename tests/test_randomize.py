@@ -17,6 +17,7 @@ import pytest
 import torch
 
 import tensegrity_gym  # noqa: F401  (registers the env)
+from identified.effects.ground_contact import GroundContact
 from identified.model import load_model
 from identified.state import RodState
 from identified.twin import engine_from_model
@@ -69,7 +70,7 @@ def _draws(b: IdentifiedBackend, ph: TwinPhysics) -> dict:
     m, rng = b.model, np.random.default_rng(1)
     f = lambda *shape: 1 + 0.3 * rng.uniform(-1, 1, shape)
     S, R = m.stiffness.size, m.mass.size
-    gc = ph.effect_parameters()["ground_contact"][:, 0].numpy() * f(N, len(CONTACT_PARAMETERS))
+    gc = ph.effect_parameters()["ground_contact"][:, 0].numpy() * f(N, len(GroundContact.blocks))
     return {"stiffness": m.stiffness * f(N, S), "damping": m.damping * f(N, S), "mass": m.mass * f(N, R),
             "inertia": m.inertia * f(N, R, 1), "motor_speed": b.motor.speed * f(N),
             "effects": {"ground_contact": gc}}
@@ -92,7 +93,8 @@ def test_each_env_steps_as_a_single_twin_with_its_parameters(backend):
         m = copy.deepcopy(b.model)
         m.stiffness, m.damping, m.mass, m.inertia = (d[k][i] for k in ("stiffness", "damping", "mass", "inertia"))
         gc = next(e for e in m.effects if e["name"] == "ground_contact")
-        gc["parameters"] = dict(zip(CONTACT_PARAMETERS, map(float, d["effects"]["ground_contact"][i]), strict=True))
+        gc["parameters"] = dict(zip((p.name for p in GroundContact.blocks), map(float, d["effects"]["ground_contact"][i]),
+                                    strict=True))
         motor = dataclasses.replace(b.motor, speed=float(d["motor_speed"][i]))
         single = TwinPhysics(engine_from_model(m), motor, b.actuated_index, batch=None, compile=False)
         single.reset(*(x[i] for x in states), rest[i])
@@ -164,17 +166,18 @@ def test_set_parameters_needs_per_env(backend):
 # ---------------------------------------------------------------------- the distribution
 def test_draw_is_reproducible_and_within_its_widths():
     r = Randomization(stiffness=0.1, mass=0.2, rest_offset=0.003, contact={"mu": 0.3}, latency=2, motor_speed=0.1)
-    a, b = (r.draw(np.random.default_rng(7), 6, 24, 9) for _ in range(2))
+    a, b = (r.draw(np.random.default_rng(7), 6, 24) for _ in range(2))
     for f in dataclasses.fields(a):
         np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name))
-    c = r.draw(np.random.default_rng(8), 6, 24, 9)
+    c = r.draw(np.random.default_rng(8), 6, 24)
     assert not np.array_equal(a.stiffness, c.stiffness)
-    many = [r.draw(np.random.default_rng(s), 6, 24, 9) for s in range(200)]
+    many = [r.draw(np.random.default_rng(s), 6, 24) for s in range(200)]
     k = np.stack([d.stiffness for d in many])
     assert 0.9 <= k.min() < 0.92 and 1.08 < k.max() <= 1.1
     np.testing.assert_array_equal(np.stack([d.damping for d in many]), 1.0)  # width 0: untouched
     mu = np.stack([d.contact for d in many])
-    assert np.all(mu[:, :7] == 1.0) and 0.7 <= mu[:, 7].min() and mu[:, 7].max() <= 1.3
+    assert mu.shape == (200, 16) and np.all(np.delete(mu, 7, axis=1) == 1.0)
+    assert 0.7 <= mu[:, 7].min() < 0.72 and 1.28 < mu[:, 7].max() <= 1.3
     assert {d.latency for d in many} == {0, 1, 2}
     assert np.abs(np.stack([d.rest_offset for d in many])).max() <= 0.003
 
@@ -186,7 +189,7 @@ def test_auto_comes_from_the_fit_numbers_not_the_mjcf():
     base = CONTACT_FACTOR * np.sqrt(1 - ev)
     gc = next(e for e in model.effects if e["name"] == "ground_contact")
     stage = model.metrics["residual_stage"]["ground_contact"]
-    for name in CONTACT_PARAMETERS:
+    for name in (b.name for b in GroundContact.blocks):
         if name not in gc["parameters"]:  # a model written before the contact torques: none drawn
             assert name in CONTACT_TORQUE_PARAMETERS and name not in r.contact
             continue
@@ -213,6 +216,33 @@ def test_auto_comes_from_the_fit_numbers_not_the_mjcf():
     other = copy.deepcopy(model)
     other.source_model = "/nonexistent/robot.xml"
     assert auto_randomization(other).to_json() == r.to_json()
+
+
+def test_auto_draws_the_pyramid_laws_parameters():
+    """A model whose ground is ``pyramid_contact``: each of its parameters gets the width of its fit's
+    unexplained variance (or 3 standard errors), the impedances at most half their way to 1, and
+    a draw scales that law's parameters only."""
+    from identified.effects.pyramid_contact import PyramidContact
+
+    model = copy.deepcopy(load_model(default_model_path()))
+    values = {"beta": 105.0, "kappa": 2770.0, "imp_min": 0.9, "imp_max": 0.95, "imp_width": 1e-3, "mu": 0.9,
+              "mu_torsion": 0.02, "mu_rolling": 0.002}
+    stderr = {k: 1e-12 * v for k, v in values.items()}
+    stderr["mu_rolling"] = 0.1 * values["mu_rolling"]  # 3 standard errors: 0.3
+    gc = next(e for e in model.effects if e["name"] == "ground_contact")
+    model.effects = [{"name": "pyramid_contact", "parameters": values, "stderr": stderr, "options": gc["options"]}]
+    model.metrics["residual_stage"] = {"pyramid_contact": {"explained_variance": 1 - 1e-4}}
+    r = auto_randomization(model)
+    base = CONTACT_FACTOR * 1e-2  # 4 sqrt(1e-4) = 0.04, below the floor
+    want = {k: 0.1 for k in values} | {"mu_rolling": 0.3, "imp_min": 0.5 * 0.1 / 0.9, "imp_max": 0.5 * 0.05 / 0.95}
+    assert base < 0.1 and set(r.contact) == set(values)
+    for k, v in want.items():
+        assert r.contact[k] == pytest.approx(v, rel=1e-12), k
+    d = r.draw(np.random.default_rng(3), 6, 24)
+    idx = [CONTACT_PARAMETERS.index(b.name) for b in PyramidContact.blocks]
+    f = d.contact[idx]
+    assert np.all(np.abs(f - 1) <= [want[b.name] for b in PyramidContact.blocks]) and np.all(f != 1)
+    assert np.all(np.delete(d.contact, idx) == 1.0)  # ground_contact's own parameters: not this model's
 
 
 def test_file_round_trip_and_bad_files(tmp_path):

@@ -71,7 +71,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from identified.dataset import Dataset, DatasetError
-from identified.effects import EFFECTS, RESERVED, Effect, GeometryError, make_effect
+from identified.effects import EFFECTS, RESERVED, Effect, GeometryError, make_effect, rival
 from identified.evaluate import k_step_errors, rollout_errors
 from identified.jsonsafe import json_safe
 from identified.model import IdentifiedModel
@@ -275,6 +275,10 @@ def _candidates(model: IdentifiedModel, added: list[str], src: str | None
             continue
         if not cls.searched:  # named by the user only (its own docstring says why)
             skipped.append({"name": name, "reason": "not tried as a candidate: name it with --effects"})
+            continue
+        other = rival(name, added)
+        if other is not None:  # another law of the same thing is in the model
+            skipped.append({"name": name, "reason": f"the model has {other}, another law of the {cls.phenomenon}"})
             continue
         try:
             eff = make_effect(name, model.topology, src)

@@ -10,6 +10,7 @@ table (``scripts/architecture.py``). A plug-in effect is one more class given to
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,7 @@ __all__ = [
     "make_effect",
     "read_contact_geometry",
     "register_effect",
+    "rival",
     "search_labels",
     "split_label",
 ]
@@ -71,6 +73,16 @@ def search_labels() -> tuple[str, ...]:
     each followed by its variants as ``name:variant`` (``variants``)."""
     return tuple(label for cls in EFFECTS.values() if cls.searched
                  for label in (cls.name, *(f"{cls.name}:{v}" for v in cls.variants)))
+
+
+def rival(name: str, present: Sequence[str]) -> str | None:
+    """The effect of ``present`` (names or ``name:variant`` labels) that models what ``name`` models
+    (the same :attr:`Effect.phenomenon`: two ground-contact laws), else None."""
+    kind = EFFECTS[name.split(":")[0]].phenomenon
+    if kind is None:
+        return None
+    return next((p for p in present if p.split(":")[0] != name.split(":")[0]
+                 and EFFECTS[p.split(":")[0]].phenomenon == kind), None)
 
 
 def split_label(label: str) -> tuple[str, dict[str, Any]]:

@@ -105,6 +105,10 @@ class Effect(ABC):
     region: ClassVar[str | None] = None
     #: whether the fit's effect search (``--effects auto``) tries it
     searched: ClassVar[bool] = True
+    #: what it models where the library has several laws of one thing (``"ground"``: the two
+    #: ground-contact laws): a model holds at most one of them, the search and the diagnosis do not
+    #: try a second (:func:`identified.effects.rival`)
+    phenomenon: ClassVar[str | None] = None
     #: variants the search also tries and a user may name as ``name:variant``: options of each
     variants: ClassVar[dict[str, dict[str, Any]]] = {}
     #: parameters its own fit settles by a profile scan (not by least squares); a refit of a model

@@ -150,6 +150,8 @@ class CapsuleOnPlane(Effect):
     """What the ground-contact laws share: the rods' collision capsules on the MJCF's ground plane
     (:func:`read_contact_geometry`, geometry only), each capsule's end spheres and their depths."""
 
+    phenomenon = "ground"
+
     @classmethod
     def for_system(cls, topology: Any, mjcf: str | None = None) -> CapsuleOnPlane:
         if mjcf is None:
@@ -168,6 +170,16 @@ class CapsuleOnPlane(Effect):
         radius, seg, n, _, _, height = self._geom(state.pos)
         centre = state.pos.unsqueeze(-2) + matrix_apply(rot.unsqueeze(-3), seg)
         return centre, radius.unsqueeze(-1) - ((centre * n).sum(-1) - height)
+
+    def _geom_components(self, like: torch.Tensor) -> tuple[Any, ...]:
+        """:meth:`_geom` for :meth:`wrench_components`: radius (R,), the two segment ends' rod-frame
+        components, the plane's normal, first tangent (floats) and height."""
+        key = ("geom_components", like.dtype, like.device)
+        if key not in self._cache:
+            radius, seg, n, t1, _, height = self._geom(like)
+            self._cache[key] = (radius, [tuple(seg[:, e, k].contiguous() for k in range(3)) for e in range(2)],
+                                tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
+        return self._cache[key]
 
     def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
@@ -441,16 +453,6 @@ class GroundContact(CapsuleOnPlane):
         roll = -th[..., I_ROLLING] * fn_sum * torch.tanh(t_norm * inv_s) / t_norm.clamp_min(1e-12)
         torque = tuple(t + tors * c + roll * w for t, c, w in zip(torque, n, w_t))
         return force, torque
-
-    def _geom_components(self, like: torch.Tensor) -> tuple[Any, ...]:
-        """:meth:`_geom` for :meth:`wrench_components`: radius (R,), the two segment ends' rod-frame
-        components, the plane's normal, first tangent (floats) and height."""
-        key = ("geom_components", like.dtype, like.device)
-        if key not in self._cache:
-            radius, seg, n, t1, _, height = self._geom(like)
-            self._cache[key] = (radius, [tuple(seg[:, e, k].contiguous() for k in range(3)) for e in range(2)],
-                                tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
-        return self._cache[key]
 
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
         """Each rod's contact point, the lever from its centre of mass (..., R, 3) world: the centre

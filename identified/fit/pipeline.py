@@ -56,6 +56,7 @@ from identified.effects import (
     GeometryError,
     effect_from_json,
     make_effect,
+    rival,
     search_labels,
     split_label,
 )
@@ -102,6 +103,11 @@ def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
             raise ValueError(f"--effects: {err}") from None
     if len(set(names)) != len(names):
         raise ValueError("--effects names an effect twice")
+    for i, n in enumerate(names):
+        other = rival(n, names[:i])
+        if other is not None:
+            raise ValueError(f"--effects: {other} and {n} are two laws of one thing ({EFFECTS[n.split(':')[0]].phenomenon}); "
+                             "name one")
     return names
 
 
@@ -325,7 +331,8 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         # every remaining candidate is refitted and screened by its held-out error over short
         # windows (a tenth of the horizon, many starts); the best one must then cut the full
         # held-out free-run error by min_gain.  The first round fits the base model beside them.
-        names = [n for n in candidates if n.split(":")[0] not in {c.split(":")[0] for c in chosen}]
+        names = [n for n in candidates if n.split(":")[0] not in {c.split(":")[0] for c in chosen}
+                 and rival(n, chosen) is None]
         names.sort(key=lambda n: -cost[n])
         if not names and base_model is not None:
             break

@@ -50,6 +50,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from identified.effects import EFFECTS
 from identified.state import RodState
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend
 from tensegrity_gym.backends.twin_physics import TwinPhysics
@@ -62,7 +63,7 @@ from tensegrity_gym.envs.tensegrity_ico_v0 import (
     termination_reasons,
     turn_about_vertical,
 )
-from tensegrity_gym.randomize import CONTACT_PARAMETERS, Randomization
+from tensegrity_gym.randomize import CONTACT_LAWS, CONTACT_PARAMETERS, Randomization
 
 __all__ = [
     "TensegrityIcoVectorEnv",
@@ -207,8 +208,10 @@ class TensegrityIcoVectorEnv(VectorEnv):
                       for k in ("stiffness", "damping", "mass", "inertia")}
         self._base_effects = {k: v[0, 0].detach().cpu().double().numpy().copy()
                               for k, v in self.physics.effect_parameters().items()}
-        contact = self._base_effects.get("ground_contact")
-        self._n_contact = 0 if contact is None else min(len(contact), len(CONTACT_PARAMETERS))
+        # the model's ground-contact law and where its parameters sit among CONTACT_PARAMETERS
+        law = next((k for k in self._base_effects if k in CONTACT_LAWS), None)
+        self._contact = None if law is None else (
+            law, [CONTACT_PARAMETERS.index(b.name) for b in EFFECTS[law].blocks][:len(self._base_effects[law])])
         A, U = self._n_motors, self._n_actuators
         self._latency = np.zeros(N, dtype=np.int64)
         # the commands in flight: the motors' targets (A), then the actuators' commands (U)
@@ -225,7 +228,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         """Every sub-env of ``index`` draws its parameters from its own generator."""
         r, b = self.randomize, self.backend
         assert r is not None
-        draws = [r.draw(self._rng(int(i)), b.n_rods, len(b.tendon_names), self._n_contact) for i in index]
+        draws = [r.draw(self._rng(int(i)), b.n_rods, len(b.tendon_names)) for i in index]
         self._latency[index] = [d.latency for d in draws]
         nominal = self.physics.rest_numpy()[index][:, b.actuated_index]
         held = np.concatenate([nominal, self.physics.ctrl.detach().cpu().double().numpy()[index]], axis=-1)
@@ -234,10 +237,11 @@ class TensegrityIcoVectorEnv(VectorEnv):
             return
         base = self._base
         effects = {}
-        if self._n_contact:
-            th = np.tile(self._base_effects["ground_contact"], (len(index), 1))
-            th[:, :self._n_contact] *= np.stack([d.contact for d in draws])
-            effects["ground_contact"] = th
+        if self._contact is not None:
+            law, columns = self._contact
+            th = np.tile(self._base_effects[law], (len(index), 1))
+            th[:, :len(columns)] *= np.stack([d.contact[columns] for d in draws])
+            effects[law] = th
         self.physics.set_parameters(
             index,
             stiffness=base["stiffness"] * np.stack([d.stiffness for d in draws]),

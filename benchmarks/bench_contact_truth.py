@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import types
 
-import mujoco
 import numpy as np
 import torch
 
@@ -36,17 +35,8 @@ from tensegrity_gym.plant import MujocoPlant
 def contact_wrenches(plant: MujocoPlant, data, stride: int) -> dict[str, np.ndarray]:
     """MuJoCo's contact wrench per rod at every ``stride``-th recorded step, with ``qacc_smooth``
     and, per rod, the number of contacts and whether a sliding or rolling edge is at zero force."""
-    m, d = plant.model, plant.data
-    rod_of_geom = {}
-    for r, b in enumerate(plant._bid):
-        for g in range(m.ngeom):
-            body = m.geom_bodyid[g]
-            while body != 0 and body not in plant._bid:
-                body = m.body_parentid[body]
-            if body == b:
-                rod_of_geom[g] = r
+    d = plant.data
     R, out = plant.n_rods, {k: [] for k in ("force", "torque", "lin", "ang", "count", "slide", "roll", "state", "episode")}
-    c6 = np.zeros(6)
     E, T = data.rest_length.shape[:2]
     for e in range(E):
         for t in range(0, T, stride):
@@ -55,23 +45,14 @@ def contact_wrenches(plant: MujocoPlant, data, stride: int) -> dict[str, np.ndar
             d.xfrc_applied[plant._bid] = plant._push_wrench(data.push_force[e, t], data.push_point[e, t])
             state = RodState(data.pos[e, t], data.quat[e, t], data.vel[e, t], data.angvel[e, t])
             plant.set_states(state)
-            f, tau = np.zeros((R, 3)), np.zeros((R, 3))
-            count, slide, roll = np.zeros(R, int), np.zeros(R, bool), np.zeros(R, bool)
-            for i in range(d.ncon):
-                con = d.contact[i]
-                r = rod_of_geom.get(con.geom2, rod_of_geom.get(con.geom1))
-                if r is None:
-                    continue
-                mujoco.mj_contactForce(m, d, i, c6)
-                frame = con.frame.reshape(3, 3)
-                sign = 1.0 if con.geom2 in rod_of_geom else -1.0  # the force on geom2 is +
-                fw, tw = sign * frame.T @ c6[:3], sign * frame.T @ c6[3:]
-                f[r] += fw
-                tau[r] += np.cross(con.pos - d.xipos[plant._bid[r]], fw) + tw
-                count[r] += 1
-                edges = d.efc_force[con.efc_address:con.efc_address + 2 * (con.dim - 1)]
-                slide[r] |= bool((edges[:4] <= 1e-12).any())
-                roll[r] |= con.dim == 6 and bool((edges[6:] <= 1e-12).any())
+            f, tau, contacts = plant.contact_wrenches()
+            count, slide, roll = np.array([len(c) for c in contacts]), np.zeros(R, bool), np.zeros(R, bool)
+            for r, rod in enumerate(contacts):
+                for i in rod:
+                    con = d.contact[i]
+                    edges = d.efc_force[con.efc_address:con.efc_address + 2 * (con.dim - 1)]
+                    slide[r] |= bool((edges[:4] <= 1e-12).any())
+                    roll[r] |= con.dim == 6 and bool((edges[6:] <= 1e-12).any())
             for k, v in (("force", f), ("torque", tau), ("lin", d.qacc_smooth[plant._vadr[:, :3]].copy()),
                          ("ang", d.qacc_smooth[plant._vadr[:, 3:]].copy()), ("count", count), ("slide", slide),
                          ("roll", roll), ("state", state), ("episode", e)):

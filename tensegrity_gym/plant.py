@@ -245,6 +245,39 @@ class MujocoPlant:
         d.qvel[self._vadr[:, 3:]] = (rot.transpose(0, 2, 1) @ s.angvel[:, :, None])[:, :, 0]
         mujoco.mj_forward(self.model, d)
 
+    def contact_wrenches(self) -> tuple[np.ndarray, np.ndarray, list[list[int]]]:
+        """MuJoCo's contact wrench on every rod at the current state (after :meth:`set_states` or a
+        step): force (R, 3) and torque about the rod's centre of mass (R, 3), world, summed over its
+        contacts (``mj_contactForce``; a geom of a body nested in a rod is the rod's), and each rod's
+        contact indices into ``data.contact``. A developer's view of the plant's contact, for checks
+        of a contact law against the truth: the identification never reads it."""
+        m, d = self.model, self.data
+        if not hasattr(self, "_rod_of_geom"):
+            rods = {int(b): r for r, b in enumerate(self._bid)}
+            self._rod_of_geom = {}
+            for g in range(m.ngeom):
+                b = int(m.geom_bodyid[g])
+                while b > 0 and b not in rods:
+                    b = int(m.body_parentid[b])
+                if b in rods:
+                    self._rod_of_geom[g] = rods[b]
+        force, torque = np.zeros((self.n_rods, 3)), np.zeros((self.n_rods, 3))
+        which: list[list[int]] = [[] for _ in range(self.n_rods)]
+        c6 = np.zeros(6)
+        for i in range(d.ncon):
+            con = d.contact[i]
+            r = self._rod_of_geom.get(con.geom2, self._rod_of_geom.get(con.geom1))
+            if r is None:
+                continue
+            mujoco.mj_contactForce(m, d, i, c6)
+            sign = 1.0 if con.geom2 in self._rod_of_geom else -1.0  # the force on geom2 is +
+            frame = con.frame.reshape(3, 3)
+            fw, tw = sign * frame.T @ c6[:3], sign * frame.T @ c6[3:]
+            force[r] += fw
+            torque[r] += np.cross(con.pos - d.subtree_com[self._bid[r]], fw) + tw
+            which[r].append(i)
+        return force, torque, which
+
     def rest_lengths(self) -> np.ndarray:
         """(S,) current rest length of every tendon, m (upper bound of a pull-only cable's dead-band)."""
         return self.model.tendon_lengthspring[:, 1].copy()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import types
 
-import mujoco
 import numpy as np
 import pytest
 import torch
@@ -32,27 +31,14 @@ def wrenches():
     data = collect(xml, CollectConfig(episodes=2, steps=800, seed=3, push_every=200))
     plant = MujocoPlant(xml)
     m, d = plant.model, plant.data
-    rod_of_geom = {g: r for r, b in enumerate(plant._bid) for g in range(m.ngeom) if m.geom_bodyid[g] == b}
     out = {k: [] for k in ("pos", "quat", "vel", "angvel", "lin", "ang", "force", "torque", "episode")}
-    c6 = np.zeros(6)
     for e in range(data.rest_length.shape[0]):
         for t in range(0, data.rest_length.shape[1], 12):
             plant._write_rest(data.rest_length[e, t])
             d.xfrc_applied[:] = 0.0
             d.xfrc_applied[plant._bid] = plant._push_wrench(data.push_force[e, t], data.push_point[e, t])
             plant.set_states(RodState(data.pos[e, t], data.quat[e, t], data.vel[e, t], data.angvel[e, t]))
-            f, tau = np.zeros((plant.n_rods, 3)), np.zeros((plant.n_rods, 3))
-            for i in range(d.ncon):
-                con = d.contact[i]
-                r = rod_of_geom.get(con.geom2, rod_of_geom.get(con.geom1))
-                if r is None:
-                    continue
-                mujoco.mj_contactForce(m, d, i, c6)
-                sign = 1.0 if con.geom2 in rod_of_geom else -1.0
-                frame = con.frame.reshape(3, 3)
-                fw, tw = sign * frame.T @ c6[:3], sign * frame.T @ c6[3:]
-                f[r] += fw
-                tau[r] += np.cross(con.pos - d.xipos[plant._bid[r]], fw) + tw
+            f, tau, _ = plant.contact_wrenches()
             for k, v in (("pos", data.pos[e, t]), ("quat", data.quat[e, t]), ("vel", data.vel[e, t]),
                          ("angvel", data.angvel[e, t]), ("lin", d.qacc_smooth[plant._vadr[:, :3]].copy()),
                          ("ang", d.qacc_smooth[plant._vadr[:, 3:]].copy()), ("force", f), ("torque", tau),

@@ -226,9 +226,10 @@ class GroundContact(CapsuleOnPlane):
         _, _, n, t1, _, _ = self._geom(state.pos)
         rot = ctx.rot
         centre, depth = self._end_spheres(state, rot)
-        # the force acts on the rod's axis at the end sphere's centre: a contact at the capsule's
-        # surface would also twist the rod about its own axis, a mode whose inertia M r²/2 is too
-        # small for the data to identify and which the plant's torsional friction holds still
+        # the force acts on the rod's axis at the end sphere's centre: with this law's independent
+        # friction bound, a contact at the capsule's surface twists the rod about its own axis (the
+        # small inertia M r²/2) more than the plant does; the surface point needs the friction
+        # pyramid's shared normal force (``pyramid_contact``, which has both)
         lever = centre - state.pos.unsqueeze(-2)
         # friction axes per rod: along the rod's shadow on the ground (a) and across it (p); an end
         # cap rolls across its rod far more easily than it slides along it

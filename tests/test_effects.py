@@ -487,7 +487,7 @@ def test_the_classification_search_grows_its_part_only_while_it_is_too_small(mon
     best one is not settled (residual above rounding) and it sees some cables stick and others not."""
     from identified.fit import classification as I
 
-    monkeypatch.setattr(I, "prepare", lambda effect, data, topology: None)
+    monkeypatch.setattr(I, "prepare", lambda effect, data, topology, **kw: None)
 
     class Seen:  # a classification effect whose classification sees some cables or all or none
         def __init__(self, partly: bool) -> None:

@@ -294,7 +294,7 @@ def identify(
     iterating = [k for k, e in enumerate(joint) if e.fit_strategy == "classification"]
     cacheable = (_rows_cache is not None and bool(iterating) and solver == "lstsq"
                  and not any(joint[k].reads_rest_length for k in iterating)
-                 and dataset.n_episodes * dataset.n_steps <= CACHE_STEPS and (noise_copies <= 0 or not has_noise(dataset)))
+                 and _cache_bytes(dataset, columns, weak) <= CACHE_BYTES and (noise_copies <= 0 or not has_noise(dataset)))
 
     def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
@@ -539,9 +539,19 @@ def identify(
     return model
 
 
-#: the passes of a classification keep the rows of data of at most this many steps between them
-#: (:func:`_cached_runs`; ~0.3 kB a step for the robot, 24 cables on 6 rods)
-CACHE_STEPS = 200_000
+#: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take
+#: at most this many bytes (:func:`_cache_bytes`)
+CACHE_BYTES = 512 * 2**20
+#: bytes a recorded instant's states and step context take (the robot, 24 cables on 6 rods: ~6.5 kB)
+_STATE_BYTES = 8_000
+
+
+def _cache_bytes(data: Dataset, columns: RodColumns, weak: int) -> int:
+    """What :func:`_cached_runs` keeps of ``data``: every instant's states and step context, and its
+    rows (summed over the weak form's windows, which start every quarter window)."""
+    R, L = columns.full.shape
+    per = R * 6 * L * 8 / (max(1, weak // 4) if weak > 1 else 1)
+    return int(data.n_episodes * data.n_steps * (per + _STATE_BYTES))
 
 
 def _cached_runs(cache: dict, key: tuple, data: Dataset, fresh: Iterator[tuple[tuple[torch.Tensor, Any], int]],

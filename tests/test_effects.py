@@ -365,6 +365,25 @@ def test_tendon_frictionloss_is_identified_exactly_as_sticking_cable_friction(ic
     assert after * 1000 <= before, (before, after)
 
 
+def test_classification_passes_keep_their_rows_and_find_the_same_values(ico, tmp_path, monkeypatch):
+    """The classification's passes keep each chunk's rows but the friction's columns between them
+    (identify._cached_runs): the same fit, value for value, as one that builds every pass's rows
+    afresh, and the same slip force as the plant's."""
+    from identified.fit import identify as I
+
+    plant = tmp_path / "friction.xml"
+    plant.write_text(ico.read_text().replace("<spatial ", '<spatial frictionloss="5.0" '))
+    data = collect(plant, CollectConfig(episodes=3, steps=400, seed=21, push_every=100))
+    kept = fit_model(data, ico, effects="cable_friction")
+    monkeypatch.setattr(I, "CACHE_BYTES", 0)
+    fresh = fit_model(data, ico, effects="cable_friction")
+    np.testing.assert_array_equal(kept.stiffness, fresh.stiffness)
+    np.testing.assert_array_equal(kept.mass, fresh.mass)
+    a, b = (np.array(m.effects[0]["parameters"]["force"]) for m in (kept, fresh))
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(a, 5.0, rtol=1e-4)
+
+
 def test_refinement_moves_effect_parameters_back_to_the_truth(ico, tmp_path):
     """Refinement works on the effects' parameters too: a drag put 30 % off moves back toward the
     exact (regression) value while the free-run loss falls.  (L-BFGS over ~100 parameters and the
@@ -488,7 +507,7 @@ def test_the_classification_search_grows_its_part_only_while_it_is_too_small(mon
     best one is not settled (residual above rounding) and it sees some cables stick and others not."""
     from identified.fit import classification as I
 
-    monkeypatch.setattr(I, "prepare", lambda effect, data, topology: None)
+    monkeypatch.setattr(I, "prepare", lambda effect, data, topology, **kw: None)
 
     class Seen:  # a classification effect whose classification sees some cables or all or none
         def __init__(self, partly: bool) -> None:

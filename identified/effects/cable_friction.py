@@ -235,40 +235,80 @@ class CableFriction(Effect):
         lin = P[..., :3] / p.mass[..., idx].unsqueeze(-1)
         ang = matrix_apply(rot, matrix_apply_transpose(rot, P[..., 3:]) / p.inertia[..., idx, :])
         Y = torch.cat((lin, ang), -1)
-        A = torch.einsum("...jec,...kfc,jekf->...jk", P, Y, self._same_rod(ctx.graph, P))  # (..., S, S)
+        # A_jk = sum over the ends e of j and f of k on one rod of P_je . Y_kf: the ends gathered per
+        # rod, (..., S, R x 6), and one batched product
+        on = self._end_rods(ctx.graph, p.mass.shape[-1], P)  # (S, 2, R, 1)
+        J = (P.unsqueeze(-2) * on).sum(-3).flatten(-2)
+        A = J @ (Y.unsqueeze(-2) * on).sum(-3).flatten(-2).transpose(-1, -2)  # (..., S, S)
         acc0 = self._length_acceleration(ctx, P, ctx.base_lin_acc, ctx.base_ang_acc_body)
         rate = ctx.geometry.rate
         Q = A + torch.diag_embed(1.0 / m.expand_as(rate))
         demand = acc0 + (d / m) * rate  # what sticking needs: Q r = demand
-        eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
+        if torch.compiler.is_compiling():  # compiled: a fixed count (no data-dependent branch, one graph)
+            return _box_solve(Q, A, demand, acc0, rate, F, m, d, PASSES)
+        # eager: the instants still moving, only -- an instant whose active set did not change in a
+        # pass gets the same solve in every later one (the batched solves are independent per instant)
+        shape = rate.shape
+        S = shape[-1]
+        flat = lambda x: x.expand(shape).reshape(-1, S)
+        Q, A = Q.expand(*shape, S).reshape(-1, S, S), A.expand(*shape, S).reshape(-1, S, S)
+        demand, acc0, rate, F, m, d = (flat(x) for x in (demand, acc0, rate, F, m, d))
+        out = torch.empty_like(rate)
+        todo = torch.arange(rate.shape[0], device=rate.device)
         slip = torch.zeros_like(rate, dtype=torch.bool)
         sign = torch.zeros_like(rate)
-        r = torch.zeros_like(rate)
-        eager = not torch.compiler.is_compiling()
-        for _ in range(PASSES):  # compiled: a fixed count (no data-dependent branch, one graph)
-            free = (~slip).to(Q.dtype)
-            fixed = torch.where(slip, F * sign, torch.zeros_like(r))
-            rhs = (demand - (A @ fixed.unsqueeze(-1)).squeeze(-1)) * free
-            Qf = Q * free.unsqueeze(-1) * free.unsqueeze(-2) + eye * (1.0 - free).unsqueeze(-1)
-            r = torch.linalg.solve(Qf, rhs.unsqueeze(-1)).squeeze(-1) * free + fixed
-            q = m * (acc0 - (A @ r.unsqueeze(-1)).squeeze(-1)) + d * rate  # the stick law at this r
-            # a sticking cable that asks for more than F slips, in the direction it pulled; a slipping
-            # one sticks again once the stick law at its bound asks for less (the box's KKT
-            # conditions); a slipping cable keeps its direction (re-reading it from q cycles)
-            clamp = ~slip & (r.abs() > F)
-            release = slip & (sign * q < F)
-            sign = torch.where(clamp, torch.sign(r), sign)
-            slip = (slip | clamp) & ~release
-            if eager and not bool((clamp | release).any()):
-                break  # settled (eager only)
-        return torch.where(slip, F * sign, r.clamp(-F, F))
+        for _ in range(PASSES):
+            r, slip, sign, moved = _box_pass(Q, A, demand, acc0, rate, F, m, d, slip, sign)
+            done = ~moved
+            out[todo[done]] = torch.where(slip[done], F[done] * sign[done], r[done].clamp(-F[done], F[done]))
+            if bool(done.all()):
+                return out.reshape(shape)
+            keep = moved.nonzero().squeeze(-1)
+            todo = todo[keep]
+            Q, A, demand, acc0, rate, F, m, d, slip, sign = (x[keep] for x in (Q, A, demand, acc0, rate, F, m, d,
+                                                                              slip, sign))
+            last = r[keep]
+        out[todo] = torch.where(slip, F * sign, last.clamp(-F, F))
+        return out.reshape(shape)
 
-    def _same_rod(self, graph: Any, like: torch.Tensor) -> torch.Tensor:
-        """(S, 2, S, 2): 1 where two cable ends sit on the same rod (both on rods)."""
-        key = ("same", like.dtype, like.device)
+    def _end_rods(self, graph: Any, n_rods: int, like: torch.Tensor) -> torch.Tensor:
+        """(S, 2, R, 1): 1 where end e of cable j sits on rod r (0 at a fixed anchor)."""
+        key = ("ends", n_rods, like.dtype, like.device)
         if key not in self._cache:
-            rods = graph.endpoint_rods
-            on = graph.on_rod
-            same = (rods.view(-1, 2, 1, 1) == rods.view(1, 1, -1, 2)) & on.view(-1, 2, 1, 1) & on.view(1, 1, -1, 2)
-            self._cache[key] = same.to(like.dtype)
+            rods = graph.endpoint_rods.to(like.device)
+            hit = (rods.unsqueeze(-1) == torch.arange(n_rods, device=like.device)) & graph.on_rod.unsqueeze(-1)
+            self._cache[key] = hit.to(like.dtype).unsqueeze(-1)
         return self._cache[key]
+
+
+def _box_pass(Q: torch.Tensor, A: torch.Tensor, demand: torch.Tensor, acc0: torch.Tensor, rate: torch.Tensor,
+              F: torch.Tensor, m: torch.Tensor, d: torch.Tensor, slip: torch.Tensor, sign: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One active-set pass of the box solve (:meth:`CableFriction.cable_forces`): the sticking
+    cables' forces with the slipping ones at ``±F``, then the new active set.  Returns the forces,
+    ``slip``, ``sign`` and whether each instant's active set changed, (...) bool."""
+    eye = torch.eye(Q.shape[-1], dtype=Q.dtype, device=Q.device)
+    free = (~slip).to(Q.dtype)
+    fixed = torch.where(slip, F * sign, torch.zeros_like(rate))
+    rhs = (demand - (A @ fixed.unsqueeze(-1)).squeeze(-1)) * free
+    Qf = Q * free.unsqueeze(-1) * free.unsqueeze(-2) + eye * (1.0 - free).unsqueeze(-1)
+    r = torch.linalg.solve(Qf, rhs.unsqueeze(-1)).squeeze(-1) * free + fixed
+    q = m * (acc0 - (A @ r.unsqueeze(-1)).squeeze(-1)) + d * rate  # the stick law at this r
+    # a sticking cable that asks for more than F slips, in the direction it pulled; a slipping
+    # one sticks again once the stick law at its bound asks for less (the box's KKT
+    # conditions); a slipping cable keeps its direction (re-reading it from q cycles)
+    clamp = ~slip & (r.abs() > F)
+    release = slip & (sign * q < F)
+    sign = torch.where(clamp, torch.sign(r), sign)
+    slip = (slip | clamp) & ~release
+    return r, slip, sign, (clamp | release).any(-1)
+
+
+def _box_solve(Q: torch.Tensor, A: torch.Tensor, demand: torch.Tensor, acc0: torch.Tensor, rate: torch.Tensor,
+               F: torch.Tensor, m: torch.Tensor, d: torch.Tensor, passes: int) -> torch.Tensor:
+    """``passes`` active-set passes over every instant (the compiled twin: one graph)."""
+    slip = torch.zeros_like(rate, dtype=torch.bool)
+    sign = torch.zeros_like(rate)
+    for _ in range(passes):
+        r, slip, sign, _ = _box_pass(Q, A, demand, acc0, rate, F, m, d, slip, sign)
+    return torch.where(slip, F * sign, r.clamp(-F, F))

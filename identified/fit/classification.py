@@ -81,21 +81,34 @@ def starts(effect: Effect, data: Dataset, topology: Topology) -> list[dict[str, 
     return [{"start_rate": b, "start_band": scale * g} for g in ((0.1, 0.3, 1.0, 3.0) if sharp else (1.0,))]
 
 
-def prepare(effect: Effect, data: Dataset, topology: Topology, min_rows: int = 100) -> None:
+def prepare(effect: Effect, data: Dataset, topology: Topology, min_rows: int = 100,
+            motion: dict | None = None) -> None:
     """Before a pass of the fit: count each element's sticking instants under the effect's current
     classification and the largest stick force seen, and give them to the effect
-    (:meth:`~identified.effects.cable_friction.CableFriction.observe`)."""
+    (:meth:`~identified.effects.cable_friction.CableFriction.observe`).  ``motion``: where the
+    passes on the same data keep what the classification reads (:meth:`length_motion`, which the
+    effect's values do not change)."""
     stuck = np.zeros(effect.n_springs)
     rows = 0
     qmax = np.zeros(effect.n_springs)
     with torch.no_grad():
-        for ch, _ in iter_chunks(data, 8192):
-            acc, rate = effect.length_motion(chunk_context(topology, ch), ch.acc, ch.alpha_body)
+        for acc, rate in _length_motion(effect, data, topology, motion):
             stuck += effect.classify(acc, rate)[0].sum(0).numpy()
             rows += acc.shape[0]
             if effect.values is not None:
                 qmax = np.maximum(qmax, effect.stick_force(acc, rate).amax(0).numpy())
     effect.observe(stuck, rows, qmax, min_rows)
+
+
+def _length_motion(effect: Effect, data: Dataset, topology: Topology, motion: dict | None
+                   ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The effect's :meth:`length_motion` of ``data`` per chunk, kept in ``motion`` for the same data."""
+    if motion is not None and motion.get(effect.name, (None,))[0] is data:
+        return motion[effect.name][1]
+    out = [effect.length_motion(chunk_context(topology, ch), ch.acc, ch.alpha_body) for ch, _ in iter_chunks(data, 8192)]
+    if motion is not None:
+        motion[effect.name] = (data, out)
+    return out
 
 
 def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequence[Effect],
@@ -108,9 +121,11 @@ def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequ
     unidentifiable of such an effect is held at the effect's pinned values and the pass redone.
     """
 
+    motion: dict = {}  # what the classification reads, for the data of the latest passes
+
     def fit_holding(data: Dataset, residual_stage: bool = False, bar: bool = False) -> IdentifiedModel | None:
         for e in iterative:
-            prepare(e, data, topology)
+            prepare(e, data, topology, motion=motion)
         try:  # what the pass finds unidentifiable of these effects it holds (identify's solve_holding)
             return fit_once(data, residual_stage, bar)
         except IdentifiabilityError:
@@ -172,13 +187,13 @@ def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequ
             if best[1] is None:
                 continue  # no start could be fitted on this part: a larger one
             kept = best[1]
-            if not _part_too_small(iterative, best[1], part, topology, spread, rel):
+            if not _part_too_small(iterative, best[1], part, topology, spread, rel, motion):
                 break
         best = (best[0], best[1] or kept)
         for e, v in zip(iterative, best[1] or [None] * len(iterative)):
             e.values = v
             e.release()
-            prepare(e, part, topology)
+            prepare(e, part, topology, motion=motion)
         # nothing to classify (no cable ever sticks): no more passes, one final fit
         inert = all(e.inert() for e in iterative)
     passes = 0
@@ -192,7 +207,7 @@ def iterate_classification(dataset: Dataset, topology: Topology, iterative: Sequ
 
 
 def _part_too_small(iterative: Sequence[Effect], values: list, part: Dataset, topology: Topology,
-                    residuals: Sequence[float], relative: float) -> bool:
+                    residuals: Sequence[float], relative: float, motion: dict | None = None) -> bool:
     """Whether the classification search should go on to a larger part of the data than ``part``:
     the classification matters there (the effect's own starts' equation ``residuals`` differ by 2x
     or more, or there was one), the best one, ``values``, leaves a ``relative`` residual above rounding
@@ -209,7 +224,7 @@ def _part_too_small(iterative: Sequence[Effect], values: list, part: Dataset, to
         return False
     for e, v in zip(iterative, values):
         e.values = v.copy()
-        prepare(e, part, topology)
+        prepare(e, part, topology, motion=motion)
         if e.partly_unseen():
             return True
     return False

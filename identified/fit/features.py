@@ -60,7 +60,7 @@ from identified.rotation import matrix_apply, matrix_apply_transpose, quat_to_ma
 from identified.samples import Chunk
 from identified.topology import Topology
 
-__all__ = ["RodColumns", "chunk_context", "equation_rows", "step_context"]
+__all__ = ["RodColumns", "chunk_context", "effect_rows", "equation_rows", "fit_context", "step_context"]
 
 
 @dataclass(frozen=True)
@@ -174,7 +174,7 @@ def equation_rows(
     chunk: Chunk,
     gravity: torch.Tensor,
     implicit_dt: float | None = None,
-    effects: Sequence[Effect] = (),
+    effects: Sequence[Effect | None] = (),
     dt: float = 0.0,
 ) -> torch.Tensor:
     """The regression rows of a chunk in the compact per-rod layout: (N, R, 6, L) with the local
@@ -184,7 +184,8 @@ def equation_rows(
     homogeneous (``A theta = 0``): the scale is fixed later by an anchor.  ``implicit_dt``: the
     time step of a plant on MuJoCo's implicit integrators (adds their terms), ``None`` for Euler.
     ``effects``: the jointly fitted effects of the layout, in order; their columns hold minus the
-    force (translation rows) and minus the rod-frame torque (rotation rows) per unit parameter.
+    force (translation rows) and minus the rod-frame torque (rotation rows) per unit parameter
+    (``None`` in place of an effect: its columns left at 0, :func:`effect_rows` makes them).
     """
     N, R = chunk.pos.shape[:2]
     D = columns.degree
@@ -252,18 +253,47 @@ def equation_rows(
     # control force scalar h: - h f_u, torque - R^T (R r_u x h f_u)
     A[:, 0:3, :, 2 * D + 4] = -chunk.push_force.transpose(1, 2)
     A[:, 3:6, :, 2 * D + 4] = -chunk.push_torque_body.transpose(1, 2)
-    if effects:
+    if any(e is not None for e in effects):
         ctx = step_context(topology, chunk, rot, ends, SpringGeometry(length, rate, unit), dt=dt)
         state = RodState(chunk.pos, chunk.quat, chunk.vel, chunk.angvel)
         for eff, c0 in zip(effects, columns.effect_start):
-            _effect_columns(A, eff, c0, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
+            if eff is not None:
+                _effect_columns(A, eff, c0, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
         if columns.rest_steps:
-            reader = [e for e in effects if e.reads_rest_length]
+            reader = [e for e in effects if e is not None and e.reads_rest_length]
             step = _RestStep(reader[0]) if len(reader) == 1 else None
             if step is None or reader[0].kind != "spring" or reader[0].width != 1:
                 raise ValueError("the fit takes one effect whose law reads a spring's rest length, with one "
                                  f"parameter per spring; got {[e.name for e in reader]}")
             _effect_columns(A, step, 2 * D + 5 + D, state, ctx, rot, topology, columns, on, flat_rod, flat_slot)
+    A = A.permute(0, 2, 1, 3)
+    if chunk.row_weight is not None:
+        A = A * chunk.row_weight[:, :, None, None]
+    return A
+
+
+def fit_context(topology: Topology, chunk: Chunk, dt: float = 0.0) -> tuple[RodState, StepContext, torch.Tensor]:
+    """What an effect's columns are built from at a chunk's recorded instants, as
+    :func:`equation_rows` builds them: the states, the step context and the rotations."""
+    rot = quat_to_matrix(chunk.quat)
+    ends = endpoint_kinematics(topology, chunk.pos, chunk.quat, chunk.vel, chunk.angvel, rot=rot)
+    ctx = step_context(topology, chunk, rot, ends, spring_geometry(ends), dt=dt)
+    return RodState(chunk.pos, chunk.quat, chunk.vel, chunk.angvel), ctx, rot
+
+
+def effect_rows(topology: Topology, columns: RodColumns, chunk: Chunk, context: tuple[RodState, StepContext, torch.Tensor],
+                effect: Effect, k: int) -> torch.Tensor:
+    """The columns of the layout's ``k``-th effect alone, (N, R, 6, w) from its first local column
+    ``columns.effect_start[k]``, weighted as :func:`equation_rows` weighs its rows: what that
+    function writes there (``context``: :func:`fit_context` of the chunk)."""
+    starts = columns.effect_start
+    w = (starts[k + 1] if k + 1 < len(starts) else columns.full.shape[1]) - starts[k]
+    state, ctx, rot = context
+    N, R = chunk.pos.shape[:2]
+    A = torch.zeros(N, 6, R, w, dtype=chunk.pos.dtype, device=chunk.pos.device)
+    on = np.flatnonzero(topology.endpoint_rods.reshape(-1) >= 0)
+    _effect_columns(A, effect, 0, state, ctx, rot, topology, columns, on, topology.endpoint_rods.reshape(-1)[on],
+                    columns.slot.reshape(-1)[on])
     A = A.permute(0, 2, 1, 3)
     if chunk.row_weight is not None:
         A = A * chunk.row_weight[:, :, None, None]

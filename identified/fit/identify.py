@@ -35,9 +35,9 @@ from identified.fit.checks import (
 )
 from identified.fit.classification import iterate_classification
 from identified.fit.derivatives import default_window, weak_form
-from identified.fit.features import RodColumns, chunk_context, equation_rows
+from identified.fit.features import RodColumns, chunk_context, effect_rows, equation_rows, fit_context
 from identified.fit.layout import ParameterLayout
-from identified.fit.noise import with_noise_replicates
+from identified.fit.noise import has_noise, with_noise_replicates
 from identified.fit.regression import (
     Anchor,
     IdentifiabilityError,
@@ -162,6 +162,7 @@ def identify(
     _residual_stage: bool = True,
     inertia: str = "auto",
     _release: str | None = None,
+    _rows_cache: dict | None = None,
 ) -> IdentifiedModel:
     """Fit K, c per spring, M, I per rod and the control scale h from rod states alone.
 
@@ -204,10 +205,12 @@ def identify(
     check_strategies(effects)
     iterative = [e for e in effects if e.fit_strategy == "classification"]
     if iterative and not _classified:
+        cache: dict = {}  # the passes' rows but the iterative effects' columns (:func:`_cached_runs`)
+
         def fit_once(data: Dataset, residual_stage: bool, bar: bool = False) -> IdentifiedModel:
             return identify(data, topology, regressors, scale, solver, weak_window, integrator, scheme, chunk_steps,
                             bar, device, noise_copies, effects, hold_inertia, contact_margin, _classified=True,
-                            _residual_stage=residual_stage, inertia=inertia)
+                            _residual_stage=residual_stage, inertia=inertia, _rows_cache=cache)
 
         return iterate_classification(dataset, topology, iterative, fit_once, progress)
     scheme = scheme or ("central" if integrator == "rk4" else "forward")
@@ -231,7 +234,8 @@ def identify(
         again = {"regressors": regressors, "scale": scale, "solver": solver, "weak_window": weak_window,
                  "integrator": integrator, "scheme": scheme, "chunk_steps": chunk_steps, "progress": progress,
                  "device": device, "noise_copies": noise_copies, "effects": effects, "hold_inertia": hold_inertia,
-                 "contact_margin": contact_margin, "_classified": _classified, "_residual_stage": _residual_stage}
+                 "contact_margin": contact_margin, "_classified": _classified, "_residual_stage": _residual_stage,
+                 "_rows_cache": _rows_cache}
         err: IdentifiabilityError | None = None
         for release in ("after_first", "from_start"):
             try:
@@ -274,25 +278,50 @@ def identify(
     fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
-    length_ref = mean_lengths(dataset, topology)
+    if _rows_cache is not None:  # the same data in every pass of a classification
+        if _rows_cache.get("lengths", (None,))[0] is not dataset:
+            _rows_cache["lengths"] = (dataset, mean_lengths(dataset, topology))
+        length_ref = _rows_cache["lengths"][1]
+    else:
+        length_ref = mean_lengths(dataset, topology)
     columns = RodColumns.build(topology, layout, length_ref)
     implicit_dt = dataset.dt if integrator == "implicit" else None
 
     bar = _progress(progress, dataset.n_episodes * dataset.n_steps, "features")
 
+    # the passes of a classification (:mod:`identified.fit.classification`) fit the same rows but
+    # the columns of the effects it iterates: the rest is kept between passes (:func:`_cached_runs`)
+    iterating = [k for k, e in enumerate(joint) if e.fit_strategy == "classification"]
+    cacheable = (_rows_cache is not None and bool(iterating) and solver == "lstsq"
+                 and not any(joint[k].reads_rest_length for k in iterating)
+                 and _cache_bytes(dataset, columns, weak) <= CACHE_BYTES and (noise_copies <= 0 or not has_noise(dataset)))
+
     def runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """The rows of ``data`` per chunk, with the number of episodes (independent runs) in it."""
+        if cacheable and primary:
+            key = ("rows", columns.full.tobytes(), None if columns.length_ref is None else columns.length_ref.tobytes(), rest_estimate.tobytes(),
+                   weak, scheme, chunk_steps, contact_margin, implicit_dt, tuple(e.name for e in joint))
+            yield from _cached_runs(_rows_cache, key, data, fresh_runs(data, True), topology, columns, joint, iterating,
+                                    weak, dataset.dt, bar)
+            return
+        yield from fresh_runs(data, primary)
+
+    def fresh_runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
+        """:func:`runs` computed afresh."""
+        base = cacheable and primary  # the rows without the iterative effects' columns, and the chunk
         for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
             ch.rest = _with_estimate(ch.rest, passive, rest_estimate)
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 hit = _affected(late, topology, ch)
                 keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
-            A = equation_rows(topology, columns, ch, gravity, implicit_dt, joint, dt=dataset.dt)
+            fitted = [None if base and k in iterating else e for k, e in enumerate(joint)]
+            A = equation_rows(topology, columns, ch, gravity, implicit_dt, fitted, dt=dataset.dt)
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
             if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])
-            yield (weak_form(A, n_ep, weak) if weak > 1 else A), n_ep
+            A = weak_form(A, n_ep, weak) if weak > 1 else A
+            yield ((A, ch) if base else A), n_ep
 
     def rows() -> Iterator[torch.Tensor]:
         return (A for A, _ in runs(src["data"]))
@@ -508,6 +537,57 @@ def identify(
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
     return model
+
+
+#: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take
+#: at most this many bytes (:func:`_cache_bytes`)
+CACHE_BYTES = 512 * 2**20
+#: bytes a recorded instant's states and step context take (the robot, 24 cables on 6 rods: ~6.5 kB)
+_STATE_BYTES = 8_000
+
+
+def _cache_bytes(data: Dataset, columns: RodColumns, weak: int) -> int:
+    """What :func:`_cached_runs` keeps of ``data``: every instant's states and step context, and its
+    rows (summed over the weak form's windows, which start every quarter window)."""
+    R, L = columns.full.shape
+    per = R * 6 * L * 8 / (max(1, weak // 4) if weak > 1 else 1)
+    return int(data.n_episodes * data.n_steps * (per + _STATE_BYTES))
+
+
+def _cached_runs(cache: dict, key: tuple, data: Dataset, fresh: Iterator[tuple[tuple[torch.Tensor, Any], int]],
+                 topology: Topology, columns: RodColumns, joint: Sequence[Effect], iterating: Sequence[int],
+                 weak: int, dt: float, bar: Any) -> Iterator[tuple[torch.Tensor, int]]:
+    """The rows of ``data`` per chunk for a pass of a classification: the rows without the columns
+    of the effects it iterates (``joint[k]`` for ``k`` in ``iterating``), summed over the weak form's
+    windows, and each chunk's states and step context are kept in ``cache`` under ``key`` (the same
+    data, layout and rest lengths) from the first pass (``fresh``: the chunks' rows without those
+    columns, and each chunk); every pass adds those columns, made from its own classification
+    (:func:`identified.fit.features.effect_rows`; the weak form is linear, row by row)."""
+    hit = cache.get(key)
+    if hit is None or hit[0] is not data:
+        parts = []
+        for (base, ch), n_ep in fresh:
+            parts.append((base, ch, fit_context(topology, ch, dt), n_ep))
+            yield _with_iterative(parts[-1], topology, columns, joint, iterating, weak), n_ep
+        cache.clear()  # one data set at a time: the search's parts are tried in turn
+        cache[key] = (data, parts)
+        return
+    for part in hit[1]:
+        if bar is not None and bar.n < bar.total:
+            bar.update(part[1].pos.shape[0])
+        yield _with_iterative(part, topology, columns, joint, iterating, weak), part[3]
+
+
+def _with_iterative(part: tuple, topology: Topology, columns: RodColumns, joint: Sequence[Effect],
+                    iterating: Sequence[int], weak: int) -> torch.Tensor:
+    """A cached chunk's rows (:func:`_cached_runs`) with the iterated effects' columns as they are now."""
+    base, ch, context, n_ep = part
+    A = base.clone()
+    for k in iterating:
+        cols = effect_rows(topology, columns, ch, context, joint[k], k)
+        c0 = columns.effect_start[k]
+        A[..., c0 : c0 + cols.shape[-1]] += weak_form(cols, n_ep, weak) if weak > 1 else cols
+    return A
 
 
 #: at most this many reclassifications of passive cables' taut rows; stop when the rest lengths

@@ -309,6 +309,14 @@ def _square(r: np.ndarray, n: int) -> np.ndarray:
 
 
 def _independent_rows(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``C`` each independent of those before it (greedily, first to last), and their
+    indices.  A row equal to an earlier one never is; when the first of each distinct row are
+    independent together, so is each of them of those before it (a subset of independent rows is
+    independent), and one rank test decides."""
+    _, first = np.unique(C, axis=0, return_index=True)
+    first = np.sort(first)
+    if np.linalg.matrix_rank(C[first]) == len(first):
+        return C[first], first.astype(int)
     keep: list[int] = []
     for i in range(C.shape[0]):
         trial = C[keep + [i]]

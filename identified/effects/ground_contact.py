@@ -146,6 +146,19 @@ def capsule_geometry(options: dict[str, Any], like: torch.Tensor) -> tuple[torch
             t(options["ground_height"]))
 
 
+def shadow_frame(rot: Mat, n: tuple, t1: tuple) -> tuple[Vec, Vec, Vec]:
+    """Each rod's contact frame in component form: the plane's normal ``n``, the unit vector along
+    the rod's shadow on the plane (its axis less its normal part; ``t1`` where it stands upright)
+    and ``n`` x that, from the rods' rotations ``rot`` (nine components (..., R))."""
+    axis = (rot[2], rot[5], rot[8])
+    an = vdot(axis, n)
+    along = tuple(a - an * c for a, c in zip(axis, n))
+    norm = torch.sqrt(vdot(along, along))
+    inv = 1.0 / norm.clamp_min(1e-12)
+    along = tuple(torch.where(norm > 1e-6, a * inv, t) for a, t in zip(along, t1))
+    return n, along, vcross(n, along)
+
+
 class CapsuleOnPlane(Effect):
     """What the ground-contact laws share: the rods' collision capsules on the MJCF's ground plane
     (:func:`read_contact_geometry`, geometry only), each capsule's end spheres and their depths."""
@@ -388,13 +401,7 @@ class GroundContact(CapsuleOnPlane):
         th = self.theta(pos[0])
         radius, seg, n, t1, height = self._geom_components(pos[0])
         # friction axes per rod: along the rod's shadow on the ground (a) and across it (p)
-        axis = (rot[2], rot[5], rot[8])
-        an = vdot(axis, n)
-        along = tuple(a - an * c for a, c in zip(axis, n))
-        norm = torch.sqrt(vdot(along, along))
-        inv = 1.0 / norm.clamp_min(1e-12)
-        along = tuple(torch.where(norm > 1e-6, a * inv, t) for a, t in zip(along, t1))
-        dirs = (n, along, vcross(n, along))  # rows n, a, p
+        dirs = shadow_frame(rot, n, t1)  # rows n, a, p
         alpha_w = mv(rot, base_ang_acc_body)
         j_inv = None if products is None else minverse(inertia_matrix(inertia, products))
         levers, depths, bodies, scaled, refs = [], [], [], [], []

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from identified.effects.base import ParamBlock
-from identified.effects.ground_contact import CapsuleOnPlane, cluster_covariance
+from identified.effects.ground_contact import CapsuleOnPlane, cluster_covariance, shadow_frame
 from identified.engine.accelerations import inertia_matrix
 from identified.engine.smallmat import Mat, Vec, mat, mtv, mv, unvec, vadd, vcross, vdot, vec, vsub
 
@@ -222,13 +222,7 @@ class PyramidContact(CapsuleOnPlane):
         if rods is not None:
             radius, seg = radius[rods], [tuple(x[rods] for x in end) for end in seg]
         # the contact frame: n, the rod's shadow on the ground (t1 when it stands upright), across
-        axis = (rot[2], rot[5], rot[8])
-        an = vdot(axis, n)
-        along = tuple(a - an * c for a, c in zip(axis, n))
-        norm = torch.sqrt(vdot(along, along))
-        inv = 1.0 / norm.clamp_min(1e-12)
-        along = tuple(torch.where(norm > 1e-6, a * inv, t) for a, t in zip(along, t1))
-        U = (n, along, vcross(n, along))
+        U = shadow_frame(rot, n, t1)
         P = [mtv(rot, u) for u in U]  # the frame's axes in the rod's frame
         # the mass matrix in U: M on the linear block, U J Uᵀ on the angular one
         Jb = None if products is None else inertia_matrix(inertia, products)

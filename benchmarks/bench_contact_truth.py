@@ -18,7 +18,8 @@ About 2 min on one core. Figures, not assertions.
 from __future__ import annotations
 
 import argparse
-import types
+import dataclasses
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -30,6 +31,26 @@ from identified.state import RodState
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.models import build_model
 from tensegrity_gym.plant import MujocoPlant
+
+
+@dataclasses.dataclass
+class _Params:
+    """The plant's rods as the laws read them (true masses and principal inertias)."""
+
+    mass: torch.Tensor
+    inertia: torch.Tensor
+    com: torch.Tensor | None = None
+    inertia_products: torch.Tensor | None = None
+
+
+class _Context(NamedTuple):
+    """The step context the laws read: the rods, their rotations and every other force's accelerations."""
+
+    params: _Params
+    rot: torch.Tensor
+    angvel_body: torch.Tensor | None
+    base_lin_acc: torch.Tensor
+    base_ang_acc_body: torch.Tensor
 
 
 def contact_wrenches(plant: MujocoPlant, data, stride: int) -> dict[str, np.ndarray]:
@@ -75,11 +96,8 @@ def main() -> None:
     t = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float64)
     st = w["state"]
     state = RodState(*(t([getattr(s, k) for s in st]) for k in ("pos", "quat", "vel", "angvel")))
-    ctx = types.SimpleNamespace(
-        params=types.SimpleNamespace(mass=t(plant.masses), inertia=t(plant.model.body_inertia[plant._bid])),
-        rot=t(quat_to_matrix(np.array([s.quat for s in st]))), angvel_body=None,
-        base_lin_acc=t(w["lin"]), base_ang_acc_body=t(w["ang"]))
-    ctx._replace = lambda **kw: types.SimpleNamespace(**{**vars(ctx), **kw})
+    ctx = _Context(_Params(t(plant.masses), t(plant.model.body_inertia[plant._bid])),
+                   t(quat_to_matrix(np.array([s.quat for s in st]))), None, t(w["lin"]), t(w["ang"]))
     law = GroundContact(plant.n_rods, len(plant.tendon_names),
                         options=read_contact_geometry(xml, plant.rod_names))
     F, T = t(w["force"]), t(w["torque"])

@@ -52,7 +52,6 @@ def wrenches():
                                                              inertia=t(m.body_inertia[plant._bid])),
                                 rot=t(quat_to_matrix(np.asarray(out["quat"]))), angvel_body=None,
                                 base_lin_acc=t(out["lin"]), base_ang_acc_body=t(out["ang"]))
-    ctx._replace = lambda **kw: types.SimpleNamespace(**{**vars(ctx), **kw})
     law = PyramidContact(plant.n_rods, len(plant.tendon_names), options=read_contact_geometry(xml, plant.rod_names))
     force, torque = t(out["force"]), t(out["torque"])
     touching = force.norm(dim=-1) > 0

@@ -237,6 +237,8 @@ class PyramidContact(CapsuleOnPlane):
             base_lin_acc, mv(rot, vadd(vcross(base_ang_acc_body, com), vcross(w_b, vcross(w_b, com)))))
         a0f = [vdot(a0, u) for u in U] + [vdot(base_ang_acc_body, p) for p in P]
         spin = [vdot(angvel, u) for u in U]
+        mu2 = mu * mu
+        mass_over_r = mass / (2 * mu2 * (1 + mu2))  # the regulariser R = 2 μ² (1 + μ²) (1 - d) / (d M), inverted
         contacts = []
         for e in range(2):
             lever = mv(rot, seg[e])  # frame origin -> end-sphere centre
@@ -252,8 +254,7 @@ class PyramidContact(CapsuleOnPlane):
             imp = impedance(depth.clamp_min(0.0), d0, dw, width)
             g = [-beta * r - _dot(b, a0f) for r, b in zip(rate, B)]
             g[0] = g[0] + kappa * imp * depth
-            mu2 = mu * mu
-            D = torch.where(depth > 0, imp * mass / (2 * mu2 * (1 + mu2) * (1 - imp)), torch.zeros_like(depth))
+            D = torch.where(depth > 0, imp * mass_over_r / (1 - imp), torch.zeros_like(depth))
             contacts.append((B, g, D))
 
         x: list[Entry] = [0.0] * 6

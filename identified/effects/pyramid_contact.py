@@ -31,8 +31,9 @@ impedance rises from ``d_0`` at the surface to ``d_w`` at the depth ``w`` along 
 
 Solved per rod by Newton's method on (2) (a 6x6 system per iteration, a line search), in the rod's
 contact frame and in component form (:meth:`PyramidContact._law`: every rod and instant elementwise,
-the constant entries of the contact rows dropped), which the twin's compiled step fuses; the
-engine's tensor form and the fit run the same function.  Two contacts on one rod are solved together.
+the constant entries of the contact rows dropped, a rod's two contacts and twenty edges stacked on
+short leading axes so that one operation serves all of them), which the twin's compiled step fuses;
+the engine's tensor form and the fit run the same function.  Two contacts on one rod are solved together.
 """
 
 from __future__ import annotations
@@ -59,6 +60,8 @@ STEPS = (1.0, 0.5, 0.25, 0.1, 0.03)
 START = {"beta": 50.0, "kappa": 2000.0, "imp_min": 0.8, "imp_max": 0.9, "imp_width": 2e-3, "mu": 0.5,
          "mu_torsion": 0.01, "mu_rolling": 0.001}
 NAMES = tuple(START)
+#: the relative step of the fit's forward-difference Jacobian (in the transformed parameters)
+DIFF_STEP = 1e-5
 #: the impedance widths (m) the fit starts from, the best fit kept
 WIDTHS = (3e-4, 2e-3, 1e-2)
 #: at most this many rod-instants in contact enter the non-linear fit (a seeded subsample)
@@ -111,15 +114,13 @@ def _matvec(M: list, x: list) -> list:
     return [_dot(row, x) for row in M]
 
 
-def _line_cost(s: float, quad: tuple, edges: list, slopes: list) -> torch.Tensor:
-    """Problem (2)'s cost at ``x + s step``: ``quad`` its quadratic part's coefficients (c0, c1, c2),
-    per contact the edges' values at ``x`` and their rates along the step."""
-    c0, c1, c2 = quad
-    total = _sum(c0, s * c1, s * s * c2)
-    for (_, D, vp, vm), (dp, dm) in zip(edges, slopes):
-        sq = sum((v - s * d).clamp_min(0.0) ** 2 for v, d in zip(vp + vm, dp + dm))
-        total = total + 0.5 * D * sq
-    return total
+def _lead(t: torch.Tensor) -> torch.Tensor:
+    """The sum over a short leading axis as a chain of additions (elementwise: a compiled step
+    fuses it with the work around it, where a reduction is a loop of its own)."""
+    out = t[0]
+    for k in range(1, t.shape[0]):
+        out = out + t[k]
+    return out
 
 
 def _spd_solve(H: list, b: list) -> list:
@@ -204,6 +205,25 @@ class PyramidContact(CapsuleOnPlane):
         return self._law(self.theta(pos[0]), pos, vel, angvel, rot, base_lin_acc, base_ang_acc_body, mass,
                          inertia, com, products)
 
+    def _stacked(self, like: torch.Tensor, rods: torch.Tensor | None) -> tuple[torch.Tensor, tuple]:
+        """The capsules' radii and their two segment ends' rod-frame components stacked on a leading
+        axis of the two end spheres, (2, R) each (or (2, K) for the rod-instants ``rods``)."""
+        key = ("ends", like.dtype, like.device)
+        if key not in self._cache:
+            radius, seg, _, _, _ = self._geom_components(like)
+            self._cache[key] = (radius, tuple(torch.stack((seg[0][k], seg[1][k])) for k in range(3)))
+        radius, ends = self._cache[key]
+        if rods is not None:
+            radius, ends = radius[rods], tuple(c[:, rods] for c in ends)
+        return radius, ends
+
+    def _steps(self, like: torch.Tensor) -> torch.Tensor:
+        """The line search's step sizes, 0 and :data:`STEPS`, as a tensor (6,)."""
+        key = ("steps", like.dtype, like.device)
+        if key not in self._cache:
+            self._cache[key] = torch.tensor((0.0, *STEPS), dtype=like.dtype, device=like.device)
+        return self._cache[key]
+
     def _law(self, th: torch.Tensor, pos: Vec, vel: Vec, angvel: Vec, rot: Mat, base_lin_acc: Vec,
              base_ang_acc_body: Vec, mass: torch.Tensor, inertia: Vec, com: Vec | None,
              products: Vec | None, rods: torch.Tensor | None = None) -> tuple[Vec, Vec]:
@@ -214,13 +234,23 @@ class PyramidContact(CapsuleOnPlane):
         the mass matrix is ``diag(M, M, M, U J Uᵀ)``.  Newton's method from ``x = 0`` with the
         Hessian ``𝕄 + Σ Bᵀ W B`` (``W`` the arrowhead of a contact's active edges) and a line
         search over :data:`STEPS` on the exact cost.  ``rods`` (K,): every argument's components
-        are (K,), row k one instant of rod ``rods[k]`` (the fit's rod-instants in contact)."""
+        are (K,), row k one instant of rod ``rods[k]`` (the fit's rod-instants in contact).
+
+        Layout: a rod's quantities are (*b) tensors (``b`` the components' shape); a contact's are
+        stacked on a leading axis of the rod's two end spheres, (2, *b), and an edge's on two more,
+        the sign of its friction term and the five friction directions, (2, 5, 2, *b), so that each
+        line of the algebra below is one operation for all twenty edges of a rod."""
         th = th if th.dim() == 1 else th.squeeze(-2)  # (P,) or per env (N, 1, P) -> (N, P)
         beta, kappa, d0, dw, width, mu, mu_t, mu_r = (_trail(th[..., k], 1) for k in range(8))
-        mus = (mu, mu, mu_t, mu_r, mu_r)
-        radius, seg, n, t1, height = self._geom_components(pos[0])
-        if rods is not None:
-            radius, seg = radius[rods], [tuple(x[rods] for x in end) for end in seg]
+        nb = pos[0].dim()
+        ones = (1,) * nb
+        # the five friction coefficients with the edges' signs, (2, 5, 1, ...) against (2, 5, 2, *b)
+        mk = torch.stack(torch.broadcast_tensors(mu, mu, mu_t, mu_r, mu_r))
+        mk = mk.reshape((5, 1) + (mk.shape[1:] if mk.dim() > 1 else ones))
+        sm = torch.stack((mk, -mk))
+        _, _, n, t1, height = self._geom_components(pos[0])
+        radius, ends = self._stacked(pos[0], rods)
+        ends = tuple(c.reshape((2,) + (1,) * (nb + 1 - c.dim()) + c.shape[1:]) for c in ends)  # (2, 1.., R)
         # the contact frame: n, the rod's shadow on the ground (t1 when it stands upright), across
         U = shadow_frame(rot, n, t1)
         P = [mtv(rot, u) for u in U]  # the frame's axes in the rod's frame
@@ -235,68 +265,58 @@ class PyramidContact(CapsuleOnPlane):
         com_w = None if com is None else mv(rot, com)
         a0 = base_lin_acc if com is None else vadd(
             base_lin_acc, mv(rot, vadd(vcross(base_ang_acc_body, com), vcross(w_b, vcross(w_b, com)))))
-        a0f = [vdot(a0, u) for u in U] + [vdot(base_ang_acc_body, p) for p in P]
+        a0f = [_dot(list(a0), list(u)) for u in U] + [vdot(base_ang_acc_body, p) for p in P]
         spin = [vdot(angvel, u) for u in U]
         mu2 = mu * mu
         mass_over_r = mass / (2 * mu2 * (1 + mu2))  # the regulariser R = 2 μ² (1 + μ²) (1 - d) / (d M), inverted
-        contacts = []
-        for e in range(2):
-            lever = mv(rot, seg[e])  # frame origin -> end-sphere centre
-            depth = radius - (vdot(vadd(pos, lever), n) - height)
-            lever = tuple(x - (radius - depth / 2) * c for x, c in zip(lever, n))  # -> the surface point
-            rho = lever if com_w is None else vsub(lever, com_w)
-            rn, ra, rp = (vdot(rho, u) for u in U)
-            B = [[1.0, 0.0, 0.0, 0.0, rp, -ra], [0.0, 1.0, 0.0, -rp, 0.0, rn], [0.0, 0.0, 1.0, ra, -rn, 0.0],
-                 [0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]
-            # the reference accelerations (1) of the six rows, less the rows at a0: the row values at x = 0
-            v_p = vadd(vel, vcross(angvel, lever))
-            rate = [vdot(v_p, u) for u in U] + spin
-            imp = impedance(depth.clamp_min(0.0), d0, dw, width)
-            g = [-beta * r - _dot(b, a0f) for r, b in zip(rate, B)]
-            g[0] = g[0] + kappa * imp * depth
-            D = torch.where(depth > 0, imp * mass_over_r / (1 - imp), torch.zeros_like(depth))
-            contacts.append((B, g, D))
+        # the two contacts (end spheres), (2, *b): depth, the lever to the surface point, its rows B
+        lever = mv(rot, ends)  # frame origin -> end-sphere centre
+        depth = radius - (_dot(list(vadd(pos, lever)), list(n)) - height)
+        lever = tuple(_sum(x, -_mul(c, radius - depth / 2)) for x, c in zip(lever, n))  # -> the surface point
+        rho = lever if com_w is None else vsub(lever, com_w)
+        rn, ra, rp = (_dot(list(rho), list(u)) for u in U)
+        B = [[1.0, 0.0, 0.0, 0.0, rp, -ra], [0.0, 1.0, 0.0, -rp, 0.0, rn], [0.0, 0.0, 1.0, ra, -rn, 0.0],
+             [0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]
+        # the reference accelerations (1) of the six rows, less the rows at a0: the row values at x = 0
+        v_p = vadd(vel, vcross(angvel, lever))
+        rate = [_dot(list(v_p), list(u)) for u in U] + spin
+        imp = impedance(depth.clamp_min(0.0), d0, dw, width)
+        g = [-beta * r - _dot(b, a0f) for r, b in zip(rate, B)]
+        g[0] = g[0] + kappa * imp * depth
+        D = torch.where(depth > 0, imp * mass_over_r / (1 - imp), torch.zeros_like(depth))
+        both = lambda e: e[0] + e[1] if isinstance(e, torch.Tensor) else 2 * e
+        edge = lambda r: r[0] + sm * torch.stack(torch.broadcast_tensors(*r[1:], r[0])[:-1])
+        s_col = self._steps(pos[0]).reshape((6, 1, 1, 1) + ones)
 
         x: list[Entry] = [0.0] * 6
         for _ in range(NEWTON_ITERATIONS):
             Mx = _matvec(Mf, x)
-            grad = list(Mx)
-            H = [[Mf[i][j] for j in range(i + 1)] for i in range(6)]  # the lower triangle
-            edges = []
-            for B, g, D in contacts:
-                r = [_sum(gj, -_dot(b, x)) for gj, b in zip(g, B)]
-                vp = [r[0] + m * rk for m, rk in zip(mus, r[1:])]
-                vm = [r[0] - m * rk for m, rk in zip(mus, r[1:])]
-                wp = [D * (v > 0).to(D.dtype) for v in vp]  # the active edges' weights
-                wm = [D * (v > 0).to(D.dtype) for v in vm]
-                fp = [w * v for w, v in zip(wp, vp)]  # and forces
-                fm = [w * v for w, v in zip(wm, vm)]
-                g6 = [_sum(*fp, *fm)] + [m * (a - b) for m, a, b in zip(mus, fp, fm)]
-                grad = [_sum(gi, *(-_mul(b[i], y) for b, y in zip(B, g6))) for i, gi in enumerate(grad)]
-                w0 = _sum(*wp, *wm)
-                w0k = [m * (a - b) for m, a, b in zip(mus, wp, wm)]
-                wkk = [m * m * (a + b) for m, a, b in zip(mus, wp, wm)]
-                # H += Σ_p B_p c_pᵀ, c_0 = W_00 B_0 + Σ_k W_0k B_k, c_k = W_0k B_0 + W_kk B_k (W the arrowhead)
-                c = [[_sum(_mul(w0, B[0][j]), *(_mul(w, b[j]) for w, b in zip(w0k, B[1:]))) for j in range(6)]]
-                c += [[_sum(_mul(w, B[0][j]), _mul(v, b[j])) for j in range(6)] for w, v, b in zip(w0k, wkk, B[1:])]
-                H = [[_sum(H[i][j], *(_mul(b[i], cp[j]) for b, cp in zip(B, c))) for j in range(i + 1)]
-                     for i in range(6)]
-                edges.append((B, D, vp, vm))
+            v = edge([_sum(gj, -_dot(b, x)) for gj, b in zip(g, B)])  # the edges' values (2, 5, 2, *b)
+            w = D * (v > 0).to(D.dtype)  # the active edges' weights
+            f = w * v  # and forces
+            g6 = [_lead(f[0] + f[1]), *(mk * (f[0] - f[1])).unbind(0)]
+            grad = [_sum(mx, -both(_sum(*(_mul(b[i], y) for b, y in zip(B, g6))))) for i, mx in enumerate(Mx)]
+            w_both = w[0] + w[1]
+            w0, w0k, wkk = _lead(w_both), (mk * (w[0] - w[1])).unbind(0), (mk * mk * w_both).unbind(0)
+            # H = 𝕄 + Σ_p B_p c_pᵀ, c_0 = W_00 B_0 + Σ_k W_0k B_k, c_k = W_0k B_0 + W_kk B_k (W the arrowhead)
+            c = [[_sum(_mul(w0, B[0][j]), *(_mul(wk, b[j]) for wk, b in zip(w0k, B[1:]))) for j in range(6)]]
+            c += [[_sum(_mul(wk, B[0][j]), _mul(vk, b[j])) for j in range(6)] for wk, vk, b in zip(w0k, wkk, B[1:])]
+            H = [[_sum(Mf[i][j], both(_sum(*(_mul(b[i], cp[j]) for b, cp in zip(B, c))))) for j in range(i + 1)]
+                 for i in range(6)]
             step = [-s for s in _spd_solve(H, grad)]
             # the line search on the exact cost along the step, c0 + s c1 + s² c2 + the edges' terms,
-            # at each s of STEPS (and 0), the least kept
-            quad = (0.5 * _dot(x, Mx), _dot(step, Mx), 0.5 * _dot(step, _matvec(Mf, step)))
-            slopes = []
-            for B, D, vp, vm in edges:
-                bs = [_dot(b, step) for b in B]
-                slopes.append(([bs[0] + m * s for m, s in zip(mus, bs[1:])], [bs[0] - m * s for m, s in zip(mus, bs[1:])]))
-            best_c = _line_cost(0.0, quad, edges, slopes)
-            best_s = torch.zeros_like(best_c)
-            for s in STEPS:
-                c_s = _line_cost(s, quad, edges, slopes)
-                better = c_s < best_c
+            # at 0 and each s of STEPS at once (a leading axis of 6), the least kept (the first of equals)
+            s6 = s_col[:, 0, 0, 0]
+            quad = _sum(0.5 * _dot(x, Mx), _mul(s6, _dot(step, Mx)), _mul(0.5 * s6 * s6, _dot(step, _matvec(Mf, step))))
+            short = (v - s_col * edge([_dot(b, step) for b in B])).clamp_min(0.0)  # (6, 2, 5, 2, *b)
+            sq = short * short
+            per_contact = D * _lead((sq[:, 0] + sq[:, 1]).transpose(0, 1))  # (6, 2, *b)
+            cost = _sum(quad, 0.5 * (per_contact[:, 0] + per_contact[:, 1]))
+            best_s, best_c = torch.zeros_like(cost[0]), cost[0]
+            for k, s in enumerate(STEPS, start=1):
+                better = cost[k] < best_c
                 best_s = torch.where(better, s, best_s)
-                best_c = torch.where(better, c_s, best_c)
+                best_c = torch.where(better, cost[k], best_c)
             x = [_sum(xi, best_s * si) for xi, si in zip(x, step)]
         # the wrench, M x, back in world components; torque about the frame origin
         fl = [mass * xi for xi in x[:3]]
@@ -354,6 +374,21 @@ class PyramidContact(CapsuleOnPlane):
             with torch.no_grad():
                 return (model(rows_sub, torch.as_tensor(natural(x), dtype=dtype)) - y).reshape(-1).numpy()
 
+        # the law's arguments repeated for 1 + P parameter vectors at once (the law takes one per env)
+        n_th = len(NAMES) + 1
+        wide = (tuple(tuple(c.expand(n_th, -1) for c in a) if isinstance(a, tuple) else
+                      (a if a is None else a.expand(n_th, -1)) for a in rows_sub[0]), rows_sub[1])
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            """Forward differences (scipy's steps for ``diff_step``), the law evaluated at ``x`` and its
+            P steps in one call."""
+            dx = (x + DIFF_STEP * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))) - x
+            th = torch.as_tensor(np.stack([natural(x + d) for d in np.vstack((np.zeros_like(x), np.diag(dx)))]),
+                                 dtype=dtype).unsqueeze(-2)
+            with torch.no_grad():
+                f = model(wide, th).reshape(n_th, -1).numpy()
+            return ((f[1:] - f[0]) / dx[:, None]).T
+
         def transformed(v: np.ndarray) -> np.ndarray:
             x = np.log(v)
             x[2:4] = np.log(v[2:4] / (1 - v[2:4]))
@@ -366,7 +401,7 @@ class PyramidContact(CapsuleOnPlane):
         sol = None
         for start in starts:
             x0 = transformed(start)
-            s = least_squares(residual, x0, diff_step=1e-5, x_scale=1.0, max_nfev=200)
+            s = least_squares(residual, x0, jac=jacobian, x_scale=1.0, max_nfev=200)
             if sol is None or s.cost < sol.cost:
                 sol = s
         values = natural(sol.x)

@@ -217,3 +217,19 @@ def test_twin_steps_the_law_in_its_fused_form():
     got = e.step_components(vec(s.pos), tuple(s.quat.unbind(-1)), vec(s.vel), vec(s.angvel), rest, push)
     for a, w in zip(got, want):
         torch.testing.assert_close(unvec(a), w, rtol=1e-12, atol=1e-12 * float(w.abs().max()))
+
+
+def test_component_algebra_equals_the_dense_one(wrenches, monkeypatch):
+    """The Hessian and its solve in components (what a compiled step runs: sparse products, a
+    written-out Cholesky) give the wrench of the dense (..., 6, 6) form, which is MuJoCo's (above),
+    to rounding, on every rod-instant of the plant run, per-env parameters included."""
+    import identified.effects.pyramid_contact as pc
+
+    law, state, ctx, force, torque, touching, _ = wrenches
+    law.values = TRUTH.copy()
+    want = law.wrench(state, ctx)
+    monkeypatch.setattr(pc, "_dense_algebra", lambda: False)
+    got = law.wrench(state, ctx)
+    for a, w in zip(got, want):
+        torch.testing.assert_close(a, w, rtol=0, atol=1e-10 * float(w.abs().max()))
+    assert rel(force, got[0]) < 2e-6  # and both are MuJoCo's

@@ -123,6 +123,21 @@ def _lead(t: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _dense_algebra() -> bool:
+    """Whether :meth:`PyramidContact._law` forms its 6x6 Hessian and solves it as (..., 6, 6)
+    tensors (batched products and LAPACK: few operations, fast eagerly) or in components (elementwise,
+    what a compiled step fuses): the latter inside ``torch.compile``."""
+    return not torch.compiler.is_compiling()
+
+
+def _dense(rows: list, shape: torch.Size, like: torch.Tensor) -> torch.Tensor:
+    """A matrix given as rows of entries (tensors broadcastable to ``shape``, or floats) as one
+    tensor (*shape, n, m)."""
+    full = lambda e: (e if isinstance(e, torch.Tensor) else torch.tensor(e, dtype=like.dtype,
+                                                                          device=like.device)).expand(shape)
+    return torch.stack([torch.stack([full(e) for e in row], -1) for row in rows], -2)
+
+
 def _spd_solve(H: list, b: list) -> list:
     """``H⁻¹ b`` for a symmetric positive definite ``H`` given as a list of rows of entries (its
     lower triangle is read), ``b`` a list: Cholesky written out over the (small) size, elementwise
@@ -288,6 +303,9 @@ class PyramidContact(CapsuleOnPlane):
         edge = lambda r: r[0] + sm * torch.stack(torch.broadcast_tensors(*r[1:], r[0])[:-1])
         s_col = self._steps(pos[0]).reshape((6, 1, 1, 1) + ones)
 
+        dense = _dense_algebra()
+        if dense:  # the contact rows and the mass matrix as (..., 6, 6) tensors
+            Bd, Md = _dense(B, D.shape, D), _dense(Mf, D.shape[1:], D)
         x: list[Entry] = [0.0] * 6
         for _ in range(NEWTON_ITERATIONS):
             Mx = _matvec(Mf, x)
@@ -298,12 +316,17 @@ class PyramidContact(CapsuleOnPlane):
             grad = [_sum(mx, -both(_sum(*(_mul(b[i], y) for b, y in zip(B, g6))))) for i, mx in enumerate(Mx)]
             w_both = w[0] + w[1]
             w0, w0k, wkk = _lead(w_both), (mk * (w[0] - w[1])).unbind(0), (mk * mk * w_both).unbind(0)
-            # H = 𝕄 + Σ_p B_p c_pᵀ, c_0 = W_00 B_0 + Σ_k W_0k B_k, c_k = W_0k B_0 + W_kk B_k (W the arrowhead)
-            c = [[_sum(_mul(w0, B[0][j]), *(_mul(wk, b[j]) for wk, b in zip(w0k, B[1:]))) for j in range(6)]]
-            c += [[_sum(_mul(wk, B[0][j]), _mul(vk, b[j])) for j in range(6)] for wk, vk, b in zip(w0k, wkk, B[1:])]
-            H = [[_sum(Mf[i][j], both(_sum(*(_mul(b[i], cp[j]) for b, cp in zip(B, c))))) for j in range(i + 1)]
-                 for i in range(6)]
-            step = [-s for s in _spd_solve(H, grad)]
+            if dense:  # H = 𝕄 + Σ Bᵀ W B, W the arrowhead of the active edges, by batched products
+                W = torch.diag_embed(torch.stack((w0, *wkk), -1))
+                W[..., 0, 1:] = W[..., 1:, 0] = torch.stack(w0k, -1)
+                H = Md + (Bd.transpose(-1, -2) @ W @ Bd).sum(0)
+                step = list(torch.linalg.solve(H, -torch.stack(torch.broadcast_tensors(*grad), -1)).unbind(-1))
+            else:  # the same in components: H = 𝕄 + Σ_p B_p c_pᵀ, c_0 = W_00 B_0 + Σ_k W_0k B_k, c_k = W_0k B_0 + W_kk B_k
+                c = [[_sum(_mul(w0, B[0][j]), *(_mul(wk, b[j]) for wk, b in zip(w0k, B[1:]))) for j in range(6)]]
+                c += [[_sum(_mul(wk, B[0][j]), _mul(vk, b[j])) for j in range(6)] for wk, vk, b in zip(w0k, wkk, B[1:])]
+                H = [[_sum(Mf[i][j], both(_sum(*(_mul(b[i], cp[j]) for b, cp in zip(B, c))))) for j in range(i + 1)]
+                     for i in range(6)]
+                step = [-s for s in _spd_solve(H, grad)]
             # the line search on the exact cost along the step, c0 + s c1 + s² c2 + the edges' terms,
             # at 0 and each s of STEPS at once (a leading axis of 6), the least kept (the first of equals)
             s6 = s_col[:, 0, 0, 0]

@@ -29,10 +29,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from tensegrity_gym.randomize import Randomization
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
 __all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
-           "write_mp4"]
+           "twin_layout", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
 #: Videos: frame size (pixels) and by default one frame every this many control steps (25 fps at
@@ -74,16 +75,18 @@ class EpisodeSet:
 
 def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
                  actions: np.ndarray | None = None, bar: Any = None) -> EpisodeSet:
-    """One episode per sub-env of ``venv`` (len(seeds) of them), sub-env ``k`` reset with
-    ``seeds[k]``; the episodes end by the env's termination or time limit.
+    """One episode on each of the first K = len(seeds) sub-envs of ``venv``, sub-env ``k`` reset
+    with ``seeds[k]``; the episodes end by the env's termination or time limit. Sub-envs beyond the
+    first K (a twin the size of the one a policy trained on, whose compiled step is then reused)
+    run from the seeds after ``seeds[-1]`` and are not reported.
 
-    ``act``: (K, n_obs) observations -> (K, A) actions. ``actions`` (K, T, A): play these instead
+    ``act``: (N, n_obs) observations -> (N, A) actions. ``actions`` (K, T, A): play these instead
     (open loop), each episode ending after its T steps at most (NaN rows end it early).
     """
-    K = venv.num_envs
-    if len(seeds) != K:
-        raise ValueError(f"{len(seeds)} seeds for {K} envs")
-    obs, info = venv.reset(seed=list(seeds))
+    K, N = len(seeds), venv.num_envs
+    if not 1 <= K <= N:
+        raise ValueError(f"{K} seeds for {N} envs")
+    obs, info = venv.reset(seed=list(seeds) + [int(seeds[-1]) + 1 + i for i in range(N - K)])
     x0 = np.asarray(info["x_position"], dtype=float).copy()
     coms: list[list[np.ndarray]] = [[np.asarray(info["com"][k], dtype=float).copy()] for k in range(K)]
     taken: list[list[np.ndarray]] = [[] for _ in range(K)]
@@ -97,12 +100,13 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
         if actions is not None:
             if t >= actions.shape[1]:
                 break
-            a = np.nan_to_num(actions[:, t], nan=0.0).astype(np.float32)
+            a = np.zeros((N, actions.shape[2]), dtype=np.float32)
+            a[:K] = np.nan_to_num(actions[:, t], nan=0.0)
             active &= ~np.isnan(actions[:, t]).any(axis=1)
             if not active.any():
                 break
         else:
-            a = np.asarray(act(obs), dtype=np.float32).reshape(K, -1)
+            a = np.asarray(act(obs), dtype=np.float32).reshape(N, -1)
         obs, rew, term, trunc, info = venv.step(a)
         x = np.asarray(info["x_position"], dtype=float)
         reasons = info.get("termination_reason")
@@ -116,7 +120,7 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
                 diverged[k] = True
         if bar is not None:
             bar.update(int(active.sum()))
-        active &= ~(np.asarray(term) | np.asarray(trunc))
+        active &= ~(np.asarray(term)[:K] | np.asarray(trunc)[:K])
         t += 1
     A = venv.single_action_space.shape[0]  # type: ignore[index]
     return EpisodeSet(seeds=list(seeds), returns=ret, progress=progress, lengths=lengths,
@@ -124,14 +128,28 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
                       com=[np.array(c) for c in coms], diverged=diverged)
 
 
+def twin_layout(policy: LoadedPolicy, episodes: int) -> tuple[int, bool]:
+    """The sub-envs of the twin that evaluates ``policy`` on ``episodes`` episodes, and whether they
+    carry per-env parameters: those the policy trained with when it trained on the twin (so that the
+    compiled substep its training stored on disk serves the evaluation: a compile saved, minutes
+    with an elaborate contact law), at least ``episodes``; else ``episodes``, none."""
+    meta = policy.meta
+    if meta.get("trained_on") != "twin":
+        return int(episodes), False
+    r = meta.get("randomization")
+    per_env = r is not None and Randomization.from_json(r, source="the policy's metadata").physical
+    return max(int(episodes), int(meta.get("envs") or episodes)), per_env
+
+
 def _twin_venv(identified: str | None, n: int, episode_steps: int | None, env_kwargs: dict[str, Any],
-               backend_kwargs: dict[str, Any] | None, render: bool = False) -> gym.vector.VectorEnv:
+               backend_kwargs: dict[str, Any] | None, render: bool = False, per_env: bool = False
+               ) -> gym.vector.VectorEnv:
     kw = dict(env_kwargs)
     if render:
         kw["render_mode"] = "rgb_array"
     return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", backend="identified",
                         model=identified, max_episode_steps=episode_steps, backend_kwargs=backend_kwargs,
-                        **kw)
+                        per_env_parameters=per_env, **kw)
 
 
 def _plant_venv(mjcf: str, n: int, episode_steps: int | None, env_kwargs: dict[str, Any]
@@ -260,6 +278,22 @@ def _episode_frames(env: gym.Env, act: Act, seed: int, every: int) -> list[np.nd
     return frames  # type: ignore[return-value]
 
 
+def _sub_env_frames(venv: Any, act: Act, seed: int, every: int) -> list[np.ndarray]:
+    """Frames of sub-env 0's episode of a batched twin (reset ``seed``, the others from the seeds
+    after it), one every ``every`` control steps and the last."""
+    N = venv.num_envs
+    obs, _ = venv.reset(seed=[int(seed) + i for i in range(N)])
+    frames = [venv.render_sub_env(0)]
+    t, done = 0, False
+    while not done:
+        obs, _, term, trunc, _ = venv.step(np.asarray(act(obs), dtype=np.float32).reshape(N, -1))
+        t += 1
+        done = bool(term[0] or trunc[0])
+        if t % every == 0 or done:
+            frames.append(venv.render_sub_env(0))
+    return frames
+
+
 def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None, episodes: int,
                 seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
                 progress: bool = True, threads: int = 1,
@@ -303,7 +337,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     try:
         with torch_threads(threads):
             mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
-            twin = _twin_venv(identified, K, steps, env_kwargs, backend_kwargs)
+            n_twin, per_env = twin_layout(pol, K)
+            twin = _twin_venv(identified, n_twin, steps, env_kwargs, backend_kwargs, per_env=per_env)
             plant = _plant_venv(mjcf, K, steps, env_kwargs)
             try:
                 for v in (twin, plant):
@@ -322,8 +357,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
             seq = np.full((K, T, A), np.nan)
             for k, a in enumerate(on_plant.actions):
                 seq[k, : len(a)] = a
-            replay_env = _twin_venv(identified, K, None, {**env_kwargs, "terminate_when_unhealthy": False},
-                                    backend_kwargs)
+            replay_env = _twin_venv(identified, n_twin, None, {**env_kwargs, "terminate_when_unhealthy": False},
+                                    backend_kwargs, per_env=per_env)
             try:
                 replay = run_episodes(replay_env, pol.act, seeds, actions=seq, bar=bar)
             finally:
@@ -332,7 +367,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
             videos = {}
             if video_dir is not None:
                 videos = _write_videos(video_dir, pol, identified, mjcf, steps, env_kwargs, backend_kwargs,
-                                       seeds[0], A, seed, int(video_every))
+                                       seeds[0], A, seed, int(video_every), (n_twin, per_env))
         if bar is not None:  # episodes that ended early leave part of the estimate unused
             bar.update(bar.total - bar.n)
     finally:
@@ -359,24 +394,28 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
 
 def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: str, steps: int,
                   env_kwargs: dict[str, Any], backend_kwargs: dict[str, Any] | None, ep_seed: int, A: int,
-                  seed: int, every: int) -> dict[str, str]:
+                  seed: int, every: int, layout: tuple[int, bool] = (1, False)) -> dict[str, str]:
     """One episode (reset seed ``ep_seed``) on the twin, on the plant and of the random policy on the
-    plant, each as an MP4 in ``folder``, and the twin's beside the plant's (``twin_plant.mp4``)."""
+    plant, each as an MP4 in ``folder``, and the twin's beside the plant's (``twin_plant.mp4``). The
+    twin's is sub-env 0 of a batched twin of ``layout`` (:func:`twin_layout`)."""
     os.makedirs(folder, exist_ok=True)
     kw = {**env_kwargs, "render_mode": "rgb_array", "max_episode_steps": steps, "width": VIDEO_SIZE,
           "height": VIDEO_SIZE}
-    runs = {
-        "twin": (gym.make(ENV_ID, backend="identified", model=identified, backend_kwargs=backend_kwargs, **kw),
-                 pol.act),
-        "plant": (gym.make(ENV_ID, model=mjcf, **kw), pol.act),
-        "random_plant": (gym.make(ENV_ID, model=mjcf, **kw), _random_act(A, seed)),
-    }
     paths, frames = {}, {}
+    twin = _twin_venv(identified, layout[0], steps, {**env_kwargs, "width": VIDEO_SIZE, "height": VIDEO_SIZE},
+                      backend_kwargs, render=True, per_env=layout[1])
+    try:
+        frames["twin"] = _sub_env_frames(twin, pol.act, ep_seed, every)
+    finally:
+        twin.close()
+    runs = {"plant": (gym.make(ENV_ID, model=mjcf, **kw), pol.act),
+            "random_plant": (gym.make(ENV_ID, model=mjcf, **kw), _random_act(A, seed))}
     for name, (env, act) in runs.items():
         try:
             frames[name] = _episode_frames(env, act, ep_seed, every)
         finally:
             env.close()
+    for name in ("twin", *runs):
         path = os.path.join(folder, f"{name}.mp4")
         write_mp4(path, frames[name], fps=VIDEO_FPS)
         paths[name] = path

@@ -25,7 +25,7 @@ from tensegrity_gym.backends.identified_backend import default_model_path
 from tensegrity_gym.cli import main
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
-from tensegrity_gym.gap import open_loop_divergence, run_episodes
+from tensegrity_gym.gap import open_loop_divergence, run_episodes, twin_layout
 from tensegrity_gym.models import write_model
 from tensegrity_gym.training import TrainConfig, checkpoint_path, load_policy, train
 
@@ -146,6 +146,9 @@ def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
     assert len(r["open_loop"]["com_divergence_m"]) == len(r["open_loop"]["t_s"])
     assert r["open_loop"]["com_divergence_m"][0] == pytest.approx(0.0, abs=1e-6)  # same starts (float32 twin)
     pol = load_policy(trained.path)
+    # the twin that gave these: the size the policy trained on (4 sub-envs, 2 of them padding, with
+    # per-env parameters as its randomized training had), so its compiled step would be reused
+    assert twin_layout(pol, 2) == (4, True) and twin_layout(pol, 6) == (6, True)
     seeds = [5, 6]
     plant = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", model=str(robot["xml"]),
                                                      max_episode_steps=n), seeds, 30)

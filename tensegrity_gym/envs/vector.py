@@ -124,6 +124,10 @@ class TensegrityIcoVectorEnv(VectorEnv):
             :class:`TwinPhysics`; not with a randomization of the physics).
         randomize: a :class:`~tensegrity_gym.randomize.Randomization` (or its JSON mapping) drawn
             per sub-env at every reset (module docstring); ``None``: the identified values.
+        per_env_parameters: give every sub-env its own copy of the physical parameters (the
+            identified values) even when nothing is drawn: the engine a randomized twin of the same
+            size steps, so its compiled substep (cached on disk) serves this twin too, e.g. the
+            policy's evaluation after a randomized training.
         env_class: the single env the sub-envs are (:class:`TensegrityIcoEnv` or a subclass, e.g.
             :class:`~tensegrity_gym.envs.tensegrity_v0.TensegrityEnv`); ``xml_file`` in
             ``env_kwargs`` is the MJCF the model was fitted against, as for the single twin.
@@ -143,7 +147,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
                  max_episode_steps: int | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
                  backend_kwargs: dict[str, Any] | None = None, chunk_size: int | None = None,
-                 randomize: Randomization | dict[str, Any] | None = None,
+                 randomize: Randomization | dict[str, Any] | None = None, per_env_parameters: bool = False,
                  env_class: type[TensegrityIcoEnv] = TensegrityIcoEnv, **env_kwargs: Any) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs}")
@@ -169,7 +173,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         if isinstance(randomize, dict):
             randomize = Randomization.from_json(randomize, source="mapping")
         self.randomize = randomize if randomize is not None and randomize.active else None
-        per_env = self.randomize is not None and self.randomize.physical
+        per_env = bool(per_env_parameters) or (self.randomize is not None and self.randomize.physical)
         self.physics = TwinPhysics(backend.engine, backend.motor, backend.actuated_index, batch=self.num_envs,
                                    chunk_size=chunk_size, num_threads=backend.num_threads,
                                    compile=backend.compile, per_env=per_env,
@@ -526,13 +530,17 @@ class TensegrityIcoVectorEnv(VectorEnv):
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' to make_vec")
             return None
+        return tuple(self.render_sub_env(i) for i in range(self.num_envs))
+
+    def render_sub_env(self, index: int) -> np.ndarray:
+        """The (height, width, 3) uint8 image of sub-env ``index`` alone (its last finite rod states),
+        drawn as :meth:`render` draws each."""
+        if not 0 <= int(index) < self.num_envs:
+            raise IndexError(f"sub-env {index} of {self.num_envs}")
         e, b = self.env, self.backend
-        R = b.n_rods
-        zeros = np.zeros((R, 3))
-        return tuple(
-            b.render_states(RodState(self._pos[i], self._quat[i], zeros, zeros), e.width, e.height, e.camera)
-            for i in range(self.num_envs)
-        )
+        zeros = np.zeros((b.n_rods, 3))
+        return b.render_states(RodState(self._pos[index], self._quat[index], zeros, zeros), e.width, e.height,
+                               e.camera)
 
     # ------------------------------------------------------------------ attributes (SyncVectorEnv's API)
     def get_attr(self, name: str) -> tuple[Any, ...]:

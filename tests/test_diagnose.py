@@ -283,13 +283,14 @@ def test_verdict_true_partial_false():
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
-    """The shipped robot model (ground contact) on fresh robot data."""
+    """The robot fitted with ``ground_contact`` (tests/data/robot_ground_contact.json: the same data
+    as the shipped model, scripts/make_shipped_model.sh, fitted with that law) on fresh robot data."""
     from identified.model import load_model
 
     xml = str(tmp_path_factory.mktemp("robot") / "robot.xml")
     write_model(xml, "ico", preset="robot")
     data = collect(xml, CollectConfig(episodes=2, steps=400, seed=5, push_every=50))
-    path = os.path.join(os.path.dirname(__file__), "..", "identified", "data", "robot.json")
+    path = os.path.join(os.path.dirname(__file__), "data", "robot_ground_contact.json")
     return xml, data, load_model(path)
 
 

@@ -68,10 +68,11 @@ def known_names() -> tuple[str, ...]:
     return (*EFFECTS, *RESERVED)
 
 
-def search_labels() -> tuple[str, ...]:
-    """The effect search's candidates: every effect the class lets the search try (``searched``),
-    each followed by its variants as ``name:variant`` (``variants``)."""
-    return tuple(label for cls in EFFECTS.values() if cls.searched
+def search_labels(markers: bool = False) -> tuple[str, ...]:
+    """The effect search's candidates: every effect the class lets the search try (``searched``;
+    with ``markers``, on states reconstructed from markers: ``searched_on_markers`` too), each
+    followed by its variants as ``name:variant`` (``variants``)."""
+    return tuple(label for cls in EFFECTS.values() if cls.searched and (cls.searched_on_markers or not markers)
                  for label in (cls.name, *(f"{cls.name}:{v}" for v in cls.variants)))
 
 

@@ -105,6 +105,8 @@ class Effect(ABC):
     region: ClassVar[str | None] = None
     #: whether the fit's effect search (``--effects auto``) tries it
     searched: ClassVar[bool] = True
+    #: whether the search also tries it on rod states reconstructed from markers (a recording)
+    searched_on_markers: ClassVar[bool] = True
     #: what it models where the library has several laws of one thing (``"ground"``: the two
     #: ground-contact laws): a model holds at most one of them, the search and the diagnosis do not
     #: try a second (:func:`identified.effects.rival`)

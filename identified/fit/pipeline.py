@@ -174,10 +174,11 @@ def fit_model(
     model.source_model = os.path.abspath(mjcf)
     model.loop = loop
     if spec == "auto":
-        model.metrics["effect_search"] = {"explained": explained, "candidates": list(search_labels()),
-                                          "metric": _metric(horizon_s), "min_gain": min_gain}
         E = data.n_episodes
         part = search_part(data.select(episodes=slice(0, E - max(1, E // 4))))
+        model.metrics["effect_search"] = {"explained": explained,
+                                          "candidates": list(search_labels(markers=part is not None)),
+                                          "metric": _metric(horizon_s), "min_gain": min_gain}
         if part is not None:
             model.metrics["effect_search"]["fitted_on"] = (
                 f"the first {part.n_steps * data.dt:g} s of each of {part.n_episodes} training takes, "
@@ -281,7 +282,7 @@ def select_effects(
         train, fit_kwargs = part, {**fit_kwargs, "noise_copies": 0}
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
     candidates = []
-    for name in search_labels():
+    for name in search_labels(markers=part is not None):
         try:
             make_effect(name.split(":")[0], topo, mjcf)
         except GeometryError:

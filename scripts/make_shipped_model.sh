@@ -14,7 +14,7 @@
 # (tensegrity_gym.models.build_model("ico", "robot"); used for geometry, motors, the nominal
 # keyframe and drawing only, never for parameters).
 #
-# The fit runs the effect search (--effects auto): on the robot's data it adds ground_contact (the
+# The fit runs the effect search (--effects auto): on the robot's data it adds pyramid_contact (the
 # rods' capsules on the ground plane, identified from the data, never read from the MJCF), which
 # leaves the spring-rod parameters exact (the equations of rods away from the ground are
 # contact-free) and lets the twin stand and roll. The scale comes from the pushes, recorded in

@@ -451,21 +451,21 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                              f"its equations over {window * dt:.2g} s windows and needs takes of at least "
                              f"{2 * window * dt:.2g} s")
     margin = int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))
+    from identified.fit.contact_damping import refine_friction_damping
+
+    damping: list[dict | None] = [None]
+
+    def contact_damping(model) -> None:  # the contact's friction damping, from short free runs
+        damping[0] = refine_friction_damping(model, ms.data, jobs=fit_kwargs.get("jobs", "auto"))
+
     model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, contact_margin=margin,
-                      **fit_kwargs)
+                      before_metrics=contact_damping, **fit_kwargs)  # the metrics are those of the law as refined
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes,
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
-    from identified.fit.contact_damping import refine_friction_damping
-
-    damping = refine_friction_damping(model, ms.data)  # the contact's friction damping, from short free runs
-    if damping is not None:
-        model.metrics["recording"]["friction_damping"] = damping
-        if not output_error:
-            from identified.predict import attach_metrics
-
-            attach_metrics(model, ms.data)  # the errors of the law as refined
+    if damping[0] is not None:
+        model.metrics["recording"]["friction_damping"] = damping[0]
     if output_error:
         from identified.fit.output_error import refine_markers
 

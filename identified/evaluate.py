@@ -43,12 +43,16 @@ from identified.samples import Chunk, iter_chunks
 from identified.twin import effects_from_model, engine_from_model
 
 __all__ = [
+    "OneStepParts",
     "ResidualWrench",
     "k_step_errors",
+    "one_step_data",
+    "one_step_parts",
     "one_step_state_errors",
     "push_points",
     "quat_distance",
     "recorded_samples",
+    "relative_errors_from_parts",
     "relative_one_step_errors",
     "residual_wrench",
     "rollout",
@@ -252,6 +256,65 @@ def model_inputs(model: IdentifiedModel, data: Dataset, ch: Chunk) -> tuple[torc
     return rest, torch.as_tensor(f[:, data.n_steps - n_t:].reshape(-1, f.shape[-1]), dtype=ch.pos.dtype)
 
 
+class OneStepParts(NamedTuple):
+    """One model's share of :func:`relative_one_step_errors`, computed on its own (in a worker of
+    the effect search) and combined with the other models' by :func:`relative_errors_from_parts`."""
+
+    scheme: str
+    residual: torch.Tensor  # (N, R, 6): residual force and rod-frame torque
+    reference: torch.Tensor  # (N, R, 6): the recorded inertial wrench with the model's mass and inertia
+    touched: torch.Tensor  # (N, R) bool: rows a residual-strategy effect of the model touches
+
+
+def one_step_data(data: Dataset, max_steps: int = 20_000) -> Dataset:
+    """The first episodes of ``data`` the one-step errors are measured on: at most ``max_steps``
+    instants (at least one episode)."""
+    per = max(1, min(data.n_episodes, max_steps // max(data.n_steps, 1)))
+    return data.select(episodes=slice(0, per))
+
+
+def one_step_parts(model: IdentifiedModel, data: Dataset, scheme: str | None = None) -> OneStepParts:
+    """``model``'s residual and recorded wrench at every recorded instant of ``data`` (already cut
+    by :func:`one_step_data`) and the rows its residual-strategy effects touch; ``scheme``: how the
+    recorded accelerations are formed (default the model's own)."""
+    scheme = scheme or model.metrics.get("scheme") or "forward"
+    ch, _, point = recorded_samples(data, scheme)
+    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
+    touched = torch.zeros(ch.pos.shape[:2], dtype=torch.bool)
+    with torch.no_grad():
+        rest, tendon_force = model_inputs(model, data, ch)
+        rw = residual_wrench(engine_from_model(model, dtype=torch.float64), replace(ch, rest=rest), point,
+                             tendon_force)
+        res = torch.cat((rw.force, rw.torque_body), -1)
+        ref = torch.cat((rw.inertial_force, rw.inertial_torque_body), -1)
+        for e in effects_from_model(model):
+            rows = e.rows_affected(state, rw.terms.ctx) if e.stage != "joint" else None
+            if rows is not None:
+                touched |= rows
+    return OneStepParts(scheme, res, ref, touched)
+
+
+def relative_errors_from_parts(parts: Sequence[OneStepParts | None]) -> list[float]:
+    """The relative one-step errors of :func:`relative_one_step_errors` from each model's
+    :class:`OneStepParts` (``None``: no model, ``inf``), on the rows no model's residual-strategy
+    effect touches."""
+    fitted = [p for p in parts if p is not None]
+    if not fitted:
+        return [float("inf")] * len(parts)
+    keep = torch.ones(fitted[0].touched.shape, dtype=torch.bool)
+    for p in fitted:
+        keep &= ~p.touched
+    errs = []
+    for p in parts:
+        if p is None or not bool(keep.any()):
+            errs.append(float("inf"))
+            continue
+        res, ref = p.residual[keep], p.reference[keep]
+        e = float(res.square().mean().sqrt() / ref.square().mean().sqrt().clamp_min(1e-300))
+        errs.append(e if np.isfinite(e) else float("inf"))
+    return errs
+
+
 def relative_one_step_errors(models: Sequence[IdentifiedModel | None], data: Dataset,
                              max_steps: int = 20_000) -> list[float]:
     """Each model's one-step error on ``data``: the RMS of its residual wrench (force and rod-frame
@@ -261,37 +324,9 @@ def relative_one_step_errors(models: Sequence[IdentifiedModel | None], data: Dat
 
     ``inf`` for a model missing or whose residual is not finite; the first episodes, at most
     ``max_steps`` instants (at least one episode)."""
-    per = max(1, min(data.n_episodes, max_steps // max(data.n_steps, 1)))
-    data = data.select(episodes=slice(0, per))
+    data = one_step_data(data, max_steps)
     fitted = [m for m in models if m is not None]
     if not fitted:
         return [float("inf")] * len(models)
     scheme = fitted[0].metrics.get("scheme") or "forward"
-    ch, _, point = recorded_samples(data, scheme)
-    state = RodState(ch.pos, ch.quat, ch.vel, ch.angvel)
-    out: list[tuple[torch.Tensor, torch.Tensor] | None] = []
-    keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool)
-    with torch.no_grad():
-        for m in models:
-            if m is None:
-                out.append(None)
-                continue
-            rest, tendon_force = model_inputs(m, data, ch)
-            rw = residual_wrench(engine_from_model(m, dtype=torch.float64), replace(ch, rest=rest), point,
-                                 tendon_force)
-            res = torch.cat((rw.force, rw.torque_body), -1)
-            ref = torch.cat((rw.inertial_force, rw.inertial_torque_body), -1)
-            for e in effects_from_model(m):
-                rows = e.rows_affected(state, rw.terms.ctx) if e.stage != "joint" else None
-                if rows is not None:
-                    keep &= ~rows
-            out.append((res, ref))
-    errs = []
-    for r in out:
-        if r is None or not bool(keep.any()):
-            errs.append(float("inf"))
-            continue
-        res, ref = r[0][keep], r[1][keep]
-        e = float(res.square().mean().sqrt() / ref.square().mean().sqrt().clamp_min(1e-300))
-        errs.append(e if np.isfinite(e) else float("inf"))
-    return errs
+    return relative_errors_from_parts([None if m is None else one_step_parts(m, data, scheme) for m in models])

@@ -140,6 +140,38 @@ def test_missing_markers_weigh_out_their_rods_steps(robot):
     np.testing.assert_array_equal(load_dataset(out).weight, w)
 
 
+def test_a_long_gap_weighs_out_its_cable_partners_too(robot):
+    """A gap of more than LONG_GAP_FRAMES frames of one of a rod's markers also weighs out, with
+    the same margin, the equations of the rods it shares a cable with (the bridged position sets
+    their cables' forces); a rod sharing none with it keeps its weights, and a gap of
+    LONG_GAP_FRAMES frames leaves the partners alone."""
+    from dataclasses import replace
+
+    from identified.fit.markers import GAP_FRAMES, LONG_GAP_FRAMES
+
+    path, topo, data = robot
+    rec = record_markers(data, path, RecordConfig(rate=100), seed=1)
+    partners = {b for s in topo.springs if 0 in s.rods for b in s.rods if b not in (0, -1)}
+    others = set(range(topo.n_rods)) - partners - {0}
+    assert partners and others  # the robot: rod 0 shares cables with four rods, not its parallel twin
+    step = round(0.01 / data.dt)
+    for n, hit in ((LONG_GAP_FRAMES + 1, True), (LONG_GAP_FRAMES, False)):
+        hole = rec.markers.copy()
+        f0 = 50
+        hole[f0:f0 + n, 0] = np.nan
+        ms = states_from_recording(replace(rec, markers=hole), topo, dt=data.dt, lam=1e-12)
+        w = ms.data.weight
+        frame = (np.arange(ms.data.n_steps) + round(ms.starts[0] / data.dt)) / step
+        inside = (frame >= f0 - GAP_FRAMES) & (frame <= f0 + n - 1 + GAP_FRAMES - 1)
+        assert np.all(w[0, inside, 0] == 0)
+        far = (frame < f0 - 2 * GAP_FRAMES - 1) | (frame > f0 + n - 1 + 2 * GAP_FRAMES + 1)
+        for j in partners:
+            assert np.all(w[0, inside, j] == 0) == hit and np.all(w[0, far, j] == 1)
+        for j in others:
+            assert np.all(w[0, :, j] == 1)
+        assert np.all(w[1] == 1)
+
+
 def test_gcv_smoothing_is_scipys_choice():
     """The smoothing read back from scipy's generalised cross validation gives its very spline."""
     from scipy.interpolate import make_smoothing_spline

@@ -124,3 +124,69 @@ def test_ctrl_c_here_stops_the_workers_at_once():
         pool.map([0, 1])  # the worker sleeps on 0, this process is interrupted on 1
     assert time.perf_counter() - t0 < 10  # not the worker's 60 s
     assert multiprocessing.active_children() == []
+
+
+class _Fake:
+    """A stand-in model of the search: its effects' names, the takes it was fitted on and where."""
+
+    def __init__(self, names: tuple[str, ...], takes: int) -> None:
+        self.names, self.takes, self.pid = names, takes, os.getpid()
+        self.effects = [{"name": n, "parameters": {}} for n in names]
+        self.metrics: dict = {}
+        self.loop: list = []
+        self.source_model = None
+
+
+#: the held-out errors of the stand-ins: linear drag halves the base model's free run, a constant
+#: force beside it does not (nor its one-step error): the search stops after the second round
+_SCREEN = {(): 1.0, ("linear_drag",): 0.1, ("constant_force",): 0.8, ("linear_drag", "constant_force"): 0.09}
+
+
+def _fake_identify(data, topology, effects=(), **kw):
+    from identified.fit.regression import IdentifiabilityError
+
+    names = tuple(e.name for e in effects)
+    if names not in _SCREEN:
+        raise IdentifiabilityError("not a stand-in")
+    _FITS.append((names, data.n_episodes))
+    return _Fake(names, data.n_episodes)
+
+
+_FITS: list = []
+
+
+@linux
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_the_final_fit_runs_beside_the_last_round_with_two_processes(monkeypatch, jobs):
+    """After a round that added an effect, a search in two processes makes the final fit (all the
+    takes, the effects chosen so far) beside the next round's candidates; when that round adds
+    nothing, it is the model and is not fitted again.  In one process the final fit follows the
+    search.  (The real fits' equality with one job or two: the expensive test above.)"""
+    from identified import predict
+    from identified.fit import checks, pipeline
+    from tensegrity_gym.collect import CollectConfig, collect
+    from tensegrity_gym.models import write_model
+
+    monkeypatch.setattr(pipeline, "identify", _fake_identify)
+    monkeypatch.setattr(pipeline, "window_error", lambda m, data, steps: _SCREEN[m.names])
+    monkeypatch.setattr(pipeline, "_free_run", lambda m, ctx: float("inf") if m is None else _SCREEN[m.names])
+    monkeypatch.setattr(pipeline, "one_step_parts", lambda m, data, scheme=None: None)
+    monkeypatch.setattr(pipeline, "_one_step_errors", lambda ctx, parts, models: [1.0] * len(parts))
+    monkeypatch.setattr(pipeline, "relative_residual", lambda m: 1.0)
+    for mod, name in ((checks, "refresh_physics"), (checks, "residual_check"), (predict, "attach_metrics")):
+        monkeypatch.setattr(mod, name, lambda *a, **k: None)
+    _FITS.clear()
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "ico.xml")
+        write_model(path, "ico", preset="paper-uniform")
+        data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))
+        model = pipeline.fit_model(data, path, effects="auto", jobs=jobs)
+    assert model.names == ("linear_drag",) and model.takes == 4
+    assert [s["added"] for s in model.loop] == ["linear_drag"]
+    finals_here = [f for f in _FITS if f[1] == 4]  # the fits made in this process on all four takes
+    if jobs == 1:
+        assert finals_here == [(("linear_drag",), 4)]
+    else:  # made by the worker (it takes the first, longest task) beside the second round, not here
+        assert model.pid != os.getpid() and finals_here == []

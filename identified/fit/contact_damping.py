@@ -21,6 +21,7 @@ import numpy as np
 
 from identified.dataset import Dataset
 from identified.evaluate import window_error
+from identified.fit.workers import TaskPool
 from identified.model import IdentifiedModel
 
 __all__ = ["FACTORS", "WINDOW_STEPS", "refine_friction_damping"]
@@ -34,23 +35,30 @@ MAX_TAKES, MAX_STEPS = 8, 3000
 KEYS = ("beta_a", "beta_p")
 
 
-def refine_friction_damping(model: IdentifiedModel, data: Dataset) -> dict[str, Any] | None:
+def _scaled_error(ctx: tuple[IdentifiedModel, Dataset, int, dict[str, float]], f: float) -> float:
+    """The windows' error of ``ctx``'s model with its contact law's ``β_a``, ``β_p`` times ``f``."""
+    model, part, k, fitted = ctx
+    effects = copy.deepcopy(model.effects)
+    effects[k]["parameters"].update({key: f * v for key, v in fitted.items()})
+    return window_error(replace(model, effects=effects), part, WINDOW_STEPS)
+
+
+def refine_friction_damping(model: IdentifiedModel, data: Dataset, jobs: int | str | None = 1
+                            ) -> dict[str, Any] | None:
     """Scale the ground contact law's ``β_a``, ``β_p`` of ``model`` (in place) by the factor of
     :data:`FACTORS` whose free runs of :data:`WINDOW_STEPS` steps from the reconstructed states
     ``data`` (its first takes and steps) stay nearest them.  Their standard errors become ``NaN``
     (a profile scan's value).  Returns ``{"factor", "window_steps", "errors": {factor: m}}``, or
-    ``None`` without a ground contact law or takes too short for one window."""
+    ``None`` without a ground contact law or takes too short for one window.  The factors' free
+    runs run side by side in ``jobs`` processes (:mod:`identified.fit.workers`; the same result)."""
     k = next((i for i, e in enumerate(model.effects) if e["name"] == "ground_contact"), None)
     if k is None or data.n_steps <= WINDOW_STEPS:
         return None
     part = data.select(episodes=slice(0, min(MAX_TAKES, data.n_episodes)), steps=min(MAX_STEPS, data.n_steps))
     part = replace(part, replicas=())
     fitted = {key: float(model.effects[k]["parameters"][key]) for key in KEYS}
-    errors = {}
-    for f in FACTORS:
-        effects = copy.deepcopy(model.effects)
-        effects[k]["parameters"].update({key: f * v for key, v in fitted.items()})
-        errors[f] = window_error(replace(model, effects=effects), part, WINDOW_STEPS)
+    with TaskPool(_scaled_error, (model, part, k, fitted), jobs) as pool:
+        errors = dict(zip(FACTORS, pool.map(FACTORS)))
     best = min(FACTORS, key=lambda f: errors[f] if np.isfinite(errors[f]) else np.inf)
     model.effects[k]["parameters"].update({key: best * v for key, v in fitted.items()})
     stderr = model.effects[k].get("stderr")

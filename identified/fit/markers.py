@@ -16,6 +16,8 @@ The path here:
    (:mod:`identified.samples`) are the engine's own discretisation of the reconstructed motion;
 4. each rod's equations weighed out (``Dataset.weight``) near the frames where one of its markers
    is missing (:func:`_seen_weight`): a spline bridging a gap is no measurement of acceleration;
+   and those of the rods it shares a cable with during its long gaps (a bridged position is no
+   measurement of their cables' lengths either);
 5. a rod whose markers lie on its axis has no observable spin about that axis: its frame is
    carried along the axis without axial rotation (parallel transport, ``ω·a = 0``), its axial
    moment of inertia is held (not identifiable) and reported as such.
@@ -54,6 +56,12 @@ CONTACT_FRAMES = 3
 #: frames on either side of a missing marker sample whose equations the fit leaves out (a spline
 #: bridging the gap errs there too), and the frames of the ramp back to full weight after them
 GAP_FRAMES = 2
+#: a rod's gap of more than this many frames also weighs out the equations of the rods it shares a
+#: cable with (with its GAP_FRAMES margin and ramp): the spline's bridged position, off by
+#: centimetres over a long gap through an impact, sets those cables' forces (measured on the robot,
+#: 10 x 10 s at 100 Hz, 1 mm, 2 % missing: one take's 0.37 s gap of one end cap left a neighbour's
+#: mass 4.4 % off, and K 1.1 %; 0.5 % and 0.2 % with its partners' equations left out)
+LONG_GAP_FRAMES = 10
 #: marker noise (m) below which a recording counts as clean: its splines interpolate, and the fit
 #: needs no noise replicas
 CLEAN = 1e-7
@@ -121,7 +129,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         pos, quat = _poses(rec, rows, geos, col, grid, lam, smoothing, take)
         rest = np.stack([np.interp(grid[1:], t, _filled(rec.rest[rows, rec.rest_names.index(s)], t))
                          for s in topology.spring_names], axis=-1)
-        weight = _seen_weight(rec, rows, geos, col, grid[1:])
+        weight = _seen_weight(rec, rows, geos, col, grid[1:], _partners(topology))
         pieces.append(_states(pos, quat, dt) + (rest, weight))
         starts.append(float(grid[1]))
         spans.append((rows, grid))
@@ -223,11 +231,23 @@ def _placed_span(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col:
     return rows[first:last + 1]
 
 
+def _partners(topology: Topology) -> list[set[int]]:
+    """For each rod, the other rods it shares a cable or spring with."""
+    out: list[set[int]] = [set() for _ in range(topology.n_rods)]
+    for s in topology.springs:
+        a, b = s.rods
+        if a >= 0 and b >= 0 and a != b:
+            out[a].add(b)
+            out[b].add(a)
+    return out
+
+
 def _seen_weight(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[str, int],
-                 grid: np.ndarray) -> np.ndarray:
+                 grid: np.ndarray, partners: list[set[int]] | None = None) -> np.ndarray:
     """(G, R) weight of each rod's equations at the ``grid`` instants: 0 from :data:`GAP_FRAMES`
     frames before a frame where one of the rod's markers is missing to as many after it, rising to
-    1 over the next :data:`GAP_FRAMES` frames as a Hann ramp.
+    1 over the next :data:`GAP_FRAMES` frames as a Hann ramp; the same about the gaps of more than
+    :data:`LONG_GAP_FRAMES` frames of the rods it shares a cable with (``partners``).
 
     Inside a gap a marker's spline is an interpolation, not a measurement: its second derivative
     there -- the rod's acceleration in the equations -- can be off by the whole acceleration of an
@@ -239,14 +259,33 @@ def _seen_weight(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col:
     into a difference of noisy velocities."""
     t = rec.time[rows]
     f = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)  # frame at or before each instant
-    out = np.ones((grid.size, len(geos)))
-    for i, g in enumerate(geos):
-        missing = np.isnan(rec.markers[np.ix_(rows, [col[s] for s in g.sites])][..., 0]).any(-1)
+    def weight(missing: np.ndarray) -> np.ndarray:
         near = _distance(missing)  # frames from the nearest missing one
         # an instant between frames f and f + 1 is as far as the nearer of the two
         d = np.minimum(near[f], near[np.minimum(f + 1, t.size - 1)]).astype(float)
         ramp = np.clip((d - GAP_FRAMES) / GAP_FRAMES, 0.0, 1.0)
-        out[:, i] = np.where(d <= GAP_FRAMES, 0.0, 0.5 - 0.5 * np.cos(np.pi * ramp))
+        return np.where(d <= GAP_FRAMES, 0.0, 0.5 - 0.5 * np.cos(np.pi * ramp))
+
+    out = np.ones((grid.size, len(geos)))
+    for i, g in enumerate(geos):
+        missing = np.isnan(rec.markers[np.ix_(rows, [col[s] for s in g.sites])][..., 0]).any(-1)
+        out[:, i] = np.minimum(out[:, i], weight(missing))
+        long = _long_runs(missing, LONG_GAP_FRAMES)
+        if partners and long.any():
+            w = weight(long)
+            for j in partners[i]:
+                out[:, j] = np.minimum(out[:, j], w)
+    return out
+
+
+def _long_runs(mask: np.ndarray, n: int) -> np.ndarray:
+    """``mask`` with only its runs of more than ``n`` true entries kept."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    start, stop = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = np.zeros_like(mask, dtype=bool)
+    for a, b in zip(start, stop):
+        if b - a > n:
+            out[a:b] = True
     return out
 
 
@@ -451,21 +490,21 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                              f"its equations over {window * dt:.2g} s windows and needs takes of at least "
                              f"{2 * window * dt:.2g} s")
     margin = int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))
+    from identified.fit.contact_damping import refine_friction_damping
+
+    damping: list[dict | None] = [None]
+
+    def contact_damping(model) -> None:  # the contact's friction damping, from short free runs
+        damping[0] = refine_friction_damping(model, ms.data, jobs=fit_kwargs.get("jobs", "auto"))
+
     model = fit_model(ms.data, mjcf, weak_window=window, hold_inertia=ms.unobservable, contact_margin=margin,
-                      **fit_kwargs)
+                      before_metrics=contact_damping, **fit_kwargs)  # the metrics are those of the law as refined
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes,
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
-    from identified.fit.contact_damping import refine_friction_damping
-
-    damping = refine_friction_damping(model, ms.data)  # the contact's friction damping, from short free runs
-    if damping is not None:
-        model.metrics["recording"]["friction_damping"] = damping
-        if not output_error:
-            from identified.predict import attach_metrics
-
-            attach_metrics(model, ms.data)  # the errors of the law as refined
+    if damping[0] is not None:
+        model.metrics["recording"]["friction_damping"] = damping[0]
     if output_error:
         from identified.fit.output_error import refine_markers
 

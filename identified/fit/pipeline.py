@@ -29,7 +29,10 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    effect added and the held-out error before and after.
 
 A round's fits are independent: they run side by side in ``jobs`` processes
-(:mod:`identified.fit.workers`), and the result does not depend on ``jobs``.
+(:mod:`identified.fit.workers`), each with its screen and its share of the one-step errors, and
+the result does not depend on ``jobs``.  With more than one process, a round after one that added
+an effect also makes the final fit (all the data, the effects chosen so far) beside its
+candidates: if the round adds nothing, that fit is the model.
 
 The evidence is out-of-sample: an effect absent from the plant fits to near zero on the fitted
 episodes and changes the held-out error by far less than 2x, so clean data get nothing added
@@ -43,7 +46,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -60,7 +63,14 @@ from identified.effects import (
     search_labels,
     split_label,
 )
-from identified.evaluate import relative_one_step_errors, rollout_errors, window_error
+from identified.evaluate import (
+    OneStepParts,
+    one_step_data,
+    one_step_parts,
+    relative_errors_from_parts,
+    rollout_errors,
+    window_error,
+)
 from identified.fit.checks import ROUNDING, relative_residual
 from identified.fit.identify import ScaleSpec, identify
 from identified.fit.regression import IdentifiabilityError
@@ -129,6 +139,7 @@ def fit_model(
     hold_inertia: Sequence[tuple[int, int]] = (),
     contact_margin: int = 0,
     inertia: str = "auto",
+    before_metrics: Callable[[IdentifiedModel], None] | None = None,
 ) -> IdentifiedModel:
     """Identify a model from ``data`` for the system of ``mjcf`` (topology and geometry only).
 
@@ -138,7 +149,8 @@ def fit_model(
     ``jobs``: processes the effect search fits its candidates in (``"auto"``: the cores this
     process may use; :mod:`identified.fit.workers`); the model does not depend on it.
     ``inertia``: ``"auto"``, ``"full"`` (each rod's ten inertial parameters) or ``"diagonal"``,
-    as :func:`identified.fit.identify.identify`.
+    as :func:`identified.fit.identify.identify`.  ``before_metrics``: called with the fitted model
+    before its metrics are computed (a recording's contact damping, chosen after the fit).
     """
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
@@ -162,13 +174,18 @@ def fit_model(
     loop: list[dict[str, Any]] = []
     explained = None
     fixed: dict[str, dict[str, Any]] = {}
+    early = None
     if spec == "auto":
-        names, loop, explained, fixed = select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress, jobs)
+        names, loop, explained, fixed, early = _select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress, jobs)
     else:
         names = [] if spec == "none" else spec
-    t0 = time.perf_counter()
-    model = identify(data, topo, effects=_build(names, topo, mjcf, fixed), progress=progress, **kw)
-    model.metrics["fit_seconds"] = round(time.perf_counter() - t0, 4)
+    if early is not None and early.names == names and early.fixed == fixed and early.model is not None:
+        model, seconds = early.model, early.seconds  # fitted during the search's last round
+    else:
+        t0 = time.perf_counter()
+        model = identify(data, topo, effects=_build(names, topo, mjcf, fixed), progress=progress, **kw)
+        seconds = time.perf_counter() - t0
+    model.metrics["fit_seconds"] = round(seconds, 4)
     if selection is not None:
         model.metrics["integrator_selection"] = selection
     model.source_model = os.path.abspath(mjcf)
@@ -191,6 +208,8 @@ def fit_model(
     from identified.predict import attach_metrics
 
     refresh_physics(model)  # the checks of the final parameters (refinement moves them)
+    if before_metrics is not None:
+        before_metrics(model)
     attach_metrics(model, data)
     residual_check(model, data)  # a fit that does not describe its own data says so
     return model
@@ -227,21 +246,69 @@ class _Search:
     mjcf: str
     fit_kwargs: dict[str, Any]
     horizon: int  # steps of the held-out free run
+    one_step: Dataset  # the held-out instants of the one-step errors (:func:`one_step_data`)
+    data: Dataset  # all of it, for the final fit
+    final_kwargs: dict[str, Any]  # the final fit's options
+    on_part: bool  # the candidates are fitted on a part of a recording (:func:`search_part`)
 
 
-def _fit_task(ctx: _Search, task: tuple[list[str], dict[str, dict[str, Any]], bool]
-              ) -> tuple[IdentifiedModel | None, float, float, float]:
-    """One fit of the search: ``(names, fixed, base)`` -> the model (``None``: the data cannot
-    identify it), its screen error, its full free-run error (the base model's only, else NaN),
-    and the seconds it took."""
+@dataclass(frozen=True)
+class _Final:
+    """The final fit with the effects ``names`` and options ``fixed``, made during a round of the
+    search beside its candidates (``None``: the data cannot identify it; fitted again, to raise)."""
+
+    names: list[str]
+    fixed: dict[str, dict[str, Any]]
+    model: IdentifiedModel | None
+    seconds: float
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    """One fit of the search: the model (``None``: the data cannot identify it), its screen error,
+    its full free-run error (the base model's only, else NaN), its share of the held-out one-step
+    errors, and the seconds it took."""
+
+    model: IdentifiedModel | None
+    screen: float
+    free_run: float
+    one_step: OneStepParts | None
+    seconds: float
+
+
+def _task(ctx: _Search, task: tuple[Any, ...]) -> _Fitted | float:
+    """A task of the search's pool: ``("fit", names, fixed, base)`` -> :class:`_Fitted`;
+    ``("free run", model)`` -> its held-out free-run error (:func:`_free_run`); ``("final", names,
+    fixed)`` -> the final fit on all the data (:class:`_Final`)."""
+    if task[0] == "free run":
+        return _free_run(task[1], ctx)
+    if task[0] == "final":
+        t0 = time.perf_counter()
+        try:
+            m = identify(ctx.data, ctx.topo, effects=_build(task[1], ctx.topo, ctx.mjcf, task[2]), **ctx.final_kwargs)
+        except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
+            m = None
+        return _Final(task[1], task[2], m, time.perf_counter() - t0)
+    _, names, fixed, base = task
     t0 = time.perf_counter()
-    names, fixed, base = task
     try:
         m = identify(ctx.train, ctx.topo, effects=_build(names, ctx.topo, ctx.mjcf, fixed), **ctx.fit_kwargs)
     except (IdentifiabilityError, ValueError, np.linalg.LinAlgError):
-        return None, float("inf"), float("inf"), time.perf_counter() - t0
+        return _Fitted(None, float("inf"), float("inf"), None, time.perf_counter() - t0)
     screen = window_error(m, ctx.held, max(1, ctx.horizon // 10))
-    return m, screen, _free_run(m, ctx) if base else float("nan"), time.perf_counter() - t0
+    free = _free_run(m, ctx) if base else float("nan")
+    return _Fitted(m, screen, free, one_step_parts(m, ctx.one_step), time.perf_counter() - t0)
+
+
+def _one_step_errors(ctx: _Search, parts: list[OneStepParts | None], models: list[IdentifiedModel | None]
+                     ) -> list[float]:
+    """The held-out relative one-step errors of ``models`` from their fits' ``parts``
+    (:func:`identified.evaluate.relative_one_step_errors`: every model's accelerations formed by
+    the first model's scheme; a part formed by another is formed again here)."""
+    scheme = next((p.scheme for p in parts if p is not None), None)
+    parts = [p if p is None or p.scheme == scheme else one_step_parts(m, ctx.one_step, scheme)
+             for p, m in zip(parts, models)]
+    return relative_errors_from_parts(parts)
 
 
 def _free_run(m: IdentifiedModel | None, ctx: _Search) -> float:
@@ -271,6 +338,14 @@ def select_effects(
     from which its later refits start their classification), for the final fit.  A round's fits
     run side by side in ``jobs`` processes (:mod:`identified.fit.workers`; the same result).
     """
+    return _select_effects(data, topo, mjcf, fit_kwargs, horizon_s, min_gain, progress, jobs)[:4]
+
+
+def _select_effects(data: Dataset, topo: Topology, mjcf: str, fit_kwargs: dict[str, Any], horizon_s: float,
+                    min_gain: float, progress: bool, jobs: int | str | None
+                    ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None]:
+    """:func:`select_effects`, and the final fit made beside the last round's candidates
+    (:func:`_search`), if any."""
     E = data.n_episodes
     if E < 2:
         raise DatasetError("--effects auto needs at least 2 episodes (one is held out to judge each effect)")
@@ -278,6 +353,7 @@ def select_effects(
     train = data.select(episodes=slice(0, E - n_hold))
     held = data.select(episodes=slice(E - n_hold, E))
     part = search_part(train)
+    final_kwargs = fit_kwargs
     if part is not None:  # a recording: the candidates' fits on a part of it, without its replicas
         train, fit_kwargs = part, {**fit_kwargs, "noise_copies": 0}
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
@@ -288,15 +364,19 @@ def select_effects(
         except GeometryError:
             continue  # e.g. no ground plane: ground contact cannot be there
         candidates.append(name)
-    ctx = _Search(train, held, topo, mjcf, fit_kwargs, H)
+    ctx = _Search(train, held, topo, mjcf, fit_kwargs, H, one_step_data(held), data, final_kwargs, part is not None)
     jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
-    with TaskPool(_fit_task, ctx, jobs) as pool:
-        names, loop, explained, fixed = _search(ctx, pool, candidates, min_gain, progress)
-    if part is not None:  # what a profile scan settled on the part is scanned again on all the data
-        fixed = {label: {k: v for k, v in opts.items() if k not in EFFECTS[label.split(":")[0]].profiled}
-                 for label, opts in fixed.items()}
-        fixed = {label: opts for label, opts in fixed.items() if opts}
-    return names, loop, explained, fixed
+    with TaskPool(_task, ctx, jobs) as pool:
+        names, loop, explained, fixed, final = _search(ctx, pool, candidates, min_gain, progress)
+    return names, loop, explained, _final_options(ctx, fixed), final
+
+
+def _final_options(ctx: _Search, fixed: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The options the search settled that the final fit takes: on a part of a recording, what a
+    profile scan settled there is scanned again on all the data."""
+    out = {label: {k: v for k, v in opts.items() if not ctx.on_part or k not in EFFECTS[label.split(":")[0]].profiled}
+           for label, opts in fixed.items()}
+    return {label: opts for label, opts in out.items() if opts}
 
 
 def search_part(train: Dataset) -> Dataset | None:
@@ -311,16 +391,18 @@ def search_part(train: Dataset) -> Dataset | None:
 
 
 def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float, progress: bool
-            ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]]]:
+            ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None]:
     # settings of a chosen effect found by its own profile scan (the contact regulariser) are kept
     # for the later rounds' refits
     fixed: dict[str, dict[str, Any]] = {}
-    held, topo = ctx.held, ctx.topo
+    topo = ctx.topo
 
     # the slowest fits start first: the last round's time of each, else its effect's fit_cost
     cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
     chosen: list[str] = []
     base_model: IdentifiedModel | None = None
+    base_parts: OneStepParts | None = None
+    final: _Final | None = None
     base_err = first_err = base_screen = float("nan")
     loop: list[dict[str, Any]] = []
     bar = None
@@ -337,21 +419,33 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         names.sort(key=lambda n: -cost[n])
         if not names and base_model is not None:
             break
-        tasks = [(chosen + [n], dict(fixed), False) for n in names]
+        tasks: list[tuple[Any, ...]] = [("fit", chosen + [n], dict(fixed), False) for n in names]
         if base_model is None:
-            tasks.append((list(chosen), dict(fixed), True))
+            tasks.append(("fit", list(chosen), dict(fixed), True))
+        # after a round that added an effect, the final fit with the effects chosen so far (the
+        # longest task) runs beside this round's candidates: it is the model if none is added
+        early = pool.jobs > 1 and bool(chosen) and bool(names)
+        if early:
+            tasks.insert(0, ("final", list(chosen), _final_options(ctx, fixed)))
+            if bar is not None:
+                bar.total += 1
         results = pool.map(tasks, on_done=None if bar is None else (lambda: bar.update(1)))
+        if early:
+            final = results.pop(0)
         if base_model is None:
-            base_model, base_screen, base_err, _ = results.pop()
+            first = results.pop()
+            base_model, base_screen, base_err, base_parts = first.model, first.screen, first.free_run, first.one_step
             first_err = base_err
         if not names:
             break
-        fits = {n: r[0] for n, r in zip(names, results)}
-        screens = {n: r[1] for n, r in zip(names, results)}
-        cost.update({n: r[3] for n, r in zip(names, results)})
-        one_base, *one = relative_one_step_errors([base_model] + [fits[k] for k in names], held)
+        fits = {n: r.model for n, r in zip(names, results)}
+        screens = {n: r.screen for n, r in zip(names, results)}
+        parts = {n: r.one_step for n, r in zip(names, results)}
+        cost.update({n: r.seconds for n, r in zip(names, results)})
+        one_base, *one = _one_step_errors(ctx, [base_parts] + [parts[k] for k in names],
+                                          [base_model] + [fits[k] for k in names])
         ones = dict(zip(names, one))
-        best, runs = _judge(screens, base_screen, fits, ctx, min_gain)
+        best, runs = _judge(screens, base_screen, fits, ctx, min_gain, pool)
         err = runs[best]
         evidence = "free run" if halves(base_err, err, min_gain) else None
         if evidence is None and one_base > ONE_STEP_FLOOR:
@@ -370,7 +464,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
                      "screen": f"held-out error over {max(1, ctx.horizon // 10)}-step windows (m)",
                      "one_step": {k: finite_or_none(v) for k, v in ones.items()}})
         chosen.append(best)
-        base_err, base_model, base_screen = err, fits[best], screens[best]
+        base_err, base_model, base_screen, base_parts = err, fits[best], screens[best], parts[best]
         for e in base_model.effects:
             label = next(c for c in chosen if c.split(":")[0] == e["name"])
             cls = EFFECTS[e["name"]]
@@ -392,7 +486,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             bar.total += len(candidates) - len(chosen)
     if bar is not None:
         bar.close()
-    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed
+    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed, final
 
 
 def halves(before: float, after: float, min_gain: float = 2.0) -> bool:
@@ -420,15 +514,19 @@ def search_explained(relative: float | None, first_err: float, last_err: float) 
 
 
 def _judge(screens: dict[str, float], base_screen: float, fits: dict[str, IdentifiedModel | None], ctx: _Search,
-           min_gain: float) -> tuple[str, dict[str, float]]:
+           min_gain: float, pool: TaskPool | None = None) -> tuple[str, dict[str, float]]:
     """The round's best candidate and the full held-out free-run errors it was chosen on: of the
     candidates whose screen error is within ``min_gain`` of the best screen's and 1 % below the
     model's without them (``base_screen``), the one with the lowest free run -- the short windows cannot rank those: on
     the robot hiding cable friction, a constant force screened 0.023 m and ground contact 0.024 m,
-    and their free runs were 0.60 and 0.36 m.  With none such, the best screen's."""
+    and their free runs were 0.60 and 0.36 m.  With none such, the best screen's.  The free runs
+    run side by side in ``pool`` (:func:`_task`), else here."""
     top = min(screens.values())
     close = [n for n, v in screens.items() if np.isfinite(v) and v <= min_gain * top and v < 0.99 * base_screen]
     close = close or [min(screens, key=screens.get)]
-    runs = {n: _free_run(fits[n], ctx) for n in close}
+    if pool is None:
+        runs = {n: _free_run(fits[n], ctx) for n in close}
+    else:
+        runs = dict(zip(close, pool.map([("free run", fits[n]) for n in close])))
     best = min(close, key=lambda n: (runs[n], screens[n]))
     return best, runs

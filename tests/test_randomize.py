@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -36,12 +37,17 @@ from tensegrity_gym.randomize import (
     load_randomization,
 )
 
+#: the robot fitted with ``ground_contact`` (the shipped model's data): the law whose parameters
+#: most draws below name
+GROUND = str(Path(__file__).parent / "data" / "robot_ground_contact.json")
 N, STEPS = 3, 40  # 3 envs, 40 control steps of 20 physics steps (0.8 s, several contacts change)
 
 
 @pytest.fixture(scope="module")
 def backend() -> IdentifiedBackend:
-    return IdentifiedBackend(None, dtype="float64", compile=False)
+    """The robot fitted with ``ground_contact`` (tests/data/robot_ground_contact.json), whose
+    contact law's parameters the draws below name."""
+    return IdentifiedBackend(GROUND, dtype="float64", compile=False)
 
 
 def _starts(b: IdentifiedBackend, n: int, seed: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
@@ -183,7 +189,7 @@ def test_draw_is_reproducible_and_within_its_widths():
 
 
 def test_auto_comes_from_the_fit_numbers_not_the_mjcf():
-    model = load_model(default_model_path())
+    model = load_model(GROUND)
     r = auto_randomization(model)
     ev = model.metrics["residual_stage"]["ground_contact"]["explained_variance"]
     base = CONTACT_FACTOR * np.sqrt(1 - ev)
@@ -224,7 +230,7 @@ def test_auto_draws_the_pyramid_laws_parameters():
     a draw scales that law's parameters only."""
     from identified.effects.pyramid_contact import PyramidContact
 
-    model = copy.deepcopy(load_model(default_model_path()))
+    model = copy.deepcopy(load_model(GROUND))
     values = {"beta": 105.0, "kappa": 2770.0, "imp_min": 0.9, "imp_max": 0.95, "imp_width": 1e-3, "mu": 0.9,
               "mu_torsion": 0.02, "mu_rolling": 0.002}
     stderr = {k: 1e-12 * v for k, v in values.items()}
@@ -273,7 +279,7 @@ def test_cli_rejects_a_bad_randomization_file(tmp_path, capsys):
 # ---------------------------------------------------------------------- the env
 def _venv(n: int, randomize, **kw):
     return gym.make_vec("TensegrityIco-v0", num_envs=n, vectorization_mode="vector_entry_point", backend="identified",
-                        randomize=randomize, backend_kwargs={"dtype": "float64", "compile": False}, **kw)
+                        model=GROUND, randomize=randomize, backend_kwargs={"dtype": "float64", "compile": False}, **kw)
 
 
 def test_env_draws_per_env_and_reproducibly():
@@ -289,7 +295,7 @@ def test_env_draws_per_env_and_reproducibly():
         np.testing.assert_array_equal(a, b)
     k, m, gc = rows[0]
     assert len({tuple(x) for x in k}) == 3  # every env its own
-    ratio = m / load_model(default_model_path()).mass
+    ratio = m / load_model(GROUND).mass
     assert np.all(np.abs(ratio - 1) <= 0.2) and np.ptp(ratio) > 0.01
     assert np.ptp(gc[:, 0, 2]) == 0  # gamma_n: width 0
 

@@ -4,6 +4,7 @@ and the thread policy (scoped, overridable). No timings are asserted here (bench
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -194,8 +195,10 @@ def test_thread_policy_is_scoped_and_overridable(floating):
 # ---------------------------------------------------------------------- with ground contact
 @pytest.fixture(scope="module")
 def contact_backend():
-    """The shipped robot model (ground contact on), float64, as the reference's source."""
-    b = IdentifiedBackend(dtype="float64", compile=False)
+    """The robot fitted with ground contact (tests/data/robot_ground_contact.json: the shipped
+    model's data fitted with ``ground_contact``), float64, as the reference's source."""
+    b = IdentifiedBackend(str(Path(__file__).parent / "data" / "robot_ground_contact.json"), dtype="float64",
+                          compile=False)
     assert [e.name for e in b.engine.effects] == ["ground_contact"]
     return b
 

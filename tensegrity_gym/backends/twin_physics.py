@@ -25,15 +25,15 @@ Speed, two policies, each a keyword argument with a default that suits a CPU:
   (timed in :attr:`TwinPhysics.compile_seconds`). The compiled substep is kept in a cache on disk
   (:mod:`tensegrity_gym.backends.substep_cache`, keyed by the model's structure and constants, the
   shapes and the code): the first process that steps a model compiles it ahead of time and stores
-  it (31-60 s on 2 cores at load 3-4), the next ones load it (the first step 0.24-0.29 s, 3-4 s
-  with inductor's imports while the env is built, on 2 cores at load 3-6, against 8-11 s for a
+  it (31-60 s on 2 cores at load 3-4 with ground_contact, 100-140 s with pyramid_contact), the next
+  ones load it (the first step 0.24-0.29 s, 3-4 s with inductor's imports while the env is built, on 2 cores at load 3-6, against 8-11 s for a
   plain ``torch.compile`` served from inductor's own cache; :attr:`TwinPhysics.cache_status` says
   which). ``TENSEGRITY_TWIN_CACHE=0`` turns the cache off (a plain ``torch.compile``). The
   substep steps the state's *components* (:meth:`identified.engine.SpringRodEngine.step_components`:
   one (*B, R) tensor per coordinate, no trailing dimension of 3), which inductor vectorises across
   rods and envs; an engine that is not :attr:`~identified.engine.SpringRodEngine.fused` (an effect
   without a component form, another integrator) steps through ``SpringRodEngine.step``. On a CPU
-  the compiled substep has inductor's C++ wrapper. ``"auto"`` compiles when a C++ compiler is on
+  the single twin's compiled substep has inductor's C++ wrapper (:meth:`TwinPhysics._inductor_options`). ``"auto"`` compiles when a C++ compiler is on
   the PATH and the environment variable ``TENSEGRITY_TWIN_COMPILE`` is not ``0``, else runs eagerly; a compilation that fails
   warns once and falls back to eager. ``True``/``False`` force it. The compiled and the eager
   substeps agree to rounding (tests/test_twin_speed.py).
@@ -413,14 +413,17 @@ class TwinPhysics:
                                               "_all_actuated", "_rest_offset", "_fused")}
 
     def _inductor_options(self) -> dict[str, Any]:
-        """Inductor settings for the substep. On a CPU, a C++ wrapper (``cpp_wrapper``): the
-        compiled substep allocates its ~100 intermediate component buffers and calls its kernel
-        from C++ instead of Python, measured 7 % faster at 256 and 1024 envs and 25 % for the
-        single env (in one process, 2026-11-23), and a warm-cache compile of 1.6 s. Inductor's
-        default vectorisation (16 float32 lanes here) is kept: every tensor of the component-form
-        step is (*B, n) with no trailing 3, and the scalar loops (``cpp.simdlen=1``) the tensor
-        form needed measured 1.8x slower."""
-        return {"cpp_wrapper": True} if self.engine.device.type == "cpu" else {}
+        """Inductor settings for the substep. The single twin on a CPU gets a C++ wrapper
+        (``cpp_wrapper``): the compiled substep allocates its ~100 intermediate component buffers
+        and calls its kernel from C++ instead of Python, measured 25 % faster for the single env.
+        A batched twin does not: there it was 7 % faster at 256 and 1024 envs (2026-11-23), but
+        compiling the wrapper is a second large C++ build, and with ``pyramid_contact`` the cold
+        compile measured 139 s with it against 104 s without (64 envs, float32, the same load),
+        the substep's speed the same (2,627 and 2,683 env steps/s). Inductor's default
+        vectorisation (16 float32 lanes here) is kept: every tensor of the component-form step is
+        (*B, n) with no trailing 3, and the scalar loops (``cpp.simdlen=1``) the tensor form needed
+        measured 1.8x slower."""
+        return {"cpp_wrapper": True} if self.engine.device.type == "cpu" and self.batch is None else {}
 
     # ------------------------------------------------------------------ read-out
     def states_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -140,7 +140,7 @@ def test_quat_distance_is_sign_invariant():
 
 
 def test_relative_one_step_errors_leave_out_the_contact_rows(tmp_path):
-    """On the robot, the shipped model's contact law is not exact (tens of percent on the rods in
+    """On the robot, ``ground_contact``'s law is not exact (tens of percent on the rods in
     contact) while everything else is: the one-step error on the other rods is at rounding level,
     and on all the rods it is not."""
     from identified.model import load_model
@@ -149,7 +149,7 @@ def test_relative_one_step_errors_leave_out_the_contact_rows(tmp_path):
     xml = str(tmp_path / "robot.xml")
     write_model(xml, "ico", preset="robot")
     data = collect(xml, CollectConfig(episodes=1, steps=300, seed=3, push_every=50))
-    model = load_model(Path(__file__).resolve().parents[1] / "identified" / "data" / "robot.json")
+    model = load_model(Path(__file__).resolve().parent / "data" / "robot_ground_contact.json")
     (err,) = relative_one_step_errors([model], data)
     ch, _, point = recorded_samples(data, "forward")
     rw = residual_wrench(engine_from_model(model), ch, point)

@@ -363,11 +363,11 @@ def test_pushes_move_the_robot():
 def test_training_records_its_randomization(tmp_path):
     from tensegrity_gym.training import TrainConfig, load_policy, train
 
-    cfg = TrainConfig(timesteps=128, seed=0, envs=2, rollout=64, randomize="auto",
+    cfg = TrainConfig(timesteps=128, seed=0, envs=2, rollout=64, randomize="auto", identified=GROUND,
                       backend_kwargs={"compile": False})
     train(cfg, tmp_path / "P.zip", progress=False)
     meta = load_policy(tmp_path / "P.zip").meta
-    want = auto_randomization(load_model(default_model_path())).to_json()
+    want = auto_randomization(load_model(GROUND)).to_json()
     assert meta["randomization"] == json.loads(json.dumps(want))
     cfg.randomize = "none"
     train(cfg, tmp_path / "Q.zip", progress=False)

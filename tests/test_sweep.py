@@ -17,7 +17,6 @@ import pytest
 
 import tensegrity_gym  # noqa: F401  (registers the env)
 from identified.model import load_model, save_model
-from tensegrity_gym.backends.identified_backend import default_model_path
 from tensegrity_gym.cli import main
 from tensegrity_gym.models import write_model
 from tensegrity_gym.sweep import (
@@ -36,11 +35,15 @@ from tensegrity_gym.training import TrainConfig, load_policy, train
 SEEDS = [3, 5]
 
 
+#: the robot fitted with ``ground_contact`` (the shipped model's data): its twin steps ~2x faster eagerly
+#: than the shipped ``pyramid_contact`` one
+GROUND = Path(__file__).parent / "data" / "robot_ground_contact.json"
+
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("robot")
     write_model(d / "robot.xml", "ico", preset="robot")
-    model = load_model(default_model_path())
+    model = load_model(GROUND)  # the mechanics under test do not depend on the contact law
     model.source_model = str(d / "robot.xml")
     save_model(d / "twin.json", model)
     return d / "twin.json"

@@ -71,7 +71,7 @@ def test_wrong_twin_is_nominal_off_by_30_percent(keep):
         np.testing.assert_allclose(np.abs(ratio - 1.0), 0.3, rtol=1e-12)
         assert (ratio > 1).any() and (ratio < 1).any()  # both signs drawn
     if keep:
-        assert [e["name"] for e in wrong.effects] == [e["name"] for e in model.effects] == ["ground_contact"]
+        assert [e["name"] for e in wrong.effects] == [e["name"] for e in model.effects] == ["pyramid_contact"]
     else:
         assert wrong.effects == []
     assert model.effects  # the identified model itself is untouched

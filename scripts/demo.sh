@@ -37,13 +37,13 @@ paper() {
 
 collect_robot() {
     $T model ico --preset robot --out "$OUT/robot.xml"
-    $T collect --model "$OUT/robot.xml" --episodes 10 --steps 3000 --seed 0 --push-every 200 --out "$OUT/robot.npz" --quiet
+    $T collect --model "$OUT/robot.xml" --episodes 10 --steps 2000 --seed 0 --push-every 200 --out "$OUT/robot.npz" --quiet
     $T collect --model "$OUT/robot.xml" --episodes 4 --steps 1000 --seed 1 --push-every 200 --out "$OUT/held.npz" --quiet
 }
 
 echo "== 1. the paper's icosahedron (non-uniform, seed 3): 54 parameters + inertias from 10 x 1000 steps"
 timed "paper icosahedron" paper
-echo "== 2. the robot: 10 rollouts of 3 s (random cable commands, pushes) and 4 held-out ones"
+echo "== 2. the robot: 10 rollouts of 2 s (20 s of robot time) (random cable commands, pushes) and 4 held-out ones"
 timed "collect (robot)" collect_robot
 echo "== 3. fit with the effect search: what does the spring-rod model lack?"
 timed "fit --effects auto" $T fit "$OUT/robot.npz" --model "$OUT/robot.xml" --effects auto --out "$OUT/robot.json" --quiet

@@ -82,6 +82,7 @@ def _draws(b: IdentifiedBackend, ph: TwinPhysics) -> dict:
             "effects": {"ground_contact": gc}}
 
 
+@pytest.mark.expensive  # ~10-20 s; with the benchmarks (the suite's 10 minutes)
 def test_each_env_steps_as_a_single_twin_with_its_parameters(backend):
     """Env i of the per-env batch equals an unbatched twin built from a model holding env i's
     spring, rod, contact and motor parameters, to float64 rounding."""
@@ -143,6 +144,7 @@ def test_per_env_at_the_identified_values_is_todays_twin_exactly(backend):
                                   _roll(_plain(backend, states, rest), targets))
 
 
+@pytest.mark.expensive  # a 28 s compile; with the benchmarks (the suite's 10 minutes)
 @pytest.mark.skipif(not compiler_available(), reason="torch.compile needs a C++ compiler")
 def test_compiled_per_env_twin_reads_new_parameters(backend):
     """The compiled substep reads the per-env parameters written after its compilation."""

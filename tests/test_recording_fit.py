@@ -57,6 +57,7 @@ def test_missing_encoder_is_refused(robot):
         states_from_recording(short, topo)
 
 
+@pytest.mark.expensive  # ~10-20 s; with the benchmarks (the suite's 10 minutes)
 def test_axial_inertia_is_not_identifiable(robot):
     """A fit from end-cap markers holds every axial moment: null error bar, named in the metrics."""
     from identified.fit.identify import ScaleSpec
@@ -72,6 +73,7 @@ def test_axial_inertia_is_not_identifiable(robot):
     assert m.metrics["recording"]["friction_damping"]["factor"] in FACTORS
 
 
+@pytest.mark.expensive  # ~10-20 s; with the benchmarks (the suite's 10 minutes)
 def test_friction_damping_from_short_free_runs(robot):
     """The contact law's friction damping chosen by the short free runs: a law fitted on the
     plant's full states with its beta_a, beta_p divided by 4 is scaled back by the factor whose

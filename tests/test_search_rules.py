@@ -1,18 +1,23 @@
 """The effect search's rules, each on its own numbers (milliseconds, not a search of minutes).
 
 The search adds a candidate on the free-run evidence (:func:`halves`), failing that on the
-one-step evidence (:func:`one_step_evidence`), and calls what it leaves explained by
-:func:`search_explained`; each rule is checked at and beside its thresholds.
+one-step evidence (:func:`one_step_evidence`), stops when its model leaves nothing to find
+(:func:`exhausted`) and calls what it leaves explained by :func:`search_explained`; each rule is
+checked at and beside its thresholds, and the search's use of the last two on stand-in fits.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
+import torch
+
 from identified.fit.checks import ROUNDING
 from identified.fit.pipeline import (
     FREE_RUN_FLOOR,
     ONE_STEP_FLOOR,
+    exhausted,
     halves,
     one_step_evidence,
     search_explained,
@@ -53,3 +58,106 @@ def test_search_explained_by_rounding_or_a_fivefold_cut():
     assert search_explained(0.5, 0.0, 0.0)  # nothing to explain
     assert not search_explained(0.5, 1.0, 0.5)
     assert search_explained(None, INF, 1.0)
+
+
+def test_exhausted_needs_both_a_rounding_residual_and_a_rounding_one_step_error():
+    assert exhausted(ROUNDING / 2, ONE_STEP_FLOOR)
+    assert not exhausted(ROUNDING, ONE_STEP_FLOOR)  # the fitted equations' residual above rounding
+    assert not exhausted(ROUNDING / 2, 2 * ONE_STEP_FLOOR)  # the held-out one-step error above it
+    assert not exhausted(None, 0.0) and not exhausted(ROUNDING / 2, math.nan)
+
+
+# --- the search on stand-in fits: which fits it makes, and what each starts from -------------------
+
+#: held-out errors of the stand-ins: linear drag cuts the free run 10x; beside it a constant force
+#: would cut it again 10x (a second round would add it)
+_ERR = {(): 1.0, ("linear_drag",): 0.1, ("constant_force",): 0.8, ("linear_drag", "constant_force"): 0.01}
+
+
+class _Model:
+    def __init__(self, effects, takes: int, residual: float) -> None:
+        self.names = tuple(e.name for e in effects)
+        self.takes, self.residual = takes, residual
+        self.effects = [e.to_json() for e in effects]
+        self.metrics: dict = {}
+        self.loop: list = []
+
+
+def _search(monkeypatch, residual: float, one_step: float, warm: bool):
+    """Run ``fit_model(effects="auto")`` in one process on stand-ins; the fits made, in order, as
+    (effects, takes, each effect's starting values)."""
+    from identified import predict
+    from identified.effects.linear_drag import LinearDrag
+    from identified.fit import checks, pipeline
+    from identified.fit.regression import IdentifiabilityError
+    from tensegrity_gym.collect import CollectConfig, collect
+    from tensegrity_gym.models import write_model
+
+    fits: list = []
+
+    def identify(data, topology, effects=(), **kw):
+        names = tuple(e.name for e in effects)
+        if names not in _ERR:
+            raise IdentifiabilityError("not a stand-in")
+        assert torch.get_num_threads() == 1  # the fit runs on one torch thread
+        fits.append((names, data.n_episodes, [None if e.values is None else e.values.tolist() for e in effects]))
+        for k, e in enumerate(effects):  # fitted values: the fit's index, so a start says which fit it came from
+            e.values = np.full(e.n_params, float(len(fits)))
+        return _Model(effects, data.n_episodes, residual)
+
+    monkeypatch.setattr(LinearDrag, "warm_starts", warm)
+    monkeypatch.setattr(pipeline, "identify", identify)
+    monkeypatch.setattr(pipeline, "window_error", lambda m, data, steps: _ERR[m.names])
+    monkeypatch.setattr(pipeline, "_free_run", lambda m, ctx: math.inf if m is None else _ERR[m.names])
+    monkeypatch.setattr(pipeline, "one_step_parts", lambda m, data, scheme=None: m)
+    monkeypatch.setattr(pipeline, "_one_step_errors",
+                        lambda ctx, parts, models: [one_step if m is not None and m.names else 1.0 for m in models])
+    monkeypatch.setattr(pipeline, "relative_residual", lambda m: m.residual)
+    for mod, name in ((checks, "refresh_physics"), (checks, "residual_check"), (predict, "attach_metrics")):
+        monkeypatch.setattr(mod, name, lambda *a, **k: None)
+    import os
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "ico.xml")
+        write_model(path, "ico", preset="paper-uniform")
+        data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))
+        threads = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            model = pipeline.fit_model(data, path, effects="auto", jobs=1)
+            assert torch.get_num_threads() == 2  # the caller's count given back
+        finally:
+            torch.set_num_threads(threads)
+    return model, fits
+
+
+def test_the_search_stops_where_its_model_leaves_nothing_to_find(monkeypatch):
+    """Linear drag cuts the error 10x; with a rounding-level residual and one-step error after it,
+    no second round is fitted (its constant force would have cut the free run again); with a
+    residual just above rounding the second round runs and adds it."""
+    model, fits = _search(monkeypatch, residual=ROUNDING / 2, one_step=ONE_STEP_FLOOR / 2, warm=False)
+    assert [s["added"] for s in model.loop] == ["linear_drag"]
+    made = [f[:2] for f in fits]  # the first round (linear_drag twice: its variant), then the final fit
+    assert made == [(("linear_drag",), 3), (("linear_drag",), 3), (("constant_force",), 3), ((), 3),
+                    (("linear_drag",), 4)]
+    model, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=ONE_STEP_FLOOR / 2, warm=False)
+    assert [s["added"] for s in model.loop] == ["linear_drag", "constant_force"]
+    assert (("linear_drag", "constant_force"), 3) in [f[:2] for f in fits]
+
+
+def test_a_warm_starting_effect_is_refitted_from_the_values_the_search_found(monkeypatch):
+    """A later round's refits of an effect that ``warm_starts`` start from the values of the fit
+    that chose it (the first fit made: 1.0), the final fit from those of the last round's chosen
+    fit; any other effect starts unfitted."""
+    model, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=1.0, warm=True)
+    assert [s["added"] for s in model.loop] == ["linear_drag", "constant_force"]
+    assert fits[0][:2] == (("linear_drag",), 3) and fits[0][2] == [None]
+    both = ("linear_drag", "constant_force")
+    k = next(i for i, f in enumerate(fits) if f[:2] == (both, 3))  # the second round's fit that chose it
+    drag, force = fits[k][2]
+    assert drag == [1.0] * len(drag) and force is None
+    final = fits[-1]
+    assert final[:2] == (both, 4) and final[2][0] == [k + 1.0] * len(drag) and final[2][1] is None
+    _, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=1.0, warm=False)
+    assert all(v is None for f in fits for v in f[2])

@@ -183,6 +183,7 @@ class PyramidContact(CapsuleOnPlane):
     #: its fit from the splines' accelerations is not measured
     searched = True
     searched_on_markers = False
+    warm_starts = True  # the Gauss-Newton fit starts from the values it holds
     fit_cost = 10.0
 
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:

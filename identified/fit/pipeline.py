@@ -21,7 +21,11 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    1933 -> 2000 N/m, made the contact law's free run 0.0185 -> 0.026 m: the law's own error).  The second
    test finds an effect exact where it acts whose gain the free run hides under another effect's
    inexact law (air drag on the robot: its ground contact law leaves ~3 cm over 1 s);
-4. repeat until no candidate passes; a classification candidate (the cable friction's stick / slip
+4. repeat until no candidate passes, or until the model with the effects chosen so far leaves
+   nothing to find: its equation residual on the fitted episodes is rounding relative to the forces
+   (:func:`identified.fit.checks.relative_residual` below ``ROUNDING``) and its held-out one-step error
+   is below ``ONE_STEP_FLOOR`` (no effect has a signature left in such data, so a further round could
+   only add one by a chance halving of a rounding-level free run); a classification candidate (the cable friction's stick / slip
    classification) left out has the classification it settled this round as one more start of
    its next round's search (a settled classification alone is not enough: the effect just added
    can change it -- on the robot, ground contact takes the rods on the ground out of the joint
@@ -77,6 +81,7 @@ from identified.fit.regression import IdentifiabilityError
 from identified.fit.workers import TaskPool, resolve_jobs
 from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
+from identified.threads import torch_threads
 from identified.topology import Topology
 
 __all__ = ["fit_model", "one_step_evidence", "parse_effects", "search_explained", "select_effects"]
@@ -151,7 +156,22 @@ def fit_model(
     ``inertia``: ``"auto"``, ``"full"`` (each rod's ten inertial parameters) or ``"diagonal"``,
     as :func:`identified.fit.identify.identify`.  ``before_metrics``: called with the fitted model
     before its metrics are computed (a recording's contact damping, chosen after the fit).
+
+    Torch runs on one intra-op thread here (:mod:`identified.threads`): the fit's tensors are small
+    and its parallel work runs in processes; with another process busy on a core, torch's idle
+    threads spinning made ``--effects auto`` twice as slow.
     """
+    with torch_threads(1):
+        return _fit_model(data, mjcf, effects, regressors, scale, solver, weak_window, integrator, scheme, refine,
+                          progress, horizon_s, min_gain, jobs, hold_inertia, contact_margin, inertia, before_metrics)
+
+
+def _fit_model(data: Dataset, mjcf: str | os.PathLike, effects: str | Sequence[str], regressors: str,
+               scale: ScaleSpec, solver: str, weak_window: int | str | None, integrator: str | None,
+               scheme: str | None, refine: bool, progress: bool, horizon_s: float, min_gain: float,
+               jobs: int | str | None, hold_inertia: Sequence[tuple[int, int]], contact_margin: int, inertia: str,
+               before_metrics: Callable[[IdentifiedModel], None] | None) -> IdentifiedModel:
+    """:func:`fit_model`, on the caller's thread count."""
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
     spec = parse_effects(effects)
@@ -230,7 +250,7 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
         start = opts.pop("start_values", None)
         eff.search_too = bool(opts.pop("search_too", False))
         eff.options.update(opts)
-        if start is not None:  # a classification effect: start from a settled classification
+        if start is not None:  # start from a settled classification, or from fitted values
             eff.values = np.asarray(start, dtype=float)
         out.append(eff)
     return out
@@ -471,7 +491,8 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             settled = {k: e["parameters"][k] for k in cls.profiled if e["parameters"].get(k) is not None}
             if settled:  # what its own profile scan settled (the contact regulariser), kept
                 fixed[label] = settled
-            if cls.fit_strategy == "classification":  # later refits start from its classification
+            if cls.fit_strategy == "classification" or cls.warm_starts:
+                # later refits start from its classification, or from its fitted values
                 fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
         for name, m in fits.items():
             if name != best and m is not None and EFFECTS[name.split(":")[0]].fit_strategy == "classification":
@@ -484,9 +505,18 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
                                "search_too": True}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
+        if exhausted(relative_residual(base_model), ones[best]):
+            break
     if bar is not None:
         bar.close()
     return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed, final
+
+
+def exhausted(relative: float | None, one_step: float) -> bool:
+    """Whether a model leaves the search nothing to find: its equation residual relative to the
+    forces (``relative``, on the fitted episodes) is below :data:`~identified.fit.checks.ROUNDING`
+    and its held-out relative one-step error below :data:`ONE_STEP_FLOOR`."""
+    return bool(relative is not None and relative < ROUNDING and np.isfinite(one_step) and one_step <= ONE_STEP_FLOOR)
 
 
 def halves(before: float, after: float, min_gain: float = 2.0) -> bool:

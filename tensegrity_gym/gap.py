@@ -23,7 +23,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
@@ -47,8 +47,9 @@ VIDEO_FPS = 25.0
 
 @dataclass
 class EpisodeSet:
-    """One episode per seed: returns, forward progress and lengths (K,), and per episode the
-    actions taken (T_k, A) and the centre of mass at every instant (T_k + 1, 3)."""
+    """One episode per seed: returns, forward progress and lengths (K,), per episode the actions
+    taken (T_k, A) and the centre of mass at every instant (T_k + 1, 3), and the video frames of
+    the first episode where they were asked for."""
 
     seeds: list[int]
     returns: np.ndarray
@@ -57,6 +58,7 @@ class EpisodeSet:
     actions: list[np.ndarray]
     com: list[np.ndarray]
     diverged: np.ndarray
+    frames: list[np.ndarray] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         """The JSON block: means, spreads and per-episode values."""
@@ -74,7 +76,8 @@ class EpisodeSet:
 
 
 def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
-                 actions: np.ndarray | None = None, bar: Any = None) -> EpisodeSet:
+                 actions: np.ndarray | None = None, bar: Any = None,
+                 render: Callable[[], np.ndarray] | None = None, every: int = 1) -> EpisodeSet:
     """One episode on each of the first K = len(seeds) sub-envs of ``venv``, sub-env ``k`` reset
     with ``seeds[k]``; the episodes end by the env's termination or time limit. Sub-envs beyond the
     first K (a twin the size of the one a policy trained on, whose compiled step is then reused)
@@ -82,6 +85,8 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
 
     ``act``: (N, n_obs) observations -> (N, A) actions. ``actions`` (K, T, A): play these instead
     (open loop), each episode ending after its T steps at most (NaN rows end it early).
+    ``render``: the image of sub-env 0, taken after the reset, every ``every`` steps of its episode
+    and at its last (the video of the first episode, :attr:`EpisodeSet.frames`).
     """
     K, N = len(seeds), venv.num_envs
     if not 1 <= K <= N:
@@ -95,6 +100,7 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
     lengths = np.zeros(K, dtype=int)
     diverged = np.zeros(K, dtype=bool)
     active = np.ones(K, dtype=bool)
+    frames = [] if render is None else [render()]
     t = 0
     while active.any():
         if actions is not None:
@@ -120,12 +126,15 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
                 diverged[k] = True
         if bar is not None:
             bar.update(int(active.sum()))
+        was = bool(active[0])
         active &= ~(np.asarray(term)[:K] | np.asarray(trunc)[:K])
         t += 1
+        if render is not None and was and (t % every == 0 or not active[0]):
+            frames.append(render())
     A = venv.single_action_space.shape[0]  # type: ignore[index]
     return EpisodeSet(seeds=list(seeds), returns=ret, progress=progress, lengths=lengths,
                       actions=[np.array(x).reshape(-1, A) for x in taken],
-                      com=[np.array(c) for c in coms], diverged=diverged)
+                      com=[np.array(c) for c in coms], diverged=diverged, frames=frames)
 
 
 def twin_layout(policy: LoadedPolicy, episodes: int) -> tuple[int, bool]:
@@ -152,10 +161,13 @@ def _twin_venv(identified: str | None, n: int, episode_steps: int | None, env_kw
                         per_env_parameters=per_env, **kw)
 
 
-def _plant_venv(mjcf: str, n: int, episode_steps: int | None, env_kwargs: dict[str, Any]
-                ) -> gym.vector.VectorEnv:
+def _plant_venv(mjcf: str, n: int, episode_steps: int | None, env_kwargs: dict[str, Any], render: bool = False
+                ) -> gym.vector.SyncVectorEnv:
+    kw = dict(env_kwargs)
+    if render:
+        kw["render_mode"] = "rgb_array"
     return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", backend="mujoco",
-                        model=mjcf, max_episode_steps=episode_steps, **env_kwargs)
+                        model=mjcf, max_episode_steps=episode_steps, **kw)
 
 
 def _random_act(action_dim: int, seed: int) -> Act:
@@ -264,36 +276,6 @@ def write_mp4(path: str, frames: list[np.ndarray], fps: float) -> None:
         raise
 
 
-def _episode_frames(env: gym.Env, act: Act, seed: int, every: int) -> list[np.ndarray]:
-    """Frames of one episode (reset ``seed``), one every ``every`` control steps and the last."""
-    obs, _ = env.reset(seed=seed)
-    frames = [env.render()]
-    done, t = False, 0
-    while not done:
-        obs, _, term, trunc, _ = env.step(act(obs[None])[0])
-        t += 1
-        done = term or trunc
-        if t % every == 0 or done:
-            frames.append(env.render())
-    return frames  # type: ignore[return-value]
-
-
-def _sub_env_frames(venv: Any, act: Act, seed: int, every: int) -> list[np.ndarray]:
-    """Frames of sub-env 0's episode of a batched twin (reset ``seed``, the others from the seeds
-    after it), one every ``every`` control steps and the last."""
-    N = venv.num_envs
-    obs, _ = venv.reset(seed=[int(seed) + i for i in range(N)])
-    frames = [venv.render_sub_env(0)]
-    t, done = 0, False
-    while not done:
-        obs, _, term, trunc, _ = venv.step(np.asarray(act(obs), dtype=np.float32).reshape(N, -1))
-        t += 1
-        done = bool(term[0] or trunc[0])
-        if t % every == 0 or done:
-            frames.append(venv.render_sub_env(0))
-    return frames
-
-
 def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None, episodes: int,
                 seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
                 progress: bool = True, threads: int = 1,
@@ -312,7 +294,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         video_every: one video frame every this many control steps (played at :data:`VIDEO_FPS`).
         threads: torch threads while the twin runs.
         random_plant: the ``random_plant`` block of an earlier report with the same plant, seeds,
-            ``seed`` and episode length, reused instead of running the random policy again.
+            ``seed`` and episode length, reused instead of running the random policy again (with
+            ``video_dir`` it runs again: its video is drawn as it runs).
     """
     import tensegrity_gym  # noqa: F401  (registers the env)
 
@@ -338,17 +321,24 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         with torch_threads(threads):
             mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))
             n_twin, per_env = twin_layout(pol, K)
-            twin = _twin_venv(identified, n_twin, steps, env_kwargs, backend_kwargs, per_env=per_env)
-            plant = _plant_venv(mjcf, K, steps, env_kwargs)
+            video = video_dir is not None
+            # with videos, the first episode of each run is drawn as it runs (the same episode)
+            kw = {**env_kwargs, "width": VIDEO_SIZE, "height": VIDEO_SIZE} if video else env_kwargs
+            twin = _twin_venv(identified, n_twin, steps, kw, backend_kwargs, render=video, per_env=per_env)
+            plant = _plant_venv(mjcf, K, steps, kw, render=video)
+            draw: dict[str, Any] = {}
+            if video:
+                draw = {"twin": {"render": lambda: twin.render_sub_env(0), "every": int(video_every)},
+                        "plant": {"render": plant.envs[0].render, "every": int(video_every)}}
             try:
                 for v in (twin, plant):
                     pol.check_env(v.single_observation_space, v.single_action_space)
                 dt = float(twin.dt)  # type: ignore[attr-defined]
                 A = int(twin.single_action_space.shape[0])  # type: ignore[index]
-                on_twin = run_episodes(twin, pol.act, seeds, bar=bar)
-                on_plant = run_episodes(plant, pol.act, seeds, bar=bar)
-                on_random = (None if random_plant is not None else
-                             run_episodes(plant, _random_act(A, seed), seeds, bar=bar))
+                on_twin = run_episodes(twin, pol.act, seeds, bar=bar, **draw.get("twin", {}))
+                on_plant = run_episodes(plant, pol.act, seeds, bar=bar, **draw.get("plant", {}))
+                on_random = (None if random_plant is not None and not video else
+                             run_episodes(plant, _random_act(A, seed), seeds, bar=bar, **draw.get("plant", {})))
             finally:
                 twin.close()
                 plant.close()
@@ -366,15 +356,16 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
             open_loop = open_loop_divergence(on_plant, replay, dt)
             videos = {}
             if video_dir is not None:
-                videos = _write_videos(video_dir, pol, identified, mjcf, steps, env_kwargs, backend_kwargs,
-                                       seeds[0], A, seed, int(video_every), (n_twin, per_env))
+                assert on_random is not None
+                videos = _write_videos(video_dir, {"twin": on_twin.frames, "plant": on_plant.frames,
+                                                   "random_plant": on_random.frames})
         if bar is not None:  # episodes that ended early leave part of the estimate unused
             bar.update(bar.total - bar.n)
     finally:
         if bar is not None:
             bar.close()
     t, p = on_twin.summary(), on_plant.summary()
-    r = random_plant if on_random is None else on_random.summary()
+    r = on_random.summary() if on_random is not None else random_plant
     out: dict[str, Any] = {
         "twin": t,
         "plant": p,
@@ -392,36 +383,17 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     return out
 
 
-def _write_videos(folder: str, pol: LoadedPolicy, identified: str | None, mjcf: str, steps: int,
-                  env_kwargs: dict[str, Any], backend_kwargs: dict[str, Any] | None, ep_seed: int, A: int,
-                  seed: int, every: int, layout: tuple[int, bool] = (1, False)) -> dict[str, str]:
-    """One episode (reset seed ``ep_seed``) on the twin, on the plant and of the random policy on the
-    plant, each as an MP4 in ``folder``, and the twin's beside the plant's (``twin_plant.mp4``). The
-    twin's is sub-env 0 of a batched twin of ``layout`` (:func:`twin_layout`)."""
+def _write_videos(folder: str, frames: dict[str, list[np.ndarray]]) -> dict[str, str]:
+    """The first episode on the twin, on the plant and of the random policy on the plant (``frames``
+    by those names), each as an MP4 in ``folder``, and the twin's beside the plant's
+    (``twin_plant.mp4``)."""
     os.makedirs(folder, exist_ok=True)
-    kw = {**env_kwargs, "render_mode": "rgb_array", "max_episode_steps": steps, "width": VIDEO_SIZE,
-          "height": VIDEO_SIZE}
-    paths, frames = {}, {}
-    twin = _twin_venv(identified, layout[0], steps, {**env_kwargs, "width": VIDEO_SIZE, "height": VIDEO_SIZE},
-                      backend_kwargs, render=True, per_env=layout[1])
-    try:
-        frames["twin"] = _sub_env_frames(twin, pol.act, ep_seed, every)
-    finally:
-        twin.close()
-    runs = {"plant": (gym.make(ENV_ID, model=mjcf, **kw), pol.act),
-            "random_plant": (gym.make(ENV_ID, model=mjcf, **kw), _random_act(A, seed))}
-    for name, (env, act) in runs.items():
-        try:
-            frames[name] = _episode_frames(env, act, ep_seed, every)
-        finally:
-            env.close()
-    for name in ("twin", *runs):
-        path = os.path.join(folder, f"{name}.mp4")
-        write_mp4(path, frames[name], fps=VIDEO_FPS)
-        paths[name] = path
-    path = os.path.join(folder, "twin_plant.mp4")
-    write_mp4(path, side_by_side(frames["twin"], frames["plant"]), fps=VIDEO_FPS)
-    paths["twin_plant"] = path
+    paths = {}
+    for name in ("twin", "plant", "random_plant"):
+        paths[name] = os.path.join(folder, f"{name}.mp4")
+        write_mp4(paths[name], frames[name], fps=VIDEO_FPS)
+    paths["twin_plant"] = os.path.join(folder, "twin_plant.mp4")
+    write_mp4(paths["twin_plant"], side_by_side(frames["twin"], frames["plant"]), fps=VIDEO_FPS)
     return paths
 
 

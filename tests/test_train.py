@@ -193,6 +193,34 @@ def test_open_loop_replay_of_the_plant_on_the_plant_does_not_diverge(trained, ro
     assert open_loop_divergence(closed, shifted, dt=0.02)["mean_m"] > 1e-4
 
 
+def test_video_frames_are_drawn_from_the_first_evaluated_episode(trained, robot):
+    """``run_episodes(render=, every=)`` draws sub-env 0 after the reset, every ``every`` steps and at
+    its episode's last step, without changing the episodes; here the "image" is the rod positions."""
+    pol = load_policy(trained.path)
+
+    def twin():
+        return gym.make_vec("TensegrityIco-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                            backend="identified", model=str(robot["twin"]), max_episode_steps=5)
+
+    v = twin()
+    drawn = run_episodes(v, pol.act, [3, 4], render=lambda: v._pos[0].copy(), every=2)
+    plain = run_episodes(twin(), pol.act, [3, 4])
+    np.testing.assert_array_equal(drawn.returns, plain.returns)
+    assert plain.frames == []
+    # by hand: the same twin, sub-env 0's positions after the reset and after steps 2, 4 and 5 (its last)
+    v = twin()
+    obs, _ = v.reset(seed=[3, 4])
+    want = [v._pos[0].copy()]
+    for t in range(1, 6):
+        obs, *_ = v.step(np.asarray(pol.act(obs), dtype=np.float32))
+        if t in (2, 4, 5):
+            want.append(v._pos[0].copy())
+    assert len(drawn.frames) == 4
+    for got, ref in zip(drawn.frames, want):
+        np.testing.assert_array_equal(got, ref)
+    assert not np.array_equal(drawn.frames[1], drawn.frames[2])
+
+
 # ---------------------------------------------------------------------- bad input and interrupts
 def test_bad_inputs_fail_with_one_line(robot, trained, tmp_path, capsys):
     out = tmp_path / "P.zip"

@@ -12,7 +12,9 @@ as far apart as the model's sites (within ``rigid_tol``); a pair that is not dro
 farther from its prediction.
 
 The first frame of each take has no history: its markers are assigned to the sites of a reference
-pose (the model's nominal pose, or the caller's), which must be within the gate of the truth.
+pose (the model's nominal pose, or the caller's), which must be within the gate of the truth.  A
+site without a marker there is predicted at its reference position, its gate growing with the time
+since the take's start, until its marker shows.
 """
 
 from __future__ import annotations
@@ -93,3 +95,5 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
         seen = ~np.isnan(frame[:, 0])
         last[1, seen], last_t[1, seen] = last[0, seen], last_t[0, seen]
         last[0, seen], last_t[0, seen] = frame[seen], t
+        if k == 0:  # a site hidden at the start is looked for from the reference, its gate growing
+            last[0, ~seen], last_t[0, ~seen] = ref[~seen], t

@@ -22,6 +22,7 @@ from identified.effects import EFFECTS, make_effect
 from identified.fit.identify import identify
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.models import write_model
+from tests._data import GROUND
 
 HORIZON = 0.25  # s; the episodes hold 0.3 s
 
@@ -290,7 +291,7 @@ def robot(tmp_path_factory):
     xml = str(tmp_path_factory.mktemp("robot") / "robot.xml")
     write_model(xml, "ico", preset="robot")
     data = collect(xml, CollectConfig(episodes=2, steps=400, seed=5, push_every=50))
-    path = os.path.join(os.path.dirname(__file__), "data", "robot_ground_contact.json")
+    path = str(GROUND)
     return xml, data, load_model(path)
 
 

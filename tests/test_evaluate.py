@@ -5,7 +5,6 @@ by explicit loops over the engine, and the residual wrench of a model whose one 
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +25,7 @@ from identified.fit.identify import identify
 from identified.twin import engine_from_model
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.models import write_model
+from tests._data import GROUND
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +149,7 @@ def test_relative_one_step_errors_leave_out_the_contact_rows(tmp_path):
     xml = str(tmp_path / "robot.xml")
     write_model(xml, "ico", preset="robot")
     data = collect(xml, CollectConfig(episodes=1, steps=300, seed=3, push_every=50))
-    model = load_model(Path(__file__).resolve().parent / "data" / "robot_ground_contact.json")
+    model = load_model(GROUND)
     (err,) = relative_one_step_errors([model], data)
     ch, _, point = recorded_samples(data, "forward")
     rw = residual_wrench(engine_from_model(model), ch, point)

@@ -5,7 +5,6 @@ these tests check the machinery, not learning."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +19,8 @@ from tensegrity_gym.improve import concat_episodes, record_policy, twin_errors
 from tensegrity_gym.models import write_model
 from tensegrity_gym.plant import MujocoPlant
 from tensegrity_gym.training import TrainConfig, load_policy, train
+from tests._data import GROUND
 
-#: the robot fitted with ``ground_contact`` (the shipped model's data): its twin steps ~2x faster eagerly
-#: than the shipped ``pyramid_contact`` one
-GROUND = Path(__file__).parent / "data" / "robot_ground_contact.json"
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):

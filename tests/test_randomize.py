@@ -10,7 +10,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -36,10 +35,11 @@ from tensegrity_gym.randomize import (
     auto_randomization,
     load_randomization,
 )
+from tests._data import GROUND as GROUND_FIT
 
 #: the robot fitted with ``ground_contact`` (the shipped model's data): the law whose parameters
 #: most draws below name
-GROUND = str(Path(__file__).parent / "data" / "robot_ground_contact.json")
+GROUND = str(GROUND_FIT)
 N, STEPS = 3, 40  # 3 envs, 40 control steps of 20 physics steps (0.8 s, several contacts change)
 
 

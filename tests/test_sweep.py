@@ -31,13 +31,11 @@ from tensegrity_gym.sweep import (
     spread,
 )
 from tensegrity_gym.training import TrainConfig, load_policy, train
+from tests._data import GROUND
 
 SEEDS = [3, 5]
 
 
-#: the robot fitted with ``ground_contact`` (the shipped model's data): its twin steps ~2x faster eagerly
-#: than the shipped ``pyramid_contact`` one
-GROUND = Path(__file__).parent / "data" / "robot_ground_contact.json"
 
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory) -> Path:

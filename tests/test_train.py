@@ -27,13 +27,11 @@ from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
 from tensegrity_gym.gap import open_loop_divergence, run_episodes, twin_layout
 from tensegrity_gym.models import write_model
 from tensegrity_gym.training import TrainConfig, checkpoint_path, load_policy, train
+from tests._data import GROUND
 
 TINY = ["--timesteps", "256", "--envs", "4", "--rollout", "128", "--quiet"]
 
 
-#: the robot fitted with ``ground_contact`` (the shipped model's data): its twin steps ~2x faster eagerly
-#: than the shipped ``pyramid_contact`` one
-GROUND = Path(__file__).parent / "data" / "robot_ground_contact.json"
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory) -> dict[str, Path]:

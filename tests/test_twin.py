@@ -12,7 +12,6 @@ import os
 import textwrap
 import warnings
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -41,6 +40,7 @@ from tensegrity_gym.envs.vector import (
 )
 from tensegrity_gym.models import preset_parameters
 from tensegrity_gym.plant import RodState
+from tests._data import GROUND as GROUND_FIT
 from tests._render import render_in_subprocess
 
 R, A = 6, 24
@@ -104,7 +104,7 @@ def _checker_warnings(record) -> list[str]:
 
 #: the robot fitted with ``ground_contact`` (the shipped model's data): its twin steps ~2x faster eagerly
 #: than the shipped ``pyramid_contact`` one, and nothing below depends on the contact law
-GROUND = str(Path(__file__).parent / "data" / "robot_ground_contact.json")
+GROUND = str(GROUND_FIT)
 
 
 @pytest.fixture(autouse=True)

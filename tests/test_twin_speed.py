@@ -4,7 +4,6 @@ and the thread policy (scoped, overridable). No timings are asserted here (bench
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from tensegrity_gym.backends.twin_physics import (
 )
 from tensegrity_gym.envs.tensegrity_ico_v0 import action_to_rest, perturb_start
 from tensegrity_gym.models import preset_parameters
+from tests._data import GROUND
 
 N, STEPS, SUBSTEPS = 6, 100, 20  # 6 starts, 100 control steps of 20 physics steps: 2 s each
 
@@ -197,7 +197,7 @@ def test_thread_policy_is_scoped_and_overridable(floating):
 def contact_backend():
     """The robot fitted with ground contact (tests/data/robot_ground_contact.json: the shipped
     model's data fitted with ``ground_contact``), float64, as the reference's source."""
-    b = IdentifiedBackend(str(Path(__file__).parent / "data" / "robot_ground_contact.json"), dtype="float64",
+    b = IdentifiedBackend(str(GROUND), dtype="float64",
                           compile=False)
     assert [e.name for e in b.engine.effects] == ["ground_contact"]
     return b

@@ -119,9 +119,8 @@ class Effect(ABC):
     #: how long its fit takes relative to a plain linear effect's: the effect search starts the
     #: slowest candidates first when it fits them side by side (:mod:`identified.fit.workers`)
     fit_cost: ClassVar[float] = 1.0
-    #: a non-linear fit that starts from the values it holds (else from several fixed starts): a
-    #: refit of a model that holds the effect (the effect search's later rounds, its final fit on
-    #: all the data) starts from the values fitted before
+    #: a non-linear fit that starts from the values it holds (else from several fixed starts): the
+    #: effect search's final fit on all the data starts from the values of the fit that chose it
     warm_starts: ClassVar[bool] = False
 
     def __init__(self, n_rods: int, n_springs: int, values: Any = None, stderr: Any = None,

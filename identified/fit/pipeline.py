@@ -24,8 +24,10 @@ Effect search (``effects="auto"``), forward selection on held-out data:
 4. repeat until no candidate passes, or until the model with the effects chosen so far leaves
    nothing to find: its equation residual on the fitted episodes is rounding relative to the forces
    (:func:`identified.fit.checks.relative_residual` below ``ROUNDING``) and its held-out one-step error
-   is below ``ONE_STEP_FLOOR`` (no effect has a signature left in such data, so a further round could
-   only add one by a chance halving of a rounding-level free run); a classification candidate (the cable friction's stick / slip
+   is below ``ONE_STEP_FLOOR``.  Both are taken on the rows the joint fit uses (a residual-stage
+   law's rows, the rods on the ground, aside): every candidate that is not a rival of a chosen law
+   acts on those rows too, so none has a signature left there, and a further round could only add
+   one by a chance halving of a rounding-level free run.  A classification candidate (the cable friction's stick / slip
    classification) left out has the classification it settled this round as one more start of
    its next round's search (a settled classification alone is not enough: the effect just added
    can change it -- on the robot, ground contact takes the rods on the ground out of the joint
@@ -248,6 +250,7 @@ def _build(names: Sequence[str], topo: Topology, mjcf: str,
         eff = make_effect(label, topo, mjcf)
         opts = dict((fixed or {}).get(label, {}))
         start = opts.pop("start_values", None)
+        opts.pop("final_values", None)  # the final fit's start (:func:`_final_options`)
         eff.search_too = bool(opts.pop("search_too", False))
         eff.options.update(opts)
         if start is not None:  # start from a settled classification, or from fitted values
@@ -393,9 +396,13 @@ def _select_effects(data: Dataset, topo: Topology, mjcf: str, fit_kwargs: dict[s
 
 def _final_options(ctx: _Search, fixed: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """The options the search settled that the final fit takes: on a part of a recording, what a
-    profile scan settled there is scanned again on all the data."""
+    profile scan settled there is scanned again on all the data; an effect that ``warm_starts``
+    starts from the values of the fit that chose the model (``final_values``)."""
     out = {label: {k: v for k, v in opts.items() if not ctx.on_part or k not in EFFECTS[label.split(":")[0]].profiled}
            for label, opts in fixed.items()}
+    for opts in out.values():
+        if "final_values" in opts:
+            opts["start_values"] = opts.pop("final_values")
     return {label: opts for label, opts in out.items() if opts}
 
 
@@ -491,9 +498,11 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             settled = {k: e["parameters"][k] for k in cls.profiled if e["parameters"].get(k) is not None}
             if settled:  # what its own profile scan settled (the contact regulariser), kept
                 fixed[label] = settled
-            if cls.fit_strategy == "classification" or cls.warm_starts:
-                # later refits start from its classification, or from its fitted values
-                fixed[label] = {"start_values": effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()}
+            values = effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()
+            if cls.fit_strategy == "classification":  # later refits start from its classification
+                fixed[label] = {"start_values": values}
+            if cls.warm_starts:  # the final fit starts from the values it has now (a later round's
+                fixed[label] = {**fixed.get(label, {}), "final_values": values}  # refits search afresh)
         for name, m in fits.items():
             if name != best and m is not None and EFFECTS[name.split(":")[0]].fit_strategy == "classification":
                 # a classification candidate left out has this round's classification as one more start

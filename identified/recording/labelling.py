@@ -6,8 +6,8 @@ keeps a prediction of every site and, in every frame, assigns the markers to the
 the Hungarian algorithm (``scipy.optimize.linear_sum_assignment``, minimum total squared
 distance), with a gate: a marker farther than the gate from every prediction is a ghost, a site
 whose best marker is beyond the gate is missing in that frame.  Predictions are constant-velocity
-extrapolations of each site's last two labelled positions; the gate grows with the time a site has
-been unseen.  Each rod's labelled markers are then checked rigidly: two markers of one rod must be
+extrapolations of each site's last two labelled positions (over at most :data:`EXTRAPOLATE`); the
+gate grows with the time a site has been unseen.  Each rod's labelled markers are then checked rigidly: two markers of one rod must be
 as far apart as the model's sites (within ``rigid_tol``); a pair that is not drops the marker
 farther from its prediction.
 
@@ -25,7 +25,12 @@ from scipy.optimize import linear_sum_assignment
 from identified.recording.format import Recording, RecordingError
 from identified.topology import Topology
 
-__all__ = ["label_markers"]
+__all__ = ["EXTRAPOLATE", "label_markers"]
+
+#: the longest time (s) a site's last velocity is extrapolated over while it is unseen; beyond it
+#: the gate's growth alone covers the motion (an end cap falling at 4 m/s, extrapolated over a
+#: gap of 6 frames, was predicted out of reach for the rest of its take)
+EXTRAPOLATE = 0.05
 
 
 def label_markers(rec: Recording, topology: Topology, reference: np.ndarray, sites: tuple[str, ...] | None = None,
@@ -69,7 +74,7 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
             vel = np.where(have2[:, None], (last[0] - last[1]) / np.where(have2, last_t[0] - last_t[1], 1.0)[:, None],
                            0.0)
             since = t - last_t[0]
-            pred = last[0] + vel * np.nan_to_num(since)[:, None]
+            pred = last[0] + vel * np.minimum(np.nan_to_num(since), EXTRAPOLATE)[:, None]
             g = base + gate_rate * np.nan_to_num(since - np.nanmin(since))
         known = ~np.isnan(pred[:, 0])
         if obs.shape[0] == 0 or not known.any():

@@ -35,6 +35,7 @@ from identified.fit.markers import fit_recording
 from identified.fit.pipeline import fit_model
 from identified.fit.regression import IdentifiabilityError
 from identified.predict import rollout_errors
+from identified.recording import RecordingError
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.models import write_model
 
@@ -171,6 +172,9 @@ def main() -> None:
             except IdentifiabilityError as exc:  # what the recording cannot tell, said as the fit says it
                 print(f"dataset {k}: not identifiable from the recording ({time.perf_counter() - t0:.1f} s): {exc}",
                       flush=True)
+                continue
+            except RecordingError as exc:  # e.g. markers that could not be labelled: the row, not a traceback
+                print(f"dataset {k}: recording refused ({time.perf_counter() - t0:.1f} s): {exc}", flush=True)
                 continue
             secs = time.perf_counter() - t0
             if args.output_error:

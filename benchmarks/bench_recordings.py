@@ -35,6 +35,7 @@ from identified.fit.markers import fit_recording
 from identified.fit.pipeline import fit_model
 from identified.fit.regression import IdentifiabilityError
 from identified.predict import rollout_errors
+from identified.recording import RecordingError
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.models import write_model
 
@@ -128,6 +129,8 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=0.001)
     ap.add_argument("--dropout", type=float, default=0.02)
     ap.add_argument("--effects", default="ground_contact")
+    ap.add_argument("--regressors", choices=("single", "multiple"), default="multiple",
+                    help="single: one K, c shared by the cables and one M, I by the rods (the preset's are equal)")
     ap.add_argument("--varied", action="store_true", help="robots with other parameter values (one per dataset)")
     ap.add_argument("--unlabelled", action="store_true",
                     help="anonymous markers, identities shuffled every 0.5 s, one ghost per frame (labelled by the fit)")
@@ -164,10 +167,14 @@ def main() -> None:
             t0 = time.perf_counter()
             try:
                 oe = {"max_windows": args.oe_windows, "frames": args.oe_frames} if args.output_error else False
-                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1, output_error=oe)
+                m = fit_recording(rec, path, effects=effects, scale=scale, jobs=1, output_error=oe,
+                                  regressors=args.regressors)
             except IdentifiabilityError as exc:  # what the recording cannot tell, said as the fit says it
                 print(f"dataset {k}: not identifiable from the recording ({time.perf_counter() - t0:.1f} s): {exc}",
                       flush=True)
+                continue
+            except RecordingError as exc:  # e.g. markers that could not be labelled: the row, not a traceback
+                print(f"dataset {k}: recording refused ({time.perf_counter() - t0:.1f} s): {exc}", flush=True)
                 continue
             secs = time.perf_counter() - t0
             if args.output_error:
@@ -188,7 +195,8 @@ def main() -> None:
             err, err1 = free_runs(m, held)
             full, full1 = float("nan"), float("nan")
             if not args.quick:
-                f = fit_model(data, path, effects=effects, scale=scale, weak_window=None, jobs=1)
+                f = fit_model(data, path, effects=effects, scale=scale, weak_window=None, jobs=1,
+                              regressors=args.regressors)
                 full, full1 = free_runs(f, held)
             z_all = np.concatenate([sc[key]["z"] for key in "KcM"])
             rows.append((k, sc["K"]["rel"], sc["c"]["rel"], sc["M"]["rel"], float(np.sqrt(np.nanmean(z_all ** 2))),

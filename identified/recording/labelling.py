@@ -6,15 +6,15 @@ keeps a prediction of every site and, in every frame, assigns the markers to the
 the Hungarian algorithm (``scipy.optimize.linear_sum_assignment``, minimum total squared
 distance), with a gate: a marker farther than the gate from every prediction is a ghost, a site
 whose best marker is beyond the gate is missing in that frame.  Predictions are constant-velocity
-extrapolations of each site's last two labelled positions; the gate grows with the time a site has
-been unseen.  Each rod's labelled markers are then checked rigidly: two markers of one rod must be
+extrapolations of each site's last two labelled positions (over at most :data:`EXTRAPOLATE`); the
+gate grows with the time a site has been unseen.  Each rod's labelled markers are then checked rigidly: two markers of one rod must be
 as far apart as the model's sites (within ``rigid_tol``); a pair that is not drops the marker
 farther from its prediction.
 
 The first frame of each take has no history: its markers are assigned to the sites of a reference
 pose (the model's nominal pose, or the caller's), which must be within the gate of the truth.  A
-site without a marker there is predicted at its reference position, its gate growing with the time
-since the take's start, until its marker shows.
+site without a marker there is predicted at its reference position with the first frame's gate,
+growing with the time since the take's start, until its marker shows.
 """
 
 from __future__ import annotations
@@ -25,7 +25,12 @@ from scipy.optimize import linear_sum_assignment
 from identified.recording.format import Recording, RecordingError
 from identified.topology import Topology
 
-__all__ = ["label_markers"]
+__all__ = ["EXTRAPOLATE", "label_markers"]
+
+#: the longest time (s) a site's last velocity is extrapolated over while it is unseen; beyond it
+#: the gate's growth alone covers the motion (an end cap falling at 4 m/s, extrapolated over a
+#: gap of 6 frames, was predicted out of reach for the rest of its take)
+EXTRAPOLATE = 0.05
 
 
 def label_markers(rec: Recording, topology: Topology, reference: np.ndarray, sites: tuple[str, ...] | None = None,
@@ -56,6 +61,8 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
     n = ref.shape[0]
     last = np.full((2, n, 3), np.nan)  # the last two labelled positions of each site
     last_t = np.full((2, n), np.nan)
+    base = np.full(n, gate)  # each site's gate before its growth with the time unseen
+    guessed = np.zeros(n, dtype=bool)  # last[0] is the reference, not a marker: no velocity from it
     for k, r in enumerate(rows):
         t = rec.time[r]
         obs = rec.markers[r]
@@ -67,8 +74,8 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
             vel = np.where(have2[:, None], (last[0] - last[1]) / np.where(have2, last_t[0] - last_t[1], 1.0)[:, None],
                            0.0)
             since = t - last_t[0]
-            pred = last[0] + vel * np.nan_to_num(since)[:, None]
-            g = gate + gate_rate * np.nan_to_num(since - np.nanmin(since))
+            pred = last[0] + vel * np.minimum(np.nan_to_num(since), EXTRAPOLATE)[:, None]
+            g = base + gate_rate * np.nan_to_num(since - np.nanmin(since))
         known = ~np.isnan(pred[:, 0])
         if obs.shape[0] == 0 or not known.any():
             continue
@@ -93,7 +100,8 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
                                  "start of this take")
         out[r] = frame
         seen = ~np.isnan(frame[:, 0])
-        last[1, seen], last_t[1, seen] = last[0, seen], last_t[0, seen]
+        last[1, seen], last_t[1, seen] = last[0, seen], np.where(guessed[seen], np.nan, last_t[0, seen])
         last[0, seen], last_t[0, seen] = frame[seen], t
-        if k == 0:  # a site hidden at the start is looked for from the reference, its gate growing
-            last[0, ~seen], last_t[0, ~seen] = ref[~seen], t
+        base[seen], guessed[seen] = np.where(np.isnan(last_t[1, seen]), 4 * gate, gate), False  # no velocity yet: wide
+        if k == 0:  # a site hidden at the start is looked for around the reference, as in this frame
+            last[0, ~seen], last_t[0, ~seen], base[~seen], guessed[~seen] = ref[~seen], t, 4 * gate, True

@@ -28,6 +28,28 @@ timed() {  # timed NAME COMMAND...: run it, keep its wall clock
     echo "   ($name: $((SECONDS - t0)) s)"
 }
 
+# beside NAME COMMAND...: run it in the background (the twin trains on one core; these take the
+# other), its output and wall clock into $OUT/NAME.log, shown by `shown NAME` once it is done
+beside() {
+    local name="$1"
+    shift
+    ( t0=$SECONDS; "$@"; rc=$?; echo "   (${name//_/ }: $((SECONDS - t0)) s, beside the training)"; exit $rc ) \
+        > "$OUT/$name.log" 2>&1 &
+    BESIDE+=("$name:$!")
+}
+BESIDE=()
+shown() {
+    local entry name pid
+    for entry in "${BESIDE[@]}"; do
+        name="${entry%%:*}" pid="${entry##*:}"
+        wait "$pid" || { cat "$OUT/$name.log"; echo "demo: step '${name//_/ }' failed" >&2; exit 1; }
+        echo "== ${name//_/ }"
+        cat "$OUT/$name.log"
+        STEP_NAMES+=("${name//_/ } (beside)")
+        STEP_TIMES+=("$(sed -n 's/.*: \([0-9]*\) s, beside the training)$/\1/p' "$OUT/$name.log" | tail -1)")
+    done
+}
+
 paper() {
     $T model ico --preset paper-nonuniform --seed 3 --out "$OUT/ico.xml"
     $T collect --model "$OUT/ico.xml" --episodes 10 --steps 1000 --seed 1 --push-every 100 --out "$OUT/ico.npz" --quiet
@@ -41,18 +63,19 @@ collect_robot() {
     $T collect --model "$OUT/robot.xml" --episodes 4 --steps 1000 --seed 1 --push-every 200 --out "$OUT/held.npz" --quiet
 }
 
-echo "== 1. the paper's icosahedron (non-uniform, seed 3): 54 parameters + inertias from 10 x 1000 steps"
-timed "paper icosahedron" paper
 echo "== 2. the robot: 10 rollouts of 2 s (20 s of robot time) (random cable commands, pushes) and 4 held-out ones"
 timed "collect (robot)" collect_robot
 echo "== 3. fit with the effect search: what does the spring-rod model lack?"
 timed "fit --effects auto" $T fit "$OUT/robot.npz" --model "$OUT/robot.xml" --effects auto --out "$OUT/robot.json" --quiet
-echo "== 4. diagnose on the held-out rollouts (report in $OUT/diagnose/)"
-timed "diagnose" $T diagnose "$OUT/held.npz" --identified "$OUT/robot.json" --out "$OUT/diagnose"
-echo "== 5. train PPO on the identified twin (${STEPS:-the default number of} steps; MuJoCo is never stepped)"
+echo "== 5. train PPO on the identified twin (${STEPS:-the default number of} steps; MuJoCo is never stepped);"
+echo "   beside it, on the other core: 4. diagnose on the held-out rollouts (report in $OUT/diagnose/) and"
+echo "   1. the paper's icosahedron (non-uniform, seed 3): 54 parameters + inertias from 10 x 1000 steps"
+beside "4._diagnose" $T diagnose "$OUT/held.npz" --identified "$OUT/robot.json" --out "$OUT/diagnose"
+beside "1._paper_icosahedron" paper
 # shellcheck disable=SC2086  # DEMO_TRAIN_ARGS is a list of options
 timed "train on the twin" $T train --identified "$OUT/robot.json" ${STEPS:+--timesteps "$STEPS"} --seeds 0 \
     --out "$OUT/train" --quiet ${DEMO_TRAIN_ARGS:-}
+shown
 gap_json() {
     $T gap --identified "$OUT/robot.json" --policy "$OUT/train/seed_0/policy.zip" --episodes 3 \
         --video "$OUT/video" --video-every "$EVERY" --json --quiet > "$OUT/gap.json"

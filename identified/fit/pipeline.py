@@ -498,11 +498,12 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
             settled = {k: e["parameters"][k] for k in cls.profiled if e["parameters"].get(k) is not None}
             if settled:  # what its own profile scan settled (the contact regulariser), kept
                 fixed[label] = settled
-            values = effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()
-            if cls.fit_strategy == "classification":  # later refits start from its classification
-                fixed[label] = {"start_values": values}
-            if cls.warm_starts:  # the final fit starts from the values it has now (a later round's
-                fixed[label] = {**fixed.get(label, {}), "final_values": values}  # refits search afresh)
+            if cls.fit_strategy == "classification" or cls.warm_starts:
+                values = effect_from_json(e, topo.n_rods, topo.n_springs).values.tolist()
+                if cls.fit_strategy == "classification":  # later refits start from its classification
+                    fixed[label] = {"start_values": values}
+                if cls.warm_starts:  # the final fit starts from the values it has now (a later
+                    fixed[label] = {**fixed.get(label, {}), "final_values": values}  # round's refits search afresh)
         for name, m in fits.items():
             if name != best and m is not None and EFFECTS[name.split(":")[0]].fit_strategy == "classification":
                 # a classification candidate left out has this round's classification as one more start

@@ -171,8 +171,10 @@ def test_adam_solver_approaches_the_closed_form():
     assert model.mass[0] == pytest.approx(10.0, rel=0.05)
 
 
+@pytest.mark.expensive
 def test_refine_on_an_rk4_plant_stays_within_1e3_of_the_truth():
-    """RK4 plant: central-difference regression, then refinement through the RK4 engine's rollouts."""
+    """RK4 plant: central-difference regression, then refinement through the RK4 engine's rollouts
+    (~15 s; the default run refines through the engine in tests/test_cli.py and tests/test_effects.py)."""
     xml = build_model("ico", "paper-nonuniform", seed=4, integrator="rk4")
     data = data_for(xml, episodes=2, steps=300, seed=5, push_every=25)  # every rod pushed in each episode
     model = identify(data, Topology.from_mjcf(xml), integrator="rk4")

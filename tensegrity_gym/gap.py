@@ -316,7 +316,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=(4 if random_plant is None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
+        bar = tqdm(total=(4 if random_plant is None or video_dir is not None else 3) * K * steps, unit="step", desc="gap", dynamic_ncols=True, file=sys.stderr)
     try:
         with torch_threads(threads):
             mjcf = plant_mjcf(identified, (backend_kwargs or {}).get("mjcf"))

@@ -141,16 +141,17 @@ def test_few_episodes_fall_back_to_iid_error_bars():
 
 
 def test_refine_on_noisy_data_reaches_the_chi_square_mean_of_its_cost():
-    """The output-error cost at its optimum, cheaply (2 x 1000 steps, 20 windows, 8 iterations): a
-    cost that held the noisy initial states fixed, or weighted a channel by the wrong noise, stays
-    far above the chi-square mean 12 (1 - 1/(H + 1)) per rod and instant."""
+    """The output-error cost at its optimum, cheaply (1 x 1000 steps, 20 windows of 50 steps, 8
+    iterations): a cost that held the noisy initial states fixed, or weighted a channel by the wrong
+    noise, stays far above the chi-square mean 12 (1 - 1/(H + 1)) per rod and instant."""
     from identified.fit.refine import refine
 
     xml = build_model("ico", "paper-nonuniform", seed=29)
-    data = collect(xml, CollectConfig(episodes=2, steps=1000, seed=5, push_every=100, **NOISE))
-    refined = refine(identify(data, Topology.from_mjcf(xml)), data, iterations=8)
+    data = collect(xml, CollectConfig(episodes=1, steps=1000, seed=5, push_every=100, **NOISE))
+    refined = refine(identify(data, Topology.from_mjcf(xml)), data, iterations=8, horizon=50)
     info = refined.metrics["refine"]
     assert info["cost"].startswith("output-error maximum likelihood") and info["windows"] == 20
+    assert info["horizon"] == 50
     assert info["loss_after"] == pytest.approx(12 * (1 - 1 / (info["horizon"] + 1)), abs=0.3)
 
 

@@ -496,6 +496,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
     :func:`checkpoint_path` ``(out)``; it is removed when the run completes. On Ctrl-C the
     interrupt is re-raised after a line on stderr saying where that checkpoint is.
     """
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     import tensegrity_gym  # noqa: F401  (registers the env)
@@ -530,6 +531,10 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                                 **NORMALIZE)
             model = _algo_class(cfg.algo)("MlpPolicy", venv, seed=cfg.seed, device="cpu", verbose=0,
                                           tensorboard_log=cfg.tensorboard, **hp)
+            if cfg.tensorboard is None:
+                # SB3's own logger would make an empty SB3-<date> folder in the temp dir at every
+                # learn(); the run's records are the callback's (learning curve, checkpoints)
+                model.set_logger(Logger(folder=None, output_formats=[]))
             if cfg.init_policy is not None:
                 _continue_from(model, venv, cfg.init_policy, spaces)
             t0 = time.perf_counter()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 import zipfile
 from pathlib import Path
 
@@ -75,12 +76,17 @@ def one_error_line(capsys) -> str:
 # ---------------------------------------------------------------------- training
 def test_train_on_twin_end_to_end_never_steps_mujoco(robot, tmp_path, monkeypatch, capsys):
     no_mujoco_stepping(monkeypatch)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # the system's temp dir, here
     out = tmp_path / "P.zip"
     assert main(["train", "--identified", str(robot["twin"]), "--seed", "1", "--out", str(out), *TINY]) == 0
     said = capsys.readouterr().out
     assert "wrote ppo policy" in said and "on the twin" in said
     assert out.is_file() and not Path(checkpoint_path(str(out))).exists()
-    assert [p.name for p in tmp_path.iterdir()] == ["P.zip"]  # no temporary file left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["P.zip", "tmp"]  # no temporary file left
+    # nor a log folder in the temp dir (SB3's default logger makes an empty SB3-<date> one per run)
+    assert [p.name for p in scratch.iterdir() if p.name.startswith("SB3")] == []
     pol = load_policy(out)
     assert pol.meta["trained_on"] == "twin" and pol.meta["timesteps"] >= 256
     assert pol.meta["observation_shape"] == [133] and pol.meta["action_shape"] == [24]

@@ -344,8 +344,10 @@ def _run_processes(tasks: list[dict[str, Any]], jobs: int, done: Callable[[dict[
             for f in finished:
                 done(f.result())
     except BaseException:
+        # running seeds: stop them now (the pool forgets its processes when it shuts down)
+        running = list((getattr(pool, "_processes", None) or {}).values())
         pool.shutdown(wait=False, cancel_futures=True)
-        for p in list(getattr(pool, "_processes", {}).values()):  # running seeds: stop them now
+        for p in running:
             if p.is_alive():
                 p.terminate()
         raise

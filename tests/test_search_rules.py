@@ -83,7 +83,7 @@ class _Model:
         self.loop: list = []
 
 
-def _search(monkeypatch, residual: float, one_step: float, warm: bool):
+def _search(monkeypatch, residual: float, one_step: float, warm: bool, base_one_step: float = 1.0):
     """Run ``fit_model(effects="auto")`` in one process on stand-ins; the fits made, in order, as
     (effects, takes, each effect's starting values)."""
     from identified import predict
@@ -111,7 +111,8 @@ def _search(monkeypatch, residual: float, one_step: float, warm: bool):
     monkeypatch.setattr(pipeline, "_free_run", lambda m, ctx: math.inf if m is None else _ERR[m.names])
     monkeypatch.setattr(pipeline, "one_step_parts", lambda m, data, scheme=None: m)
     monkeypatch.setattr(pipeline, "_one_step_errors",
-                        lambda ctx, parts, models: [one_step if m is not None and m.names else 1.0 for m in models])
+                        lambda ctx, parts, models: [one_step if m is not None and m.names else base_one_step
+                                                    for m in models])
     monkeypatch.setattr(pipeline, "relative_residual", lambda m: m.residual)
     for mod, name in ((checks, "refresh_physics"), (checks, "residual_check"), (predict, "attach_metrics")):
         monkeypatch.setattr(mod, name, lambda *a, **k: None)
@@ -138,12 +139,25 @@ def test_the_search_stops_where_its_model_leaves_nothing_to_find(monkeypatch):
     residual just above rounding the second round runs and adds it."""
     model, fits = _search(monkeypatch, residual=ROUNDING / 2, one_step=ONE_STEP_FLOOR / 2, warm=False)
     assert [s["added"] for s in model.loop] == ["linear_drag"]
-    made = [f[:2] for f in fits]  # the first round (linear_drag twice: its variant), then the final fit
-    assert made == [(("linear_drag",), 3), (("linear_drag",), 3), (("constant_force",), 3), ((), 3),
+    made = [f[:2] for f in fits]  # the base, the first round (linear_drag twice: its variant), the final fit
+    assert made == [((), 3), (("linear_drag",), 3), (("linear_drag",), 3), (("constant_force",), 3),
                     (("linear_drag",), 4)]
     model, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=ONE_STEP_FLOOR / 2, warm=False)
     assert [s["added"] for s in model.loop] == ["linear_drag", "constant_force"]
     assert (("linear_drag", "constant_force"), 3) in [f[:2] for f in fits]
+
+
+def test_a_model_without_effects_that_leaves_nothing_is_not_searched(monkeypatch):
+    """Clean data: the model without effects has a rounding-level residual and held-out one-step
+    error, so no candidate is fitted (the base fit, then the final fit on all the data); one
+    held-out one-step error above the floor and the candidates are fitted (and linear drag added)."""
+    model, fits = _search(monkeypatch, residual=ROUNDING / 2, one_step=ONE_STEP_FLOOR / 2, warm=False,
+                          base_one_step=ONE_STEP_FLOOR)
+    assert [f[:2] for f in fits] == [((), 3), ((), 4)]
+    assert model.loop == [] and model.metrics["effect_search"]["explained"] is True
+    model, fits = _search(monkeypatch, residual=ROUNDING / 2, one_step=ONE_STEP_FLOOR / 2, warm=False,
+                          base_one_step=2 * ONE_STEP_FLOOR)
+    assert len(fits) == 5 and [s["added"] for s in model.loop] == ["linear_drag"]
 
 
 def test_a_warm_starting_effect_is_refitted_from_the_values_the_search_found(monkeypatch):

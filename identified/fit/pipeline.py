@@ -21,7 +21,8 @@ Effect search (``effects="auto"``), forward selection on held-out data:
    1933 -> 2000 N/m, made the contact law's free run 0.0185 -> 0.026 m: the law's own error).  The second
    test finds an effect exact where it acts whose gain the free run hides under another effect's
    inexact law (air drag on the robot: its ground contact law leaves ~3 cm over 1 s);
-4. repeat until no candidate passes, or until the model with the effects chosen so far leaves
+4. repeat until no candidate passes, or until the model with the effects chosen so far (before
+   the first round: the model without effects, fitted alone first, so clean data cost one fit) leaves
    nothing to find: its equation residual on the fitted episodes is rounding relative to the forces
    (:func:`identified.fit.checks.relative_residual` below ``ROUNDING``) and its held-out one-step error
    is below ``ONE_STEP_FLOOR``.  Both are taken on the rows the joint fit uses (a residual-stage
@@ -427,28 +428,31 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
     # the slowest fits start first: the last round's time of each, else its effect's fit_cost
     cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
     chosen: list[str] = []
-    base_model: IdentifiedModel | None = None
-    base_parts: OneStepParts | None = None
     final: _Final | None = None
-    base_err = first_err = base_screen = float("nan")
     loop: list[dict[str, Any]] = []
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(candidates) + 1, desc="effects", unit="fit", leave=False)
-    while True:
+    # the model without effects first: where it leaves nothing to find (clean data: its residual at
+    # rounding, its held-out one-step error too), no candidate is fitted
+    first = pool.map([("fit", [], dict(fixed), True)], on_done=None if bar is None else (lambda: bar.update(1)))[0]
+    base_model: IdentifiedModel | None = first.model
+    base_parts: OneStepParts | None = first.one_step
+    base_screen, base_err = first.screen, first.free_run
+    first_err = base_err
+    done = exhausted(relative_residual(base_model), _one_step_errors(ctx, [base_parts], [base_model])[0])
+    while not done:
         # every remaining candidate is refitted and screened by its held-out error over short
         # windows (a tenth of the horizon, many starts); the best one must then cut the full
-        # held-out free-run error by min_gain.  The first round fits the base model beside them.
+        # held-out free-run error by min_gain
         names = [n for n in candidates if n.split(":")[0] not in {c.split(":")[0] for c in chosen}
                  and rival(n, chosen) is None]
         names.sort(key=lambda n: -cost[n])
-        if not names and base_model is not None:
+        if not names:
             break
         tasks: list[tuple[Any, ...]] = [("fit", chosen + [n], dict(fixed), False) for n in names]
-        if base_model is None:
-            tasks.append(("fit", list(chosen), dict(fixed), True))
         # after a round that added an effect, the final fit with the effects chosen so far (the
         # longest task) runs beside this round's candidates: it is the model if none is added
         early = pool.jobs > 1 and bool(chosen) and bool(names)
@@ -459,12 +463,6 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         results = pool.map(tasks, on_done=None if bar is None else (lambda: bar.update(1)))
         if early:
             final = results.pop(0)
-        if base_model is None:
-            first = results.pop()
-            base_model, base_screen, base_err, base_parts = first.model, first.screen, first.free_run, first.one_step
-            first_err = base_err
-        if not names:
-            break
         fits = {n: r.model for n, r in zip(names, results)}
         screens = {n: r.screen for n, r in zip(names, results)}
         parts = {n: r.one_step for n, r in zip(names, results)}
@@ -515,8 +513,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
                                "search_too": True}
         if bar is not None:
             bar.total += len(candidates) - len(chosen)
-        if exhausted(relative_residual(base_model), ones[best]):
-            break
+        done = exhausted(relative_residual(base_model), ones[best])
     if bar is not None:
         bar.close()
     return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed, final

@@ -90,3 +90,20 @@ def test_the_equation_of_an_unseen_spin_is_left_out(tmp_path, monkeypatch):
     seen.clear()
     identify(data, topo, weak_window=None)
     assert all(np.abs(r).max() > 0 for r in seen[-1].R)
+
+
+def test_a_moment_without_error_bar_is_printed_as_not_identifiable():
+    """The summary prints a moment of inertia the data cannot see (no standard error: its spin
+    unobservable) as not identifiable, never its placeholder value; the others as numbers."""
+    from identified.model import load_model
+    from tests._data import GROUND
+
+    model = load_model(GROUND)
+    model.stderr["inertia"] = np.full((model.topology.n_rods, 3), 1e-3)
+    model.stderr["inertia"][1, 2] = np.nan
+    model.inertia[1, 2] = 0.000765
+    lines = model.summary().splitlines()
+    rod1 = next(x for x in lines if x.startswith(model.topology.rods[1].name + ":"))
+    assert "not identifiable" in rod1 and "0.000765" not in rod1 and f"{model.inertia[1, 0]:.4g}" in rod1
+    rods = [x for x in lines if x.split(":")[0] in {r.name for r in model.topology.rods}]
+    assert sum("not identifiable" in x for x in rods) == 1

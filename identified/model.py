@@ -107,7 +107,9 @@ class IdentifiedModel:
         lines = []
         for i, r in enumerate(self.topology.rods):
             m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i)
-            inert = ", ".join(f"{x:.4g}" for x in self.inertia[i])
+            held = np.isnan(np.asarray(se["inertia"], dtype=float)[i]) if "inertia" in se else np.zeros(3, bool)
+            # a moment the data cannot see (its spin unobservable: no standard error) has no value to print
+            inert = ", ".join("not identifiable" if h else f"{x:.4g}" for x, h in zip(self.inertia[i], held))
             line = f"{r.name}: M = {m}; I = ({inert}) kg m^2"
             if self.full_inertia:
                 c = np.zeros(3) if self.com is None else self.com[i]

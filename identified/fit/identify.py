@@ -179,7 +179,8 @@ def identify(
     are taken from the states, ``"forward"`` (exact for euler and implicit) or ``"central"``
     (second order for any integrator; the default for rk4), :mod:`identified.samples`.
     ``hold_inertia``: (rod, body axis) moments of inertia the data cannot see (a rod whose markers
-    lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable.
+    lie on its axis never shows its axial spin): held out of the fit, reported as not identifiable; the
+    rotation equation about that axis holds the unseen spin's acceleration and is left out.
     ``contact_margin``: steps before and after a residual-stage effect's rows that the joint fit
     leaves out too (states smoothed from sampled markers smear an impact over a few frames).
     ``noise_copies``: when the dataset records its sensor noise, this many copies of it with fresh
@@ -276,6 +277,8 @@ def identify(
             fixed[layout.gain_dtau(a)] = 0.0
     src = {"data": activation_dataset(dataset, layout.actuators, dynamics, tau) if layout.actuators else dataset}
     fixed.update({layout.inertia(i, a): 0.0 for i, a in hold_inertia})  # a zero column: its value is moot
+    # the rotation equations about those axes: (rods, equations) of :func:`equation_rows`' rows
+    spin_rows = ([i for i, _ in hold_inertia], [3 + a for _, a in hold_inertia]) if hold_inertia else None
     gravity = torch.as_tensor(dataset.gravity, dtype=torch.float64, device=device)
 
     if _rows_cache is not None:  # the same data in every pass of a classification
@@ -317,6 +320,10 @@ def identify(
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
             fitted = [None if base and k in iterating else e for k, e in enumerate(joint)]
             A = equation_rows(topology, columns, ch, gravity, implicit_dt, fitted, dt=dataset.dt)
+            if spin_rows:  # the equation of a spin the data cannot see holds that unknown spin's
+                # acceleration: it constrains nothing (and its rows, the reconstruction's round-off,
+                # would carry weights of ~1e9 into the standard errors): left out
+                A[:, spin_rows[0], spin_rows[1]] = 0.0
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
             if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])

@@ -4,17 +4,22 @@ The textbook covariance ``sigma² (BᵀB)⁻¹`` of least squares assumes indepe
 windows overlap (stride = window / 4, :mod:`identified.fit.derivatives`), so neighbouring rows
 share noise, and with errors in variables the regressors carry noise too: the textbook errors come
 out too small.  Rows of different episodes, however, share nothing -- windows never cross an
-episode, the sensor noise is independent between them -- so the covariance is estimated by the
-cluster-robust sandwich over episodes (Liang and Zeger 1986, Biometrika 73: 13; Cameron and
-Miller 2015, J. Human Resources 50: 317):
+episode, the sensor noise is independent between them -- so the covariance is estimated over
+these independent runs, by the cluster jackknife (Cameron and Miller 2015, J. Human Resources 50:
+317, section VI.B; MacKinnon and White 1985, J. Econometrics 29: 305):
 
-    Var(z) = A⁻¹ [ G/(G-1) sum_g psi_g psi_gᵀ ] A⁻¹
+    Var(z) = (G-1)/G sum_g (d_g - mean d)(d_g - mean d)ᵀ,    d_g = (A - A_g)⁻¹ psi_g
 
-with ``A`` the curvature of the fit's objective in the anchor's null space and ``psi_g`` the
-contribution of episode ``g`` to its estimating equation (:mod:`identified.fit.regression`).  Each
-run keeps its own triangular factors, so ``psi_g = sum_b a_b R_gbᵀ R_gb theta - ...`` needs no
-second pass over the data.  With fewer than :data:`MIN_RUNS` runs the sandwich is too noisy and
-the iid formula is used (``Solution.covariance`` says which).
+with ``A`` the curvature of the fit's objective in the anchor's null space, ``A_g`` run ``g``'s
+part of it and ``psi_g`` its contribution to the estimating equation
+(:mod:`identified.fit.regression`): ``d_g`` is the shift of the estimate when run ``g`` is left
+out (the Newton step from the full solution, exact for least squares).  The plain cluster-robust
+sandwich ``A⁻¹ [G/(G-1) sum_g psi_g psi_gᵀ] A⁻¹`` (Liang and Zeger 1986, Biometrika 73: 13) is
+its first-order form ``A - A_g ~ A``: it is too narrow when a few runs hold most of the
+information about a parameter (a cable taut in one take only, an impact in one), the jackknife
+widens it by each run's leverage.  Each run keeps its own triangular factors, so ``psi_g`` and
+``A_g`` need no second pass over the data.  With fewer than :data:`MIN_RUNS` runs the spread of
+the runs is too noisy and the iid formula is used (``Solution.covariance`` says which).
 """
 
 from __future__ import annotations
@@ -82,10 +87,14 @@ def covariance(
     runs = len(factors.cluster_R)
     if runs >= MIN_RUNS:
         psi = _influences(factors, G, Nul, phi, a, c)
-        psi -= psi.mean(axis=0)
-        meat = psi.T @ psi * (runs / (runs - 1))
-        cov_z = Ainv @ meat @ Ainv
-        how = f"cluster-robust sandwich over {runs} independent runs (episodes)"
+        GN = G @ Nul
+        T = [GN[cols] for cols in factors.columns]  # each block's columns in the free coordinates
+        whole = _curvature([GN] * len(T), factors.R, factors.noise, a, c)  # merged factors: full columns
+        d = np.array([_left_out(whole - _curvature(T, Rg, None if c is None else factors.cluster_noise[g], a, c),
+                                Ainv, p) for g, (Rg, p) in enumerate(zip(factors.cluster_R, psi))])
+        d -= d.mean(axis=0)
+        cov_z = (runs - 1) / runs * (d.T @ d)
+        how = f"cluster-robust jackknife over {runs} independent runs (episodes)"
     else:
         dof = max(int(sum(factors.rows)) - Nul.shape[1], 1)
         cov_z = (lin.residual / dof) * (lin.M @ IKinv @ IKinv @ lin.M.T)
@@ -127,3 +136,29 @@ def _influences(
                 total -= a[b] * (x @ f - x @ h) / pC * Ctheta[b]
         out[g] = Nul.T @ (G.T @ total)
     return out
+
+
+def _curvature(T: list[np.ndarray], R: list[np.ndarray], C: list[np.ndarray] | None, a: np.ndarray,
+               c: np.ndarray | None) -> np.ndarray:
+    """The objective's curvature in the free coordinates, ``sum_b T_bᵀ (a_b R_bᵀ R_b - c_b C_b) T_b``,
+    from blocks' factors ``R`` and noise Grams ``C`` (``T_b``: the map from the free coordinates to
+    the factor's columns).  The merged factors give ``A``, one run's give its part ``A_g``."""
+    out = np.zeros((T[0].shape[1], T[0].shape[1]))
+    for b, t in enumerate(T):
+        rt = R[b] @ t
+        out += a[b] * (rt.T @ rt)
+        if c is not None and C is not None:
+            out -= c[b] * (t.T @ C[b] @ t)
+    return out
+
+
+def _left_out(rest: np.ndarray, Ainv: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """The shift ``rest⁻¹ psi`` of the estimate without one run (``rest``: the curvature of the
+    others); where the others alone do not determine the parameters (``rest`` not positive
+    definite: that run holds all the information on some direction), the sandwich's ``A⁻¹ psi``."""
+    rest = 0.5 * (rest + rest.T)
+    try:
+        np.linalg.cholesky(rest)
+    except np.linalg.LinAlgError:
+        return Ainv @ psi
+    return np.linalg.solve(rest, psi)

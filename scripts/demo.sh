@@ -29,12 +29,13 @@ timed() {  # timed NAME COMMAND...: run it, keep its wall clock
 }
 
 # beside NAME COMMAND...: run it in the background (the twin trains on one core; these take the
-# other), its output and wall clock into $OUT/NAME.log, shown by `shown NAME` once it is done
+# other), its output into $OUT/NAME.log and its wall clock into $OUT/NAME.seconds, shown by
+# `shown` once it is done
 beside() {
     local name="$1"
     shift
-    ( t0=$SECONDS; "$@"; rc=$?; echo "   (${name//_/ }: $((SECONDS - t0)) s, beside the training)"; exit $rc ) \
-        > "$OUT/$name.log" 2>&1 &
+    ( t0=$SECONDS; "$@"; rc=$?; echo $((SECONDS - t0)) > "$OUT/$name.seconds"
+      echo "   (${name//_/ }: $((SECONDS - t0)) s, beside the training)"; exit $rc ) > "$OUT/$name.log" 2>&1 &
     BESIDE+=("$name:$!")
 }
 BESIDE=()
@@ -46,7 +47,7 @@ shown() {
         echo "== ${name//_/ }"
         cat "$OUT/$name.log"
         STEP_NAMES+=("${name//_/ } (beside)")
-        STEP_TIMES+=("$(sed -n 's/.*: \([0-9]*\) s, beside the training)$/\1/p' "$OUT/$name.log" | tail -1)")
+        STEP_TIMES+=("$(cat "$OUT/$name.seconds")")
     done
 }
 

@@ -304,8 +304,11 @@ def identify(
         if cacheable and primary:
             key = ("rows", columns.full.tobytes(), None if columns.length_ref is None else columns.length_ref.tobytes(), rest_estimate.tobytes(),
                    weak, scheme, chunk_steps, contact_margin, implicit_dt, tuple(e.name for e in joint))
-            yield from _cached_runs(_rows_cache, key, data, fresh_runs(data, True), topology, columns, joint, iterating,
-                                    weak, dataset.dt, bar)
+            for A, n_ep in _cached_runs(_rows_cache, key, data, fresh_runs(data, True), topology, columns, joint,
+                                        iterating, weak, dataset.dt, bar):
+                if spin_rows:  # the iterated effects' columns are added to the cached rows: left out again
+                    A[:, spin_rows[0], spin_rows[1]] = 0.0
+                yield A, n_ep
             return
         yield from fresh_runs(data, primary)
 

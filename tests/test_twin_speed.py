@@ -329,3 +329,29 @@ def test_contact_substep_traces_as_one_graph(contact_backend):
         ph._eager_substep(*args)
         explained = torch._dynamo.explain(ph._eager_substep)(*args)
     assert explained.graph_count == 1 and explained.graph_break_count == 0, explained.break_reasons
+
+
+def test_auto_compile_without_a_compiler_warns_once_and_runs_eagerly(monkeypatch):
+    """``compile="auto"`` on a CPU without a C++ compiler runs the twin eagerly and says so once a
+    process (the exact contact law is many times slower eagerly); ``TENSEGRITY_TWIN_COMPILE=0``
+    asks for eager: no warning; with a compiler the twin compiles."""
+    import warnings
+
+    from tensegrity_gym.backends import twin_physics as tp
+
+    cpu = torch.device("cpu")
+    monkeypatch.delenv(tp.COMPILE_ENV, raising=False)
+    monkeypatch.setattr(tp, "compiler_available", lambda: False)
+    monkeypatch.setattr(tp, "_warned_eager", False)
+    with pytest.warns(RuntimeWarning, match=r"no C\+\+ compiler on the PATH"):
+        assert tp._wants_compile("auto", cpu) is False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tp._wants_compile("auto", cpu) is False  # said once
+        monkeypatch.setattr(tp, "_warned_eager", False)
+        monkeypatch.setenv(tp.COMPILE_ENV, "0")
+        assert tp._wants_compile("auto", cpu) is False  # eager asked for: nothing to say
+        monkeypatch.delenv(tp.COMPILE_ENV)
+        monkeypatch.setattr(tp, "compiler_available", lambda: True)
+        assert tp._wants_compile("auto", cpu) is True
+        assert tp._wants_compile(False, cpu) is False

@@ -42,7 +42,7 @@ def twin(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("robot")
     write_model(d / "robot.xml", "ico", preset="robot")
     model = load_model(GROUND)
-    # the machinery under test needs no ground (its law is 95 % of an eager step's time): a robot
+    # the machinery under test needs no ground (its law is 70 % of an eager step's time): a robot
     # floating without gravity, so no episode ends early by falling
     model.effects = []
     model.gravity = np.zeros(3)

@@ -129,6 +129,7 @@ def parse_effects(spec: str | Sequence[str]) -> str | list[str]:
     return names
 
 
+@torch_threads(1)
 def fit_model(
     data: Dataset,
     mjcf: str | os.PathLike,
@@ -164,17 +165,6 @@ def fit_model(
     and its parallel work runs in processes; with another process busy on a core, torch's idle
     threads spinning made ``--effects auto`` twice as slow.
     """
-    with torch_threads(1):
-        return _fit_model(data, mjcf, effects, regressors, scale, solver, weak_window, integrator, scheme, refine,
-                          progress, horizon_s, min_gain, jobs, hold_inertia, contact_margin, inertia, before_metrics)
-
-
-def _fit_model(data: Dataset, mjcf: str | os.PathLike, effects: str | Sequence[str], regressors: str,
-               scale: ScaleSpec, solver: str, weak_window: int | str | None, integrator: str | None,
-               scheme: str | None, refine: bool, progress: bool, horizon_s: float, min_gain: float,
-               jobs: int | str | None, hold_inertia: Sequence[tuple[int, int]], contact_margin: int, inertia: str,
-               before_metrics: Callable[[IdentifiedModel], None] | None) -> IdentifiedModel:
-    """:func:`fit_model`, on the caller's thread count."""
     mjcf = os.fspath(mjcf)
     topo = Topology.from_mjcf(mjcf)
     spec = parse_effects(effects)

@@ -304,13 +304,17 @@ def identify(
         if cacheable and primary:
             key = ("rows", columns.full.tobytes(), None if columns.length_ref is None else columns.length_ref.tobytes(), rest_estimate.tobytes(),
                    weak, scheme, chunk_steps, contact_margin, implicit_dt, tuple(e.name for e in joint))
-            for A, n_ep in _cached_runs(_rows_cache, key, data, fresh_runs(data, True), topology, columns, joint,
-                                        iterating, weak, dataset.dt, bar):
-                if spin_rows:  # the iterated effects' columns are added to the cached rows: left out again
-                    A[:, spin_rows[0], spin_rows[1]] = 0.0
-                yield A, n_ep
-            return
-        yield from fresh_runs(data, primary)
+            chunks = _cached_runs(_rows_cache, key, data, fresh_runs(data, True), topology, columns, joint,
+                                  iterating, weak, dataset.dt, bar)
+        else:
+            chunks = fresh_runs(data, primary)
+        for A, n_ep in chunks:
+            if spin_rows:  # the equation of a spin the data cannot see holds that unknown spin's
+                # acceleration: it constrains nothing (and its rows, the reconstruction's round-off,
+                # would carry weights of ~1e9 into the standard errors): left out, also after a
+                # classification's pass added its effects' columns to the kept rows
+                A[:, spin_rows[0], spin_rows[1]] = 0.0
+            yield A, n_ep
 
     def fresh_runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """:func:`runs` computed afresh."""
@@ -323,10 +327,6 @@ def identify(
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
             fitted = [None if base and k in iterating else e for k, e in enumerate(joint)]
             A = equation_rows(topology, columns, ch, gravity, implicit_dt, fitted, dt=dataset.dt)
-            if spin_rows:  # the equation of a spin the data cannot see holds that unknown spin's
-                # acceleration: it constrains nothing (and its rows, the reconstruction's round-off,
-                # would carry weights of ~1e9 into the standard errors): left out
-                A[:, spin_rows[0], spin_rows[1]] = 0.0
             # steps, counted once (not for the noisy copies; Adam makes 30 passes)
             if primary and bar is not None and bar.n < bar.total:
                 bar.update(ch.pos.shape[0])

@@ -159,6 +159,48 @@ def single_env_profile(twin: gym.Env, plant: gym.Env, steps: int = 50) -> None:
           f"{parts['guards']:.0f} us, compiled graph {parts['graph']:.0f} us; load average {os.getloadavg()[0]:.1f}")
 
 
+def batched_substep_profile(venv: gym.vector.VectorEnv, substeps: int = 400) -> dict[str, float]:
+    """Where one compiled substep of a batched twin goes, us per call (cProfile over ``substeps``
+    calls, outside any env step): dynamo's guard check and the calling layers, inductor's wrapper (the
+    Python of its ``call``, allocating the graph's intermediate buffers one tensor each), and the
+    fused C++ kernels doing the arithmetic.  With ``cpp_wrapper`` the wrapper is C++ and its
+    allocations are counted with the kernels (``inductor_entry_cpp``)."""
+    import cProfile
+    import pstats
+
+    ph = venv.physics
+    n = max(1, substeps // 20)
+    for _ in range(2):  # warm
+        ph.step(20)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        ph.step(20)
+    plain = (time.perf_counter() - t0) / (20 * n) * 1e6
+    prof = cProfile.Profile()
+    prof.enable()
+    for _ in range(n):
+        ph.step(20)
+    prof.disable()
+    stats = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tottime, cumtime, callers)
+    calls = 20 * n
+    part = {"kernels": 0.0, "allocations": 0.0, "wrapper": 0.0, "total": 0.0, "buffers": 0.0}
+    for (file, _line, name), (_cc, nc, tt, ct, _) in stats.items():
+        if ".kernel.kernel" in name or "inductor_entry_cpp" in name:
+            part["kernels"] += tt
+        elif "_empty_strided" in name or "_reinterpret_tensor" in name or "assert_size_stride" in name:
+            part["allocations"] += tt
+            if "_empty_strided" in name:
+                part["buffers"] += nc / calls
+        elif name == "call" and "torchinductor" in file:
+            part["wrapper"] += tt
+        elif name == "_eager_substep":
+            part["total"] += ct
+    out = {k: (v if k == "buffers" else v / calls * 1e6) for k, v in part.items()}
+    out["other"] = out["total"] - out["kernels"] - out["allocations"] - out["wrapper"]
+    out["unprofiled"] = plain
+    return out
+
+
 def main() -> None:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the finally blocks (kill the load)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -172,6 +214,8 @@ def main() -> None:
     ap.add_argument("--no-ppo", action="store_true", help="skip SB3 PPO")
     ap.add_argument("--ppo-steps", type=int, default=8192, help="PPO timesteps per measurement")
     ap.add_argument("--ppo-envs", type=int, default=64, help="batched twin envs for PPO (plant: 8)")
+    ap.add_argument("--substep-profile", action="store_true",
+                    help="only: where one compiled substep of the batched twin goes, per size of --sizes")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     dev = args.device
@@ -180,6 +224,17 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.1f}; python {platform.python_version()}, torch {torch.__version__} "
           f"(global threads {torch.get_num_threads()}), device {dev}")
+    if args.substep_profile:
+        for n in args.sizes:
+            venv = gym.make_vec("TensegrityIco-v0", num_envs=n, backend="identified", backend_kwargs=kw)
+            venv.reset(seed=0)
+            venv.physics.step(1)  # compiles (or loads) the substep
+            p = batched_substep_profile(venv)
+            print(f"N={n}: one compiled substep {p['unprofiled']:.0f} us ({p['unprofiled'] / n:.1f} us an env); "
+                  f"profiled {p['total']:.0f} us: kernels {p['kernels']:.0f}, the wrapper's {p['buffers']:.0f} "
+                  f"buffer allocations {p['allocations']:.0f}, the wrapper's Python {p['wrapper']:.0f}, guards and "
+                  f"calling layers {p['other']:.0f}; load average {os.getloadavg()[0]:.1f}", flush=True)
+        return
     cases: list[tuple[str, Callable[[], float]]] = []
     t0 = time.perf_counter()
     cases.append(("plant (MuJoCo), single", single_runner(gym.make("TensegrityIco-v0"), args.steps * 2)))

@@ -216,6 +216,8 @@ def main() -> None:
     ap.add_argument("--ppo-envs", type=int, default=64, help="batched twin envs for PPO (plant: 8)")
     ap.add_argument("--substep-profile", action="store_true",
                     help="only: where one compiled substep of the batched twin goes, per size of --sizes")
+    ap.add_argument("--cpp-wrapper", action="store_true",
+                    help="with --substep-profile: inductor's C++ wrapper for the batched twin too (compile timed)")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     dev = args.device
@@ -225,10 +227,15 @@ def main() -> None:
           f"{os.getloadavg()[0]:.1f}; python {platform.python_version()}, torch {torch.__version__} "
           f"(global threads {torch.get_num_threads()}), device {dev}")
     if args.substep_profile:
+        if args.cpp_wrapper:
+            from tensegrity_gym.backends.twin_physics import TwinPhysics
+
+            TwinPhysics._inductor_options = lambda self: {"cpp_wrapper": True}
         for n in args.sizes:
             venv = gym.make_vec("TensegrityIco-v0", num_envs=n, backend="identified", backend_kwargs=kw)
             venv.reset(seed=0)
             venv.physics.step(1)  # compiles (or loads) the substep
+            print(f"N={n}: substep compiled in {venv.physics.compile_seconds:.0f} s ({venv.physics.cache_status})")
             p = batched_substep_profile(venv)
             print(f"N={n}: one compiled substep {p['unprofiled']:.0f} us ({p['unprofiled'] / n:.1f} us an env); "
                   f"profiled {p['total']:.0f} us: kernels {p['kernels']:.0f}, the wrapper's {p['buffers']:.0f} "

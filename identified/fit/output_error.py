@@ -194,7 +194,9 @@ class _Problem:
     initial-state corrections."""
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
-                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2) -> None:
+                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False) -> None:
+        """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group
+        (for a bound that shows they carry no information; never for a fit)."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.order = wrench_order
         self.n_x = 12 + 6 * wrench_order  # unknowns per window and rod
@@ -210,6 +212,8 @@ class _Problem:
             ax_held = [ax for ax in range(3) if (i, ax) in held]
             if ax_held:
                 groups.append((i, [ax for ax in range(3) if ax not in ax_held]))
+                if axial:
+                    groups += [(i, [ax]) for ax in ax_held]
             else:
                 groups += [(i, [ax]) for ax in range(3)]
         self.groups = groups

@@ -100,7 +100,7 @@ def truth_bound(path: str, data, args, seed: int):
     truth = values_model(path)
     held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
     return recording_bound(truth, clean, data, [0.0] * data.n_episodes, path, args.noise, held,
-                           frames=args.oe_frames, max_windows=args.oe_windows, state_steps=2)
+                           frames=args.oe_frames, max_windows=args.oe_windows, state_steps=args.bound_steps)
 
 
 def group_line(key: str, est: np.ndarray, se: np.ndarray, tru: np.ndarray, crb: np.ndarray, scale: float) -> str:
@@ -199,6 +199,8 @@ def main() -> None:
     ap.add_argument("--marker-fit", action="store_true",
                     help="output error from the nominal values beside the bound (marker_fit_row; needs --varied)")
     ap.add_argument("--oe-iterations", type=int, default=8, help="joint steps of --marker-fit")
+    ap.add_argument("--bound-steps", type=int, default=5,
+                    help="steps in the windows' nuisances alone before the bound's Jacobian (marker_bound.settle)")
     args = ap.parse_args()
     if args.marker_fit and not args.varied:
         ap.error("--marker-fit starts from the preset's values: with the preset robot they are the truth (add --varied)")

@@ -56,6 +56,36 @@ def _names(prob: _Problem, model: IdentifiedModel) -> list[str]:
             + [f"I[{topo.rod_names[i]}:{''.join(axes[a] for a in ax)}]" for i, ax in prob.groups])
 
 
+def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, steps: int,
+           progress: bool = False) -> torch.Tensor:
+    """The windows' nuisances ``dx`` after ``steps`` Levenberg-Marquardt steps in them alone at the
+    parameters ``theta`` (a step taken only where it lowers the cost; plain Gauss-Newton steps from
+    a constant ground wrench overshoot: measured 30 Hz, clean markers, 0.27 s windows, 310 mm of
+    residual after two)."""
+    W, R, k = dx.shape
+    with torch.no_grad():
+        r = prob.residuals(theta, dx).reshape(W, -1)
+    cost, mu = float(r.square().sum()), 1e-3
+    for j in range(steps):
+        r, Jx, _ = prob.jacobians(theta, dx)
+        Jx = Jx * acts.unsqueeze(1)
+        A0 = Jx.transpose(1, 2) @ Jx
+        gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
+        for _ in range(8):
+            A = A0 + torch.diag_embed(mu * torch.diagonal(A0, dim1=-2, dim2=-1) + (1 - acts) + 1e-12)
+            new = dx - (torch.linalg.solve(A, gx).squeeze(-1) * acts).reshape(W, R, k)
+            with torch.no_grad():
+                c = float(prob.residuals(theta, new).square().sum())
+            if np.isfinite(c) and c < cost:
+                dx, cost, mu = new, c, max(mu / 3, 1e-7)
+                break
+            mu *= 4
+        if progress:
+            rms = np.sqrt(cost / max(r.numel(), 1)) * prob.sigma
+            print(f"bound: nuisance step {j + 1}, marker residual {1e3 * rms:.3f} mm", flush=True)
+    return dx
+
+
 def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                     sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                     state_steps: int = 2, order: int = 2, progress: bool = False) -> RecordingBound:
@@ -80,18 +110,9 @@ def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, start
         dx[..., 12:15] = weight / WRENCH_UNIT
     acts = torch.cat([torch.ones(W, R, 12, dtype=torch.bool), near.unsqueeze(-1).expand(W, R, k - 12) & (order > 0)],
                      -1).reshape(W, R * k).to(torch.float64)
-    for j in range(state_steps + 1):
-        r, Jx, Jp = prob.jacobians(theta, dx)
-        Jx = Jx * acts.unsqueeze(1)
-        if j == state_steps:
-            break
-        # Gauss-Newton in the nuisances alone, window by window (minimum-norm: blind directions stay)
-        step = torch.linalg.lstsq(Jx, -r.unsqueeze(-1), driver="gelsd").solution.squeeze(-1) * acts
-        dx = dx + step.reshape(W, R, k)
-        if progress:
-            with torch.no_grad():
-                rms = float(prob.residuals(theta, dx).square().mean().sqrt()) * sigma * np.sqrt(3)
-            print(f"bound: nuisance step {j + 1}, marker residual {1e3 * rms:.3f} mm", flush=True)
+    dx = settle(prob, theta, dx, acts, state_steps, progress)
+    r, Jx, Jp = prob.jacobians(theta, dx)
+    Jx = Jx * acts.unsqueeze(1)
     F = window_information(Jx.numpy(), Jp.numpy()) * (available / W)
     S, Rn = model.topology.n_springs, model.topology.n_rods
     mass = np.asarray(model.mass, dtype=float)

@@ -195,8 +195,11 @@ class _Problem:
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
                  hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False) -> None:
-        """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group
-        (for a bound that shows they carry no information; never for a fit)."""
+        """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group (for
+        a bound that shows they carry no information; never for a fit).  The spin about a held
+        axis stays as reconstructed, not a free unknown: the axis's motion does not depend on it
+        (``ȧ = L × a / I₁``), and the engine's steps couple it at 1e-3 of a transverse spin's
+        effect (measured) -- a free unknown that small would project out whole directions."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.order = wrench_order
         self.n_x = 12 + 6 * wrench_order  # unknowns per window and rod

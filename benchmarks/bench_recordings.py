@@ -13,6 +13,10 @@ and largest |z| over all datasets.
     python benchmarks/bench_recordings.py --datasets 2 --episodes 4 --seconds 5 --quick   # a look
     python benchmarks/bench_recordings.py --datasets 1 --episodes 4 --seconds 5 --quick --output-error
         # the regression, then the output-error refinement against the markers (both rows)
+    python benchmarks/bench_recordings.py --datasets 3 --varied --marker-fit --rate 30 --noise 0.01 \
+        --oe-frames 9 --oe-windows 32 --oe-iterations 6    # coarse markers: output error beside the bound
+    python benchmarks/bench_recordings.py --datasets 3 --varied --bound --rate 10 --noise 0.001 --oe-frames 6 \
+        --oe-windows 32                                     # the Cramer-Rao bound alone, per parameter
 """
 
 from __future__ import annotations
@@ -69,16 +73,11 @@ def varied_robot(path: str, seed: int | None) -> tuple[np.ndarray, np.ndarray, n
     return np.array(K), np.array(c), np.array(M)
 
 
-def recording_bound(path: str, data, args, seed: int) -> dict:
-    """The Cramer-Rao bound of a recording at the truth (relative standard error of every K, c, M):
-    the Fisher information of the marker positions (``args.noise`` per coordinate, the recording's
-    rate and missing samples) for the parameters, with every window's initial state and the
-    ground's wrench on the rods near it unknown (:mod:`identified.fit.output_error` at the plant's
-    own parameters and states).  No estimator that does not know the contact law can do better on
-    windows of ``args.oe_frames`` frames."""
+def values_model(path: str, total: float | None = None):
+    """The MJCF's own K, c, M and inertia as a model (the truth, or with ``total`` the nominal values
+    scaled to a known total mass: the start a lab has)."""
     import mujoco
 
-    from identified.fit.output_error import refine_markers
     from identified.model import IdentifiedModel
     from identified.topology import Topology
 
@@ -86,20 +85,84 @@ def recording_bound(path: str, data, args, seed: int) -> dict:
     topo = Topology.from_mjcf(path)
     tid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TENDON, n) for n in topo.spring_names]
     bid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in topo.rod_names]
-    truth = IdentifiedModel(topology=topo, stiffness=m.tendon_stiffness[tid].copy(), damping=m.tendon_damping[tid].copy(),
-                            rest_length=np.zeros(len(tid)), mass=m.body_mass[bid].copy(),
-                            inertia=m.body_inertia[bid].copy(), dt=float(m.opt.timestep), gravity=m.opt.gravity.copy(),
-                            scale={"anchor": "total_mass"})
+    mass, inertia = m.body_mass[bid].copy(), m.body_inertia[bid].copy()
+    if total is not None:
+        inertia, mass = inertia * total / mass.sum(), mass * total / mass.sum()
+    return IdentifiedModel(topology=topo, stiffness=m.tendon_stiffness[tid].copy(), damping=m.tendon_damping[tid].copy(),
+                           rest_length=np.zeros(len(tid)), mass=mass, inertia=inertia, dt=float(m.opt.timestep),
+                           gravity=m.opt.gravity.copy(), scale={"anchor": "total_mass"})
+
+
+def truth_bound(path: str, data, args, seed: int):
+    """The Cramer-Rao bound of a recording at the truth (:func:`identified.fit.marker_bound.recording_bound`):
+    the markers' noise ``args.noise``, the recording's rate and missing samples, the plant's own states
+    and parameters, every window's initial state and the ground's wrench on the rods near it unknown;
+    ``args.oe_windows`` windows of ``args.oe_frames`` frames, scaled to all the recording's windows."""
+    from identified.fit.marker_bound import recording_bound
+
     clean = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=0.0, dropout=args.dropout), seed=seed)
-    held = [(i, 2) for i in range(topo.n_rods)]  # end caps on the rods' axes
-    out = refine_markers(truth, clean, data, [0.0] * data.n_episodes, path, held, frames=args.oe_frames,
-                         max_windows=args.oe_windows, jacobians=2, chord_steps=6, sigma=args.noise, fit_params=False,
-                         known_noise=True)
-    o = out.metrics["output_error"]
-    used = o["windows"] / max(o.get("windows_available", o["windows"]), 1)
-    return {k: float(np.max(out.stderr[a] / getattr(out, a))) * np.sqrt(used)
-            for k, a in zip("KcM", ("stiffness", "damping", "mass"))} | {"windows": o["windows"],
-                                                                        "residual_mm": 1e3 * o["residual_rms_m"]}
+    truth = values_model(path)
+    held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
+    return recording_bound(truth, clean, data, [0.0] * data.n_episodes, path, args.noise, held,
+                           frames=args.oe_frames, max_windows=args.bound_windows or args.oe_windows,
+                           state_steps=args.bound_steps, order=args.wrench_order)
+
+
+def group_line(key: str, est: np.ndarray, se: np.ndarray, tru: np.ndarray, crb: np.ndarray, scale: float) -> str:
+    """One parameter group: the identifiable estimates' largest error and z-scores (log scale), the
+    bound and the estimator's standard error over it (both for the whole recording: the estimator's
+    scaled by ``scale``, sqrt(windows used / available)); the not identifiable ones by name count."""
+    from identified.fit.bound import NOT_IDENTIFIABLE
+
+    ok = se <= NOT_IDENTIFIABLE
+    z = np.log(est / tru) / se
+    fin = np.isfinite(crb)
+    ratio = se[fin] * scale / crb[fin] if fin.any() else np.array([np.nan])
+    text = f"{key}: {ok.sum()}/{ok.size} identifiable"
+    if ok.any():
+        text += (f", max rel err {100 * np.max(np.abs(est[ok] / tru[ok] - 1)):.2f} %, RMS z "
+                 f"{np.sqrt(np.mean(z[ok] ** 2)):.2f}, max |z| {np.max(np.abs(z[ok])):.2f}")
+    text += (f"; bound (whole recording) {100 * np.min(crb):.2f}-{100 * np.max(crb):.2f} %, estimator's standard "
+             f"error / bound {np.min(ratio):.2f}-{np.max(ratio):.2f} (median {np.median(ratio):.2f})")
+    if (~ok).any():
+        text += (f"; not identifiable at this rate/noise: {(~ok).sum()} (their standard errors "
+                 f"{100 * np.min(se[~ok]):.0f}-{100 * np.max(se[~ok]):.0f} %, bound {100 * np.min(crb[~ok]):.1f}-"
+                 f"{100 * np.max(crb[~ok]):.1f} %; no value printed)")
+    return text
+
+
+def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
+    """The output-error fit from the nominal values (:func:`identified.fit.marker_fit.fit_markers`)
+    beside the recording's bound at the truth; printed per parameter group."""
+    from identified.fit.marker_fit import fit_markers
+    from identified.fit.markers import states_from_recording
+
+    nominal = os.path.join(os.path.dirname(path), f"nominal{k}.xml")
+    varied_robot(nominal, None)
+    start = values_model(nominal, total=float(truth[2].sum()))
+    t0 = time.perf_counter()
+    ms = states_from_recording(rec, start.topology, 0.001)
+    fit = fit_markers(start, rec, ms.data, ms.starts, path, args.noise, ms.unobservable, frames=args.oe_frames,
+                      max_windows=args.oe_windows, joint_iters=args.oe_iterations, contact_margin=args.contact_margin,
+                      wrench_order=args.wrench_order)
+    secs = time.perf_counter() - t0
+    b = truth_bound(path, data, args, k)
+    scale = np.sqrt(fit.windows / fit.available)
+    print(f"dataset {k}: output error from the nominal values, {fit.windows} of {fit.available} windows of "
+          f"{args.oe_frames} frames, marker residual {1e3 * fit.residual_rms:.2f} mm, {secs:.0f} s; bound at the truth "
+          f"from {b.windows} of {b.available} windows ({b.seconds:.0f} s, clean markers left at "
+          f"{1e3 * b.residual_rms:.2f} mm)", flush=True)
+    out = {}
+    for key, tru in zip("KcM", truth):
+        est, se = fit.group(key)
+        print("  " + group_line(key, est, se, tru, b.group(key), scale), flush=True)
+        out[key] = (est, se, tru)
+    axial = [i for i, n in enumerate(b.bound.names) if n.startswith("I[") and n.endswith(":z]")]
+    rel = b.bound.rel_se[axial]
+    print(f"  I about the rods' axes ({len(axial)}): not identifiable, every rod's markers lie on its axis (bound "
+          f"{100 * rel.min():.0f}-{100 * rel.max():.0f} %: the engine's discretisation couples the unseen spin at 1e-3)",
+          flush=True)
+    return out
 
 
 def free_runs(model, held) -> tuple[float, float]:
@@ -140,8 +203,20 @@ def main() -> None:
     ap.add_argument("--oe-windows", type=int, default=256, help="windows the output-error refinement uses")
     ap.add_argument("--oe-frames", type=int, default=10, help="frames per output-error window")
     ap.add_argument("--bound", action="store_true",
-                    help="only the Cramer-Rao bound of each recording at the truth (no fit; recording_bound)")
+                    help="only the Cramer-Rao bound of each recording at the truth (no fit; truth_bound)")
+    ap.add_argument("--marker-fit", action="store_true",
+                    help="output error from the nominal values beside the bound (marker_fit_row; needs --varied)")
+    ap.add_argument("--oe-iterations", type=int, default=8, help="joint steps of --marker-fit")
+    ap.add_argument("--contact-margin", type=float, default=None,
+                    help="--marker-fit: a rod this close to the ground (m, reconstructed) feels a free wrench (0.01)")
+    ap.add_argument("--wrench-order", type=int, default=3,
+                    help="terms of the ground's free wrench in time (bound and --marker-fit): 2 linear, 3 quadratic")
+    ap.add_argument("--bound-windows", type=int, default=None, help="windows of the bound (default --oe-windows)")
+    ap.add_argument("--bound-steps", type=int, default=5,
+                    help="steps in the windows' nuisances alone before the bound's Jacobian (marker_bound.settle)")
     args = ap.parse_args()
+    if args.marker_fit and not args.varied:
+        ap.error("--marker-fit starts from the preset's values: with the preset robot they are the truth (add --varied)")
     effects = args.effects if args.effects in ("auto", "none") else args.effects.split(",")
     steps = round(args.seconds / 0.001)
     rows, zs = [], {k: [] for k in "KcM"}
@@ -156,12 +231,15 @@ def main() -> None:
                                                               unlabelled=args.unlabelled, ghosts=int(args.unlabelled)),
                                  seed=k)
             if args.bound:
-                t0 = time.perf_counter()
-                b = recording_bound(path, data, args, k)
-                print(f"dataset {k}: Cramer-Rao bound (largest relative standard error) K {100 * b['K']:.2f} %, "
-                      f"c {100 * b['c']:.2f} %, M {100 * b['M']:.2f} % ({b['windows']} windows of {args.oe_frames} "
-                      f"frames; clean markers left at {b['residual_mm']:.3f} mm; {time.perf_counter() - t0:.0f} s)",
-                      flush=True)
+                b = truth_bound(path, data, args, k)
+                print(f"dataset {k}: Cramer-Rao bound (relative standard error, whole recording) K "
+                      f"{100 * b.group('K').max():.2f} %, c {100 * b.group('c').max():.2f} %, M "
+                      f"{100 * b.group('M').max():.2f} % at worst ({b.windows} of {b.available} windows of "
+                      f"{args.oe_frames} frames; clean markers left at {1e3 * b.residual_rms:.3f} mm; {b.seconds:.0f} s); "
+                      + "; ".join(b.bound.describe(i) for i in np.flatnonzero(~b.bound.identifiable())), flush=True)
+                continue
+            if args.marker_fit:
+                marker_fit_row(path, data, rec, truth, args, k)
                 continue
             scale = ScaleSpec(total_mass=float(truth[2].sum()))
             t0 = time.perf_counter()

@@ -96,9 +96,9 @@ class MarkerWindows:
                        seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep])
 
 
-def _near_ground(mjcf: str, topology, data: Dataset) -> np.ndarray | None:
-    """(E, T + 1, R) bool: rods with an end sphere within :data:`CONTACT_MARGIN` of the ground
-    (``None`` when the model has no ground plane)."""
+def _near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARGIN) -> np.ndarray | None:
+    """(E, T + 1, R) bool: rods with an end sphere within ``margin`` (m) of the ground (``None``
+    when the model has no ground plane)."""
     from identified.effects import GeometryError
     from identified.effects.ground_contact import GroundContact
     from identified.state import RodState
@@ -110,11 +110,11 @@ def _near_ground(mjcf: str, topology, data: Dataset) -> np.ndarray | None:
     pos, quat = torch.as_tensor(data.pos), torch.as_tensor(data.quat)
 
     state = RodState(pos, quat, torch.as_tensor(data.vel), torch.as_tensor(data.angvel))
-    return eff.rows_affected(state, SimpleNamespace(rot=quat_to_matrix(quat)), CONTACT_MARGIN).numpy()
+    return eff.rows_affected(state, SimpleNamespace(rot=quat_to_matrix(quat)), margin).numpy()
 
 
 def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology, mjcf: str | None,
-                   frames: int = 10, contact_frames: int = 3) -> MarkerWindows:
+                   frames: int = 10, contact_frames: int = 3, margin: float = CONTACT_MARGIN) -> MarkerWindows:
     """Cut a labelled recording into windows of ``frames`` frames over the reconstructed states
     ``data`` (take ``e``'s state ``n`` at the time ``starts[e] + n dt``).  A rod near the ground
     within ``contact_frames`` frames of a window is not simulated in it.  Frames must fall on the
@@ -124,7 +124,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     col = [rec.marker_names.index(s) for _, _, s in sites]
     site_rod = torch.as_tensor([i for i, _, _ in sites])
     site_offset = torch.as_tensor(np.array([topology.rods[i].site_offsets[k] for i, k, _ in sites]), dtype=torch.float64)
-    near = _near_ground(mjcf, topology, data) if mjcf else None
+    near = _near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
     x0, sts, rest, obs, seen, free, wt = [], [], [], [], [], [], []
@@ -194,7 +194,12 @@ class _Problem:
     initial-state corrections."""
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
-                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2) -> None:
+                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False) -> None:
+        """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group (for
+        a bound that shows they carry no information; never for a fit).  The spin about a held
+        axis stays as reconstructed, not a free unknown: the axis's motion does not depend on it
+        (``ȧ = L × a / I₁``), and the engine's steps couple it at 1e-3 of a transverse spin's
+        effect (measured) -- a free unknown that small would project out whole directions."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.order = wrench_order
         self.n_x = 12 + 6 * wrench_order  # unknowns per window and rod
@@ -210,6 +215,8 @@ class _Problem:
             ax_held = [ax for ax in range(3) if (i, ax) in held]
             if ax_held:
                 groups.append((i, [ax for ax in range(3) if ax not in ax_held]))
+                if axial:
+                    groups += [(i, [ax]) for ax in ax_held]
             else:
                 groups += [(i, [ax]) for ax in range(3)]
         self.groups = groups

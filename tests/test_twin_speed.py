@@ -136,6 +136,7 @@ def test_failed_compilation_warns_and_runs_eagerly(floating, monkeypatch):
         raise RuntimeError("no compiler here")
 
     monkeypatch.setattr(torch, "compile", broken)
+    monkeypatch.setenv("TENSEGRITY_TWIN_CACHE", "0")  # a stored entry would be loaded, not compiled
     b = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=True)
     e = IdentifiedBackend(model, dtype="float64", mjcf=xml, compile=False)
     hold = b.nominal_rest_lengths()[b.actuated_index]

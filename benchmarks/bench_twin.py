@@ -181,17 +181,20 @@ def batched_substep_profile(venv: gym.vector.VectorEnv, substeps: int = 400) -> 
     for _ in range(n):
         ph.step(20)
     prof.disable()
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    generated = os.path.realpath(cache_dir())  # where inductor writes the wrapper's module
     stats = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tottime, cumtime, callers)
     calls = 20 * n
     part = {"kernels": 0.0, "allocations": 0.0, "wrapper": 0.0, "total": 0.0, "buffers": 0.0}
     for (file, _line, name), (_cc, nc, tt, ct, _) in stats.items():
         if ".kernel.kernel" in name or "inductor_entry_cpp" in name:
             part["kernels"] += tt
-        elif "_empty_strided" in name or "_reinterpret_tensor" in name or "assert_size_stride" in name:
+        elif "_empty_strided" in name or "_reinterpret_tensor" in name or "assert_size_stride" in name:  # and views
             part["allocations"] += tt
             if "_empty_strided" in name:
                 part["buffers"] += nc / calls
-        elif name == "call" and "torchinductor" in file:
+        elif name == "call" and os.path.realpath(file).startswith(generated):
             part["wrapper"] += tt
         elif name == "_eager_substep":
             part["total"] += ct

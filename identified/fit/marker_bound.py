@@ -25,7 +25,7 @@ import torch
 
 from identified.dataset import Dataset
 from identified.fit.bound import CramerRao, constrained_bound, window_information
-from identified.fit.output_error import WRENCH_UNIT, _Problem, marker_windows
+from identified.fit.output_error import _Problem, window_problem
 from identified.model import IdentifiedModel
 from identified.recording import Recording
 
@@ -96,20 +96,10 @@ def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, start
     if not sigma > 0:
         raise ValueError(f"marker noise {sigma!r}: the bound needs a positive noise (m)")
     t0 = time.perf_counter()
-    win = marker_windows(rec, data, starts, model.topology, mjcf, frames)
-    available = win.n_windows
-    if win.n_windows > max_windows:
-        win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
-    prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=True)
-    W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
+    win, available, prob, dx, acts = window_problem(model, rec, data, starts, mjcf, sigma, hold_inertia, frames,
+                                                    max_windows, order, axial=True)
+    W = win.n_windows
     theta = prob.theta0
-    dx = torch.zeros(W, R, k, dtype=torch.float64)
-    near = ~win.free
-    if order > 0:
-        weight = -torch.as_tensor(model.mass)[:, None] * torch.as_tensor(np.asarray(model.gravity, dtype=float))
-        dx[..., 12:15] = weight / WRENCH_UNIT
-    acts = torch.cat([torch.ones(W, R, 12, dtype=torch.bool), near.unsqueeze(-1).expand(W, R, k - 12) & (order > 0)],
-                     -1).reshape(W, R * k).to(torch.float64)
     dx = settle(prob, theta, dx, acts, state_steps, progress)
     r, Jx, Jp = prob.jacobians(theta, dx)
     Jx = Jx * acts.unsqueeze(1)

@@ -33,7 +33,7 @@ import torch
 from identified.dataset import Dataset
 from identified.fit.bound import CramerRao, constrained_bound, window_information
 from identified.fit.marker_bound import _names
-from identified.fit.output_error import CONTACT_MARGIN, WRENCH_UNIT, _Problem, marker_windows
+from identified.fit.output_error import CONTACT_MARGIN, window_problem
 from identified.model import IdentifiedModel
 from identified.recording import Recording
 
@@ -72,12 +72,9 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     at 30 Hz / 1 cm, 32 windows of 0.27 s, a varied robot: with 2 the worst K 9.3 % off at |z| 4.7,
     with 3 2.1 % at 0.9: a linear wrench does not follow the contacts, and the misfit biases K)."""
     t0 = time.perf_counter()
-    win = marker_windows(rec, data, starts, start.topology, mjcf, frames,
-                         margin=CONTACT_MARGIN if contact_margin is None else contact_margin)
-    available = win.n_windows
-    if win.n_windows > max_windows:
-        win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
-    prob = _Problem(start, win, data.dt, float(sigma), list(hold_inertia), wrench_order)
+    win, available, prob, dx, acts = window_problem(
+        start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
+        margin=CONTACT_MARGIN if contact_margin is None else contact_margin)
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
     S = start.topology.n_springs
     theta = prob.theta0.clone()
@@ -86,10 +83,6 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     g = np.zeros(P)
     g[msl] = start.mass / start.mass.sum()
     U = torch.as_tensor(sla.null_space(g[None]))  # steps that keep the total mass (to first order)
-    dx = torch.zeros(W, R, k, dtype=torch.float64)
-    dx[..., 12:15] = -torch.as_tensor(start.mass)[:, None] * torch.as_tensor(np.asarray(start.gravity)) / WRENCH_UNIT
-    acts = torch.cat([torch.ones(W, R, 12, dtype=torch.bool), (~win.free).unsqueeze(-1).expand(W, R, k - 12)],
-                     -1).reshape(W, R * k).to(torch.float64)
 
     def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():

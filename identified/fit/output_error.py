@@ -309,6 +309,33 @@ class _Problem:
         return r, J[..., :nx], J[..., nx:]
 
 
+def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
+                   sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
+                   order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN
+                   ) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
+    """The output-error problem of a recording at ``model``'s parameters, as the refinement, the
+    bound and the staged fit all set it up: up to ``max_windows`` windows of ``frames`` frames spread
+    evenly over the recording (of ``available``), the :class:`_Problem` on them, the windows'
+    starting nuisances ``dx`` (W, R, n_x) (zero corrections; the ground carrying the weight of the
+    rods near it when there is a wrench, ``order`` > 0), and the mask of the nuisances that act
+    (W, R n_x) float: every simulated rod's state, the wrench of a rod near the ground.
+    Returns ``(windows, available, problem, dx, active)``."""
+    win = marker_windows(rec, data, starts, model.topology, mjcf, frames, margin=margin)
+    available = win.n_windows
+    if win.n_windows > max_windows:
+        win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
+    prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial)
+    W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
+    dx = torch.zeros(W, R, k, dtype=torch.float64)
+    if order > 0:  # the ground starts out carrying the weight of the rods near it
+        weight = -torch.as_tensor(model.mass)[:, None] * torch.as_tensor(np.asarray(model.gravity, dtype=float))
+        dx[..., 12:15] = weight / WRENCH_UNIT
+    near = ~win.free
+    active = torch.cat([(win.free | (order > 0)).unsqueeze(-1).expand(W, R, 12),
+                        near.unsqueeze(-1).expand(W, R, k - 12) & (order > 0)], -1).reshape(W, R * k).to(torch.float64)
+    return win, available, prob, dx, active
+
+
 def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
                    jacobians: int = 2, chord_steps: int = 4, sigma: float | None = None, order: int = 2,
@@ -323,26 +350,15 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     variance (``known_noise``: by ``sigma`` itself -- with ``fit_params`` false and the true
     parameters, the Cramer-Rao bound of the windows' markers)."""
     t0 = time.perf_counter()
-    win = marker_windows(rec, data, starts, model.topology, mjcf, frames)
-    available = win.n_windows
-    if win.n_windows > max_windows:
-        win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
     sig = float(sigma or rec.noise_pos or 1e-3)
-    prob = _Problem(model, win, data.dt, sig, list(hold_inertia), order)
+    win, available, prob, dx, free_x = window_problem(model, rec, data, starts, mjcf, sig, hold_inertia, frames,
+                                                      max_windows, order)
     theta = prob.theta0.clone()
-    W, R = win.n_windows, model.topology.n_rods
-    dx = torch.zeros(W, R, prob.n_x, dtype=torch.float64)
-    if order > 0:  # the ground starts out carrying the weight of the rods near it
-        weight = -torch.as_tensor(model.mass)[:, None] * torch.as_tensor(np.asarray(model.gravity, dtype=float))
-        dx[..., 12:15] = weight / WRENCH_UNIT
+    W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
     P = theta.numel()
     u = torch.ones(P, 1, dtype=torch.float64) / np.sqrt(P)  # the global scale: invisible
     proj = torch.eye(P, dtype=torch.float64) - u @ u.T
-    # the unknowns of each window that act: every simulated rod's state, the wrench of a rod near the ground
     near = ~win.free
-    k = prob.n_x
-    free_x = torch.cat([(win.free | (order > 0)).unsqueeze(-1).expand(W, R, 12),
-                        near.unsqueeze(-1).expand(W, R, k - 12) & (order > 0)], -1).reshape(W, R * k).to(torch.float64)
 
     def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():

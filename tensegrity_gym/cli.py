@@ -326,6 +326,8 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise CommandError(f"{'--ray' if args.ray is not None else '--jobs'} runs several seeds: give them with "
                            "--seeds (e.g. --seeds 0-4)")
     own = _xml_file_kwargs(args)
+    if args.physics_dt is not None:
+        own["backend_kwargs"] = {**own.get("backend_kwargs", {}), "physics_dt": _physics_dt(args)}
     if args.seeds is None:
         _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=0 if args.seed is None else args.seed, algo=args.algo,
@@ -678,6 +680,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--episode-steps", type=int, default=1000, metavar="T",
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
+    t.add_argument("--physics-dt", type=float, default=None, metavar="S",
+                   help="the twin's integration step, s: a whole multiple of the model's dt that divides the "
+                   "20 ms control period (e.g. 0.002 or 0.004: 2x or 4x fewer engine steps; default the model's "
+                   "dt, the plant's step). README 'Training on the twin' measures what it costs in transfer")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
     t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
                    help="domain randomization of the twin, drawn per env at every reset: 'auto' (default: "
@@ -746,6 +752,26 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=cmd_gap)
     return p
+
+
+# ---------------------------------------------------------------------- helpers
+def _physics_dt(args: argparse.Namespace) -> float:
+    """``--physics-dt S`` checked against the twin's model (a whole multiple of its dt that divides
+    the env's 20-step control period); CommandError in the option's words."""
+    from identified.model import load_model
+    from tensegrity_gym.backends.identified_backend import coarsening
+    from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
+
+    if args.plant:
+        raise CommandError("--physics-dt sets the twin's integration step: the plant (--plant) steps at its own")
+    try:
+        k = coarsening(args.physics_dt, load_model(args.identified).dt)
+    except ValueError as exc:
+        raise CommandError(f"--physics-dt {args.physics_dt:g}: {exc}") from None
+    if FRAME_SKIP % k:
+        raise CommandError(f"--physics-dt {args.physics_dt:g}: {k} physics steps of the model do not divide the "
+                           f"control period of {FRAME_SKIP} steps")
+    return float(args.physics_dt)
 
 
 # ---------------------------------------------------------------------- helpers

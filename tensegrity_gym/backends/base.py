@@ -51,6 +51,7 @@ import numpy as np
 
 from identified.state import RodState
 from tensegrity_gym.cables import MotorSpec
+from tensegrity_gym.checks import check_substeps
 
 if TYPE_CHECKING:
     from tensegrity_gym.plant import MujocoPlant
@@ -143,6 +144,12 @@ class Backend(abc.ABC):
             push_force: optional (R, 3) world-frame force on each rod, N, held for all substeps.
             push_point: optional (R, 3) point of application in each rod's body frame, m.
         """
+
+    def engine_steps(self, n_substeps: int) -> int:
+        """Steps of the backend's own integrator for ``n_substeps`` physics steps of ``dt``
+        (ValueError, in the user's words, where it cannot take that period): ``n_substeps`` here;
+        the identified twin integrates coarser when given ``physics_dt``."""
+        return check_substeps(n_substeps)
 
     @abc.abstractmethod
     def states(self) -> RodState:

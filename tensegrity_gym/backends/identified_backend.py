@@ -35,6 +35,7 @@ MJCF is read as XML by :mod:`identified.mjcf`; input checks are the backend base
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 import xml.etree.ElementTree as ET
@@ -138,6 +139,21 @@ def read_source_mjcf(text: str) -> ET.Element:
     return parse_mjcf(text)
 
 
+def coarsening(physics_dt: float | None, dt: float) -> int:
+    """``physics_dt / dt`` as a whole number ``k >= 1`` (1 for ``None``); ValueError naming
+    ``physics_dt`` when it is not a positive whole multiple of the model's ``dt``."""
+    if physics_dt is None:
+        return 1
+    try:
+        h = float(physics_dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"physics_dt must be a number of seconds, got {physics_dt!r}") from None
+    k = round(h / dt) if np.isfinite(h) and h > 0 else 0
+    if k < 1 or abs(k * dt - h) > 1e-9 * h:
+        raise ValueError(f"physics_dt must be a whole multiple of the model's dt ({dt:g} s), got {physics_dt!r}")
+    return int(k)
+
+
 # ---------------------------------------------------------------------- the backend
 class IdentifiedBackend(Backend):
     """The identified twin as an env backend (``gym.make("TensegrityIco-v0", backend="identified")``).
@@ -160,8 +176,16 @@ class IdentifiedBackend(Backend):
             builds from the model file (:func:`identified.twin.effects_from_model`).
         mjcf: the MJCF (path or text) to take motors, keyframe and drawing from, instead of
             ``model.source_model`` (see :func:`resolve_source_mjcf`).
+        physics_dt: the engine's integration step, s: ``None`` (default) the model's ``dt`` (the
+            plant's step, to which the twin agrees to rounding), or a whole multiple ``k`` of it,
+            so that each :meth:`step` of ``n`` physics steps runs ``n / k`` engine steps of ``k dt``
+            (``k`` must divide ``n``: the env's ``frame_skip``).  The model's parameters are
+            continuous-time quantities, so a coarser step integrates the same physics less
+            accurately and ``k`` times cheaper (README, "Training on the twin": what it costs in
+            transfer).
 
-    Physics step ``dt`` is the model's; gravity the model's. The nominal pose is the source MJCF's
+    Physics step ``dt`` is the model's (:attr:`dt`; :attr:`physics_dt` the engine's); gravity the
+    model's. The nominal pose is the source MJCF's
     keyframe ``nominal`` with zero velocities; nominal rest lengths are the MJCF's neutral
     ``springlength`` for actuated cables and ``model.rest_length`` for the other springs.
 
@@ -177,7 +201,8 @@ class IdentifiedBackend(Backend):
     def __init__(self, model: str | os.PathLike | IdentifiedModel | None = None,
                  dtype: torch.dtype | str = torch.float32, device: torch.device | str = "cpu",
                  effects: Sequence[Effect] = (), mjcf: str | os.PathLike | None = None,
-                 num_threads: int | str | None = "auto", compile: bool | str = "auto") -> None:
+                 num_threads: int | str | None = "auto", compile: bool | str = "auto",
+                 physics_dt: float | None = None) -> None:
         if isinstance(dtype, str):
             if dtype not in _DTYPES:
                 raise ValueError(f"dtype must be float64 or float32, got {dtype!r}")
@@ -193,6 +218,8 @@ class IdentifiedBackend(Backend):
         self.model: IdentifiedModel = model if isinstance(model, IdentifiedModel) else load_model(model)
         m = self.model
         validate_fields(m)  # dt > 0, finite gravity, positive masses and inertias, known effects
+        #: engine steps per physics step of the model's dt are 1 / coarsening (``physics_dt``)
+        self.coarsening = coarsening(physics_dt, m.dt)
         effects = list(effects)  # extra plug-ins; the model's own effects the engine builds itself
         check_effect_objects(effects)  # a name or a number fails here, not at the first step
         self.mjcf, self.mjcf_source = resolve_source_mjcf(m, mjcf)
@@ -204,7 +231,8 @@ class IdentifiedBackend(Backend):
         unknown = [n for n in self.actuated_names if n not in self.tendon_names]
         if unknown:
             raise ValueError(f"actuated cables {unknown} of the MJCF are not springs of the identified model")
-        self.engine = engine_from_model(m, effects=effects, dtype=dtype, device=device)
+        engine_model = m if self.coarsening == 1 else dataclasses.replace(m, dt=self.coarsening * m.dt)
+        self.engine = engine_from_model(engine_model, effects=effects, dtype=dtype, device=device)
         topo_mjcf = Topology.from_mjcf(self.mjcf)
         self.ground = topo_mjcf.ground
         self._actuators(topo_mjcf, dtype, device)
@@ -242,7 +270,7 @@ class IdentifiedBackend(Backend):
                              "model does not hold (fit it on data with their commands): the twin cannot step them")
         self.actuator_names = tuple(a.name for a in mine)
         self.actuator_bank = ActuatorBank.from_json([fitted[a.name] for a in mine], self.tendon_names,
-                                                    float(self.model.dt), dtype, device)
+                                                    float(self.engine.dt), dtype, device)
         rng = [a.ctrlrange or (-np.inf, np.inf) for a in mine]
         self._ctrl_bounds = (np.array([r[0] for r in rng], dtype=float), np.array([r[1] for r in rng], dtype=float))
 
@@ -271,6 +299,20 @@ class IdentifiedBackend(Backend):
         return float(self.model.dt)
 
     @property
+    def physics_dt(self) -> float:
+        """The engine's integration step, s (``coarsening`` times :attr:`dt`)."""
+        return float(self.engine.dt)
+
+    def engine_steps(self, n_substeps: int) -> int:
+        """Engine steps for ``n_substeps`` physics steps of :attr:`dt`: ``n_substeps / coarsening``;
+        ValueError when the engine's step does not divide the period."""
+        n = check_substeps(n_substeps)
+        if n % self.coarsening:
+            raise ValueError(f"physics_dt={self.physics_dt:g} s does not divide a control period of {n} physics "
+                             f"steps of {self.dt:g} s: frame_skip must be a multiple of {self.coarsening}")
+        return n // self.coarsening
+
+    @property
     def dtype(self) -> torch.dtype:
         return self.engine.dtype
 
@@ -295,7 +337,7 @@ class IdentifiedBackend(Backend):
 
     def step(self, target_rest: np.ndarray, n_substeps: int, push_force: np.ndarray | None = None,
              push_point: np.ndarray | None = None) -> None:
-        n = check_substeps(n_substeps)
+        n = self.engine_steps(n_substeps)
         t = check_targets(target_rest, self.motor.n)
         push_force, push_point = check_push(push_force, push_point, self.n_rods)
         ph = self.physics

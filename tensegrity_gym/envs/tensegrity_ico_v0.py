@@ -44,6 +44,10 @@ def action_to_rest(action: np.ndarray, rest_min: np.ndarray, rest_max: np.ndarra
     return rest_min + 0.5 * (a + 1.0) * (rest_max - rest_min)
 
 
+#: physics steps of the model's dt per env step (20 x 1 ms: 50 Hz control)
+FRAME_SKIP = 20
+
+
 def rest_to_action(rest: np.ndarray, rest_min: np.ndarray, rest_max: np.ndarray) -> np.ndarray:
     """Inverse of :func:`action_to_rest`: (A,) rest lengths, m -> [-1, 1] (0 where the range is empty)."""
     span = np.asarray(rest_max, dtype=float) - rest_min
@@ -317,7 +321,7 @@ class TensegrityIcoEnv(gym.Env):
         self,
         backend: str | Backend = "mujoco",
         model: str | os.PathLike | Any | None = None,
-        frame_skip: int = 20,
+        frame_skip: int = FRAME_SKIP,
         forward_reward_weight: float = 1.0,
         ctrl_cost_weight: float = 0.01,
         reset_noise_scale: float = 0.01,
@@ -375,6 +379,7 @@ class TensegrityIcoEnv(gym.Env):
             raise ValueError("the model has no actuated cables and no actuators: nothing to control")
 
         self.frame_skip = int(frame_skip)
+        b.engine_steps(self.frame_skip)  # the backend can take the control period (ValueError if not)
         self.forward_reward_weight = float(forward_reward_weight)
         self.ctrl_cost_weight = float(ctrl_cost_weight)
         self.reset_noise_scale = float(reset_noise_scale)

@@ -456,7 +456,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         ph.set_targets(now[:, :A])
         if self._n_actuators:
             ph.set_ctrl(now[:, A:])
-        ph.step(e.frame_skip, self._pushes())
+        ph.step(self.backend.engine_steps(e.frame_skip), self._pushes())
         pos, quat, vel, angvel = ph.states_numpy()
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
         rest = ph.rest_numpy()

@@ -5,7 +5,7 @@ and the plant steps each needs.
                                      [--seed 0] [--busy both|none|only] [--twin-envs 64] [--plant-envs 8]
                                      [--batch-size B] [--n-epochs E] [--rollout R] [--fused-adam]
                                      [--curve] [--episodes 10] [--target 0.5] [--points 8]
-                                     [--threads 1] [--out runs/bench_train]
+                                     [--threads 1] [--physics-dt S] [--out runs/bench_train]
     python benchmarks/bench_train.py --updates      # PPO's update alone, per mini-batch size
 
 One run, one machine, the same algorithm with the same settings on both sides (``tensegrity
@@ -302,6 +302,8 @@ def main() -> None:
     ap.add_argument("--fused-adam", action="store_true",
                     help="Adam's fused CPU kernel (the same update rule; tensegrity train's default already)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of both trainings (default 1)")
+    ap.add_argument("--physics-dt", type=float, default=None,
+                    help="the twin's integration step, s (tensegrity train --physics-dt; default the model's dt)")
     ap.add_argument("--curve", action="store_true",
                     help="also evaluate on the plant: the twin policy and the learning curve of the plant run")
     ap.add_argument("--no-curve", action="store_true", help=argparse.SUPPRESS)  # the default now
@@ -341,7 +343,8 @@ def main() -> None:
         plant = args.one == "plant"
         cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified, plant=plant,
                           envs=args.plant_envs if plant else args.twin_envs, rollout=rollout, threads=args.threads,
-                          hyperparameters=dict(hp), snapshots=args.curve and plant and os.path.basename(args.policy_out) == "plant-quiet.zip")
+                          hyperparameters=dict(hp), snapshots=args.curve and plant and os.path.basename(args.policy_out) == "plant-quiet.zip",
+                          backend_kwargs={} if plant or args.physics_dt is None else {"physics_dt": args.physics_dt})
         print(json.dumps(train_timed(cfg, args.policy_out), default=str))
         return
     conds = {"both": ("quiet", "busy"), "none": ("quiet",), "only": ("busy",)}[args.busy]
@@ -358,7 +361,8 @@ def main() -> None:
         print(f"twin warm-up ({2 * rollout} steps): compiled substep {row['compile_cache']} in {row['compile_s']:.1f} s "
               "('stored': compiled now, a model structure's first training; 'hit': from the cache on disk)", flush=True)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
-          f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}", flush=True)
+          f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}; the twin's step "
+          f"{'the model dt' if args.physics_dt is None else f'{args.physics_dt:g} s'}", flush=True)
     runs: dict = {}
     for cond in conds:
         runs[cond] = {}

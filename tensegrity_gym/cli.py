@@ -312,7 +312,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from tensegrity_gym.training import TrainConfig, resolve_randomize, train
+    from tensegrity_gym.training import TrainConfig, divergence_warning, resolve_randomize, train
 
     if args.timesteps < 1:
         raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
@@ -347,6 +347,9 @@ def cmd_train(args: argparse.Namespace) -> None:
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
     print(f"wrote {args.algo} policy to {args.out} ({r.timesteps} steps on the {'plant' if args.plant else 'twin'} "
           f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
+    warning = divergence_warning(r)
+    if warning:
+        print(f"tensegrity: warning: {warning}", file=sys.stderr)
 
 
 def cmd_improve(args: argparse.Namespace) -> None:
@@ -397,6 +400,11 @@ def _train_seeds(args: argparse.Namespace, cfg: Any) -> None:
                                           f"(std {sp['std']:.3f}, {sp['min']:.3f} to {sp['max']:.3f})")
     print(f"wrote {len(seeds)} {args.algo} policies to {args.out}/seed_*/ ({where}, {s['wall_s']:.1f} s{last}); "
           f"summary: {os.path.join(args.out, 'summary.json')}")
+    bad = [(r["seed"], r["diverged_episodes"], r["episodes"]) for r in s["runs"] if r.get("diverged_episodes")]
+    if bad:
+        print(f"tensegrity: warning: the {'plant' if args.plant else 'twin'}'s physics diverged (a non-finite state) "
+              "in training episodes of seed " + ", ".join(f"{k} ({n} of {m})" for k, n, m in bad) + ": the model is "
+              "not stable at its step (see the fit's warnings; a coarser --physics-dt makes it worse)", file=sys.stderr)
 
 
 def cmd_gap(args: argparse.Namespace) -> None:

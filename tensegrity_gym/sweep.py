@@ -144,6 +144,7 @@ def train_one(task: dict[str, Any]) -> dict[str, Any]:
         "wall_s": float(r.wall_s),
         "env_steps_per_s": float(r.env_steps_per_s),
         "episodes": int(r.episodes),
+        "diverged_episodes": int(r.diverged_episodes),
         "last_episodes": len(last),
         "last_return": float(np.mean([e["return"] for e in last])) if last else None,
         "last_progress_m": float(np.mean([e["progress_m"] for e in last])) if last else None,

@@ -238,6 +238,22 @@ class TrainResult:
     #: ``reward_per_step`` (the env's reward, before normalisation) and ``velocity_m_s`` (mean
     #: forward velocity of the centre of mass over every env and step of the rollout)
     rollout_log: list[dict[str, float]] = field(default_factory=list, repr=False)
+    #: training episodes that ended because the physics diverged (``termination_reason`` ``"non-finite
+    #: state"``): a twin that is not stable at its step (a fit the data do not determine, or too
+    #: coarse a ``physics_dt``); :func:`divergence_warning` words it
+    diverged_episodes: int = 0
+
+
+def divergence_warning(result: TrainResult) -> str | None:
+    """One line saying that the physics diverged in some of ``result``'s training episodes (``None``
+    when it never did): the policy then learned from a twin that blows up."""
+    n, m = result.diverged_episodes, result.episodes
+    if n == 0:
+        return None
+    where = "plant" if result.config.get("plant") else "twin"
+    return (f"the {where}'s physics diverged (a non-finite state) in {n} of {m} training episodes: the model is "
+            "not stable at its step (see the fit's warnings; a coarser --physics-dt makes it worse), and a "
+            "policy trained on it may not transfer")
 
 
 # ---------------------------------------------------------------------- helpers
@@ -420,6 +436,7 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
             self.returns: deque[float] = deque(maxlen=20)
             self.progress: deque[float] = deque(maxlen=20)
             self.episodes = 0
+            self.diverged = 0
             self.log: list[dict[str, float]] = []
             self.rollouts: list[dict[str, float]] = []
             self._roll = [0.0, 0.0, 0]  # forward distance, reward, env steps of the current rollout
@@ -458,6 +475,7 @@ def _make_callback(cfg: TrainConfig, dt: float, out: str, meta: Callable[[], dic
                                      "length": int(ep["l"]) if ep is not None else -1})
                     self._dist[i] = 0.0
                     self.episodes += 1
+                    self.diverged += info.get("termination_reason") == "non-finite state"
             if self._bar is not None:
                 self._bar.update(min(self.num_timesteps, int(cfg.timesteps)) - self._bar.n)
                 if self.returns:
@@ -595,6 +613,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
         env_steps_per_s=model.num_timesteps / wall if wall > 0 else float("nan"),
         config={"algo": cfg.algo, "plant": cfg.plant, "envs": cfg.n_envs, **hp},
         model=model, vecnormalize=venv, episode_log=list(callback.log), rollout_log=list(callback.rollouts),
+        diverged_episodes=callback.diverged,
     )
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import tempfile
 import zipfile
 from pathlib import Path
@@ -345,3 +347,34 @@ def test_help_lists_options(command, options, capsys):
     assert text.startswith(f"usage: tensegrity {command}")
     for opt in options:
         assert opt in text
+
+
+def test_training_counts_and_reports_a_diverging_twin(robot, tmp_path):
+    """A twin that blows up (every cable pushing with -1e7 N/m) ends every training episode with a
+    non-finite state; training counts them and the command says so in one warning line, where a
+    stable twin's count is 0."""
+
+    from tensegrity_gym.training import divergence_warning
+
+    m = json.loads(Path(robot["twin"]).read_text())
+    for s in m["springs"]:
+        s["stiffness"] = -1e7
+    bad = tmp_path / "unstable.json"
+    bad.write_text(json.dumps(m))
+    cfg = TrainConfig(timesteps=64, seed=0, identified=str(bad), envs=2, rollout=32)
+    r = train(cfg, tmp_path / "P.zip", progress=False)
+    assert r.episodes > 2 and r.diverged_episodes == r.episodes
+    assert f"in {r.episodes} of {r.episodes} training episodes" in divergence_warning(r)
+    out = tmp_path / "Q.zip"
+    proc = subprocess.run([sys.executable, "-m", "tensegrity_gym.cli", "train", "--identified", str(bad),
+                           "--timesteps", "64", "--envs", "2", "--rollout", "32", "--quiet", "--out", str(out)],
+                          check=False, capture_output=True, text=True)
+    assert proc.returncode == 0 and out.exists()
+    warn = [ln for ln in proc.stderr.splitlines() if "diverged" in ln]
+    assert len(warn) == 1 and warn[0].startswith("tensegrity: warning: the twin's physics diverged")
+
+
+def test_stable_twin_reports_no_divergence(trained):
+    from tensegrity_gym.training import divergence_warning
+
+    assert trained.diverged_episodes == 0 and divergence_warning(trained) is None

@@ -136,3 +136,26 @@ def test_jacobian_through_the_law_matches_finite_differences(resting):
                                    atol=1e-5 * float(fd.abs().max()) + 1e-9)
     _, Jx2, none = prob.jacobians(theta, dx, params=False)
     assert none is None and torch.equal(Jx2, Jx)
+
+
+def test_a_trial_step_that_breaks_the_law_is_rejected(resting):
+    """A joint step whose windows break the law's solve (a singular system, as a step from states
+    40 mm off did at 10 Hz) costs infinity and is not taken: the fit ends where it started,
+    instead of raising."""
+    from identified.fit.marker_fit import fit_markers
+
+    path, data, _, truth, fast = resting
+    start = np.array(list(START.values()))
+
+    class Breaks(PyramidContact):
+        def wrench(self, state, ctx):
+            if not torch.is_grad_enabled() and abs(float(self.theta(state.pos)[0]) / start[0] - 1) > 1e-9:
+                raise torch.linalg.LinAlgError("singular")
+            return super().wrench(state, ctx)
+
+    law = Breaks.for_system(truth.topology, path)
+    law.values = start.copy()
+    fit = fit_markers(truth, fast, data, [0.0], path, 1e-3, HELD, frames=2, max_windows=1, state_iters=0,
+                      joint_iters=1, contact=law, law_free=("beta",))
+    assert fit.history[-1] == fit.history[0]
+    assert fit.group("law")[0][0] == pytest.approx(start[0], rel=1e-12)

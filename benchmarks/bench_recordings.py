@@ -17,6 +17,9 @@ and largest |z| over all datasets.
         --oe-frames 9 --oe-windows 32 --oe-iterations 6    # coarse markers: output error beside the bound
     python benchmarks/bench_recordings.py --datasets 3 --varied --bound --rate 10 --noise 0.001 --oe-frames 6 \
         --oe-windows 32                                     # the Cramer-Rao bound alone, per parameter
+    python benchmarks/bench_recordings.py --first 2 --datasets 1 --varied --marker-fit --rate 30 --noise 0.01 \
+        --oe-frames 9 --oe-windows 16 --oe-state-iterations 3 --oe-iterations 5 --bound-windows 8 --bound-steps 0 \
+        --window-contact law   # the windows through the contact law, its parameters estimated too
 """
 
 from __future__ import annotations
@@ -93,6 +96,38 @@ def values_model(path: str, total: float | None = None):
                            gravity=m.opt.gravity.copy(), scale={"anchor": "total_mass"})
 
 
+def law_truth(path: str) -> np.ndarray:
+    """The plant's own contact as ``pyramid_contact``'s parameters (a benchmark's truth, for the
+    bound at the truth; the estimator never reads it): MuJoCo's ``solref`` (time constant, damping
+    ratio), ``solimp`` and ``friction`` of the ground plane, ``β = 2 / (d_w τ)``,
+    ``κ = 1 / (d_w² τ² ζ²)``."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_path(path)
+    g = next(i for i in range(m.ngeom) if m.geom_type[i] == mujoco.mjtGeom.mjGEOM_PLANE)
+    tc, zeta = m.geom_solref[g]
+    d0, dw, width = m.geom_solimp[g][:3]
+    f = m.geom_friction[g]
+    return np.array([2 / (dw * tc), 1 / (dw ** 2 * tc ** 2 * zeta ** 2), d0, dw, width, f[0], f[1], f[2]])
+
+
+def window_law(path: str, args, values: np.ndarray | None):
+    """The windows' contact law of ``--window-contact law`` (``None`` for the free wrench): the
+    effect ``--law`` with its geometry from the MJCF and the parameter ``values`` given (the truth
+    for the bound), else its own generic start (``pyramid_contact.START``: a hard floor's order of
+    magnitude, not the plant's); and the names of its parameters estimated jointly (``--law-free``)."""
+    if args.window_contact != "law":
+        return None, ()
+    from identified.effects.pyramid_contact import START, PyramidContact
+    from identified.topology import Topology
+
+    law = PyramidContact.for_system(Topology.from_mjcf(path), path)
+    law.values = np.array(list(START.values()) if values is None else values, dtype=float)
+    names = [b.name for b in law.blocks]
+    free = () if args.law_free == "none" else tuple(names if args.law_free == "all" else args.law_free.split(","))
+    return law, free
+
+
 def truth_bound(path: str, data, args, seed: int):
     """The Cramer-Rao bound of a recording at the truth (:func:`identified.fit.marker_bound.recording_bound`):
     the markers' noise ``args.noise``, the recording's rate and missing samples, the plant's own states
@@ -103,9 +138,10 @@ def truth_bound(path: str, data, args, seed: int):
     clean = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=0.0, dropout=args.dropout), seed=seed)
     truth = values_model(path)
     held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
+    law, free = window_law(path, args, law_truth(path))
     return recording_bound(truth, clean, data, [0.0] * data.n_episodes, path, args.noise, held,
                            frames=args.oe_frames, max_windows=args.bound_windows or args.oe_windows,
-                           state_steps=args.bound_steps, order=args.wrench_order)
+                           state_steps=args.bound_steps, order=args.wrench_order, contact=law, law_free=free)
 
 
 def group_line(key: str, est: np.ndarray, se: np.ndarray, tru: np.ndarray, crb: np.ndarray, scale: float) -> str:
@@ -142,13 +178,18 @@ def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
     start = values_model(nominal, total=float(truth[2].sum()))
     t0 = time.perf_counter()
     ms = states_from_recording(rec, start.topology, 0.001)
+    law, free = window_law(path, args, None)
     fit = fit_markers(start, rec, ms.data, ms.starts, path, args.noise, ms.unobservable, frames=args.oe_frames,
-                      max_windows=args.oe_windows, joint_iters=args.oe_iterations, contact_margin=args.contact_margin,
-                      wrench_order=args.wrench_order)
+                      max_windows=args.oe_windows, state_iters=args.oe_state_iterations, joint_iters=args.oe_iterations,
+                      contact_margin=args.contact_margin, wrench_order=args.wrench_order, contact=law, law_free=free,
+                      progress=args.progress)
     secs = time.perf_counter() - t0
     b = truth_bound(path, data, args, k)
     scale = np.sqrt(fit.windows / fit.available)
-    print(f"dataset {k}: output error from the nominal values, {fit.windows} of {fit.available} windows of "
+    model = ("the free ground wrench" if law is None else
+             f"the contact law {law.name} (estimated: {', '.join(free) or 'none'}; start: its generic START)")
+    print(f"dataset {k}: output error from the nominal values, windows through {model}, {fit.windows} of "
+          f"{fit.available} windows of "
           f"{args.oe_frames} frames, marker residual {1e3 * fit.residual_rms:.2f} mm, {secs:.0f} s; bound at the truth "
           f"from {b.windows} of {b.available} windows ({b.seconds:.0f} s, clean markers left at "
           f"{1e3 * b.residual_rms:.2f} mm)", flush=True)
@@ -157,6 +198,14 @@ def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
         est, se = fit.group(key)
         print("  " + group_line(key, est, se, tru, b.group(key), scale), flush=True)
         out[key] = (est, se, tru)
+    if free:
+        est, se = fit.group("law")
+        tl = law_truth(path)[[i for i, b in enumerate(law.blocks) if b.name in free]]
+        crb = b.group("law")
+        print("  contact law (estimate, plant's value; standard error and bound of log, logit for imp_*): " + "; ".join(
+            f"{n} " + (f"{e:.4g} ({t:.4g}; se {s:.2g}, bound {c:.2g})" if s <= 0.3 else
+                       f"not identifiable at this rate/noise (se {s:.2g}, bound {c:.2g})")
+            for n, e, t, s, c in zip(free, est, tl, se, crb)), flush=True)
     axial = [i for i, n in enumerate(b.bound.names) if n.startswith("I[") and n.endswith(":z]")]
     rel = b.bound.rel_se[axial]
     print(f"  I about the rods' axes ({len(axial)}): not identifiable, every rod's markers lie on its axis (bound "
@@ -211,6 +260,14 @@ def main() -> None:
                     help="--marker-fit: a rod this close to the ground (m, reconstructed) feels a free wrench (0.01)")
     ap.add_argument("--wrench-order", type=int, default=3,
                     help="terms of the ground's free wrench in time (bound and --marker-fit): 2 linear, 3 quadratic")
+    ap.add_argument("--window-contact", choices=("free", "law"), default="free",
+                    help="the ground in the output-error windows (bound and --marker-fit): a free wrench per window "
+                         "and rod near it (polynomial in time), or the contact law pyramid_contact (every rod "
+                         "simulated; the estimator starts the law at its generic START, the bound takes the plant's)")
+    ap.add_argument("--law-free", default="all",
+                    help="--window-contact law: the law's parameters estimated with K, c, M ('all', 'none' or names)")
+    ap.add_argument("--oe-state-iterations", type=int, default=4, help="--marker-fit: steps in the windows' states first")
+    ap.add_argument("--progress", action="store_true", help="--marker-fit: print every step")
     ap.add_argument("--bound-windows", type=int, default=None, help="windows of the bound (default --oe-windows)")
     ap.add_argument("--bound-steps", type=int, default=5,
                     help="steps in the windows' nuisances alone before the bound's Jacobian (marker_bound.settle)")

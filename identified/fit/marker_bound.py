@@ -13,6 +13,9 @@ Gauss-Newton steps in the nuisances alone).  The information of an even subsampl
 windows.  The total mass is known (the constraint that also fixes the global scale no marker
 sees).  Short windows keep the engine's free runs from the divergence of rolling contact; the
 bound is then that of estimators which use the windows alone (they do not know the contact law).
+With a ``contact`` law the windows follow the contacts through it instead (every rod simulated,
+the initial states the only nuisances): the bound of estimators that know the law's form, its
+parameters unknowns too where ``law_free`` names them.
 """
 
 from __future__ import annotations
@@ -53,7 +56,17 @@ def _names(prob: _Problem, model: IdentifiedModel) -> list[str]:
     axes = "xyz"
     return ([f"K[{s}]" for s in topo.spring_names] + [f"c[{s}]" for s in topo.spring_names]
             + [f"M[{r}]" for r in topo.rod_names]
-            + [f"I[{topo.rod_names[i]}:{''.join(axes[a] for a in ax)}]" for i, ax in prob.groups])
+            + [f"I[{topo.rod_names[i]}:{''.join(axes[a] for a in ax)}]" for i, ax in prob.groups]
+            + [f"law[{n}]" for n in prob.law_names])
+
+
+def natural_values(prob: _Problem, theta: torch.Tensor) -> np.ndarray:
+    """The parameters at the unknowns ``theta`` in their own units: K, c, M, I (their logarithms'
+    exponentials), then the contact law's free parameters."""
+    out = theta[:prob.n_spring_rod].exp()
+    if prob.law_idx:
+        out = torch.cat([out, prob.law_theta(theta)[prob.law_idx]])
+    return out.detach().numpy()
 
 
 def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, steps: int,
@@ -67,7 +80,7 @@ def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Te
         r = prob.residuals(theta, dx).reshape(W, -1)
     cost, mu = float(r.square().sum()), 1e-3
     for j in range(steps):
-        r, Jx, _ = prob.jacobians(theta, dx)
+        r, Jx, _ = prob.jacobians(theta, dx, params=False)
         Jx = Jx * acts.unsqueeze(1)
         A0 = Jx.transpose(1, 2) @ Jx
         gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
@@ -88,16 +101,21 @@ def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Te
 
 def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                     sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
-                    state_steps: int = 2, order: int = 2, progress: bool = False) -> RecordingBound:
+                    state_steps: int = 2, order: int = 2, contact=None, law_free: tuple[str, ...] = (),
+                    progress: bool = False) -> RecordingBound:
     """The Cramér-Rao bound of ``rec`` at ``model``'s parameters (the module docstring); ``data``
     and ``starts`` the rod states aligned with the recording (as :func:`identified.fit.output_error.
     refine_markers` takes them).  ``hold_inertia``'s moments are parameters here too: their bound
-    says they are not identifiable."""
+    says they are not identifiable.  ``contact``: the windows follow this contact law (at its
+    ``values``) instead of a free ground wrench, ``law_free`` its parameters that are unknowns too
+    (:func:`identified.fit.output_error.window_problem`): the bound of an estimator that knows the
+    law's form (and, where not free, its values)."""
     if not sigma > 0:
         raise ValueError(f"marker noise {sigma!r}: the bound needs a positive noise (m)")
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(model, rec, data, starts, mjcf, sigma, hold_inertia, frames,
-                                                    max_windows, order, axial=True)
+                                                    max_windows, order, axial=True, contact=contact,
+                                                    law_free=law_free)
     W = win.n_windows
     theta = prob.theta0
     dx = settle(prob, theta, dx, acts, state_steps, progress)
@@ -108,7 +126,7 @@ def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, start
     mass = np.asarray(model.mass, dtype=float)
     g = np.zeros(theta.numel())
     g[2 * S:2 * S + Rn] = mass / mass.sum()  # d log(total mass) / d log M
-    cr = constrained_bound(F, _names(prob, model), theta.exp().numpy(), constraints=g[None])
+    cr = constrained_bound(F, _names(prob, model), natural_values(prob, theta), constraints=g[None])
     seen = (win.seen.sum() * 3).clamp(min=1)
     res = float((r.square().sum() / seen).sqrt()) * sigma
     return RecordingBound(cr, W, available, res, time.perf_counter() - t0)

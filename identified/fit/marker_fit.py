@@ -32,7 +32,7 @@ import torch
 
 from identified.dataset import Dataset
 from identified.fit.bound import CramerRao, constrained_bound, window_information
-from identified.fit.marker_bound import _names
+from identified.fit.marker_bound import _names, natural_values
 from identified.fit.output_error import CONTACT_MARGIN, window_problem
 from identified.model import IdentifiedModel
 from identified.recording import Recording
@@ -62,7 +62,7 @@ class MarkerFit:
 def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
-                wrench_order: int = 3, progress: bool = False) -> MarkerFit:
+                wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), progress: bool = False) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -70,11 +70,14 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     feels the free wrench (``None``: :data:`~identified.fit.output_error.CONTACT_MARGIN`), a Legendre
     polynomial in time of ``wrench_order`` terms (2: constant and linear; 3: and quadratic -- measured
     at 30 Hz / 1 cm, 32 windows of 0.27 s, a varied robot: with 2 the worst K 9.3 % off at |z| 4.7,
-    with 3 2.1 % at 0.9: a linear wrench does not follow the contacts, and the misfit biases K)."""
+    with 3 2.1 % at 0.9: a linear wrench does not follow the contacts, and the misfit biases K).
+    ``contact``: the windows follow this contact law instead (every rod simulated; its ``values``
+    the start, never the plant's), ``law_free`` its parameters estimated with K, c, M (the others
+    held); :func:`identified.fit.output_error.window_problem`."""
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
-        margin=CONTACT_MARGIN if contact_margin is None else contact_margin)
+        margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free)
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
     S = start.topology.n_springs
     theta = prob.theta0.clone()
@@ -85,18 +88,25 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     U = torch.as_tensor(sla.null_space(g[None]))  # steps that keep the total mass (to first order)
 
     def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """The windows' residuals; a trial step whose windows break the contact law's solve (a
+        singular system: measured at 10 Hz, a joint step from states 40 mm off) costs infinity."""
         with torch.no_grad():
-            return prob.residuals(th, d).reshape(W, -1)
+            try:
+                return prob.residuals(th, d).reshape(W, -1)
+            except torch.linalg.LinAlgError:
+                return torch.full((W, r_shape[1]), np.inf, dtype=torch.float64)
 
-    r = residuals(theta, dx)
+    with torch.no_grad():
+        r = prob.residuals(theta, dx).reshape(W, -1)
+    r_shape = r.shape
     n = r.numel()
     history = [float(r.square().sum()) / n]
     mu = 1e-3
     for it in range(state_iters + joint_iters):
         joint = it >= state_iters
-        _, Jx, Jp = prob.jacobians(theta, dx)
+        _, Jx, Jp = prob.jacobians(theta, dx, params=joint)
         Jx = Jx * acts.unsqueeze(1)
-        Jp = Jp @ U
+        Jp = Jp @ U if joint else torch.zeros(W, Jx.shape[1], P - 1, dtype=torch.float64)
         A0 = Jx.transpose(1, 2) @ Jx
         gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
         B = Jx.transpose(1, 2) @ Jp
@@ -112,7 +122,10 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 Ssc = (Jp.transpose(1, 2) @ Jp).sum(0) - (B.transpose(1, 2) @ AiB).sum(0)
                 Ssc = 0.5 * (Ssc + Ssc.T)
                 gs = gp - (B.transpose(1, 2) @ Aig).sum(0)
-                dphi = -torch.linalg.solve(Ssc + mu * torch.diag(Ssc.diagonal()), gs)
+                # a parameter the windows do not move (a contact law's impedance width when every
+                # contact is deeper) has a zero row: a ridge keeps it where it is
+                ridge = 1e-12 * float(Ssc.diagonal().max()) * torch.eye(P - 1, dtype=torch.float64)
+                dphi = -torch.linalg.solve(Ssc + mu * torch.diag(Ssc.diagonal()) + ridge, gs)
                 ddx = -(Aig + AiB @ dphi)
             else:
                 ddx = -Aig
@@ -137,9 +150,11 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     n_x = float(acts.sum()) - sum(2.0 for i in range(R) if i in held_rods) * W  # no spin along the held axes
     dof = float(win.seen.sum()) * 3 - n_x - (P - 1)
     s2 = float(r.square().sum()) / max(dof, 1.0)
-    theta = theta + float(np.log(start.mass.sum()) - torch.logsumexp(theta[msl], 0))  # the exact total mass
+    scale = torch.zeros(P, dtype=torch.float64)
+    scale[:prob.n_spring_rod] = 1.0  # the global scale moves K, c, M, I, not the contact law
+    theta = theta + scale * float(np.log(start.mass.sum()) - torch.logsumexp(theta[msl], 0))  # the exact total mass
     M = theta[msl].exp().numpy()
     gt = np.zeros(P)
     gt[msl] = M / M.sum()
-    cov = constrained_bound(F / s2, _names(prob, start), theta.exp().numpy(), constraints=gt[None])
+    cov = constrained_bound(F / s2, _names(prob, start), natural_values(prob, theta), constraints=gt[None])
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0)

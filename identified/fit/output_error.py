@@ -18,6 +18,11 @@ equations near them are weighed out.  Here the markers themselves are the measur
   spring-rod parameters, and a contact law's error cannot bias them.  (``order=0`` moves such a
   rod as the smoothed states say instead, out of the cost: cheaper, but its cables then act on
   the others through the splines' errors, which biases the fit.)
+* or (``contact``, :func:`window_problem`) every rod is simulated in every window through the
+  ground's contact law (an effect of :mod:`identified.effects`, ``pyramid_contact``: geometry from
+  the MJCF, its parameters given -- a start -- or unknowns like K, c, M): the windows then follow
+  the contacts (no free wrench whose misfit biases K, c, M), their nuisances are the initial
+  states alone, and longer windows are possible;
 * the cost, ``Σ |site(θ, x₀) - marker|² / σ²`` over every seen marker sample, is minimised over the
   parameters ``θ`` (the logarithms of K, c, M and the observable moments of inertia) and every
   window's initial state and ground wrench by Gauss-Newton (a Jacobian reused for a few steps, each
@@ -189,20 +194,56 @@ class _Wrench:
         return w[..., :3], torque
 
 
+def _law_transform(names: list[str], values: np.ndarray) -> np.ndarray:
+    """The contact law's parameters as the windows' unknowns: logits of the impedances
+    (``imp_*``, in (0, 1)), logarithms of the others (positive)."""
+    v = np.asarray(values, dtype=float)
+    logit = np.array([n.startswith("imp_") for n in names])
+    return np.where(logit, np.log(v / (1 - np.where(logit, v, 0.5))), np.log(v))
+
+
+class _Law:
+    """An engine effect: the ground's contact law (``identified.effects``' ``pyramid_contact`` or
+    ``ground_contact``, its geometry from the MJCF) at parameters given as a tensor, so that the
+    windows' forward-mode derivatives go through it (:meth:`identified.effects.base.Effect.bind`
+    for the call only: no dual tensor stays in the effect's cache)."""
+
+    needs_base_acceleration = True
+
+    def __init__(self, effect, theta: torch.Tensor) -> None:
+        self.effect, self.theta = effect, theta
+
+    def __call__(self, state, ctx) -> tuple[torch.Tensor, torch.Tensor]:
+        self.effect.bind(self.theta)
+        try:
+            return self.effect.wrench(state, ctx)
+        finally:
+            self.effect.bind(None)
+
+
 class _Problem:
     """The residuals of every window as a function of the parameters' logarithms and the windows'
     initial-state corrections."""
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
-                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False) -> None:
+                 hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False,
+                 contact=None, law_free: tuple[str, ...] = ()) -> None:
         """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group (for
         a bound that shows they carry no information; never for a fit).  The spin about a held
         axis stays as reconstructed, not a free unknown: the axis's motion does not depend on it
         (``ȧ = L × a / I₁``), and the engine's steps couple it at 1e-3 of a transverse spin's
-        effect (measured) -- a free unknown that small would project out whole directions."""
+        effect (measured) -- a free unknown that small would project out whole directions.
+
+        ``contact``: the ground's contact law (an effect of :mod:`identified.effects` with its
+        ``values``, the start or the known law) acts in every window in place of the free wrench;
+        every rod is then simulated (the windows of :func:`marker_windows` without ``mjcf``) and the
+        windows' nuisances are their initial states alone.  ``law_free``: the law's parameters
+        (names of its blocks) that are unknowns too, global like K, c, M (transformed:
+        :func:`_law_transform`); the others are held at ``contact.values``."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
-        self.order = wrench_order
-        self.n_x = 12 + 6 * wrench_order  # unknowns per window and rod
+        self.contact = contact
+        self.order = 0 if contact is not None else wrench_order
+        self.n_x = 12 + 6 * self.order  # unknowns per window and rod
         self.base = params_from_model(model)
         if self.base.com is not None or self.base.inertia_products is not None:
             raise ValueError("the output-error refinement takes rods with a diagonal inertia at the frame's origin")
@@ -224,8 +265,28 @@ class _Problem:
         theta0 = [self.base.stiffness.log(), self.base.damping.log(), self.base.mass.log(),
                   torch.stack([inertia[i, axes].mean().log() for i, axes in groups])]
         self.sizes = [S, S, R, len(groups)]
+        self.n_spring_rod = sum(self.sizes)  # K, c, M, I: the parameters the global scale moves
+        self.law_names: list[str] = []
+        self.law_idx: list[int] = []
+        if contact is not None:
+            if contact.values is None:
+                raise ValueError(f"the windows' contact law '{contact.name}' needs parameter values to start from")
+            names = [b.name for b in contact.blocks]
+            unknown = [n for n in law_free if n not in names]
+            if unknown:
+                raise ValueError(f"{contact.name} has no parameter {', '.join(unknown)} (it has {', '.join(names)})")
+            self.law_idx = [names.index(n) for n in law_free]
+            vals = np.asarray(contact.values, dtype=float)
+            bad = [names[i] for i in self.law_idx if not vals[i] > 0 or (names[i].startswith("imp_") and vals[i] >= 1)]
+            if bad:
+                raise ValueError(f"{contact.name}: {', '.join(bad)} must start positive (impedances below 1) to be estimated")
+            self.law_names = [names[i] for i in self.law_idx]
+            self.law_values = torch.as_tensor(vals, dtype=torch.float64)
+            self.law_logit = torch.as_tensor([n.startswith("imp_") for n in self.law_names])
+            theta0.append(torch.as_tensor(_law_transform(self.law_names, vals[self.law_idx]), dtype=torch.float64))
         self.theta0 = torch.cat(theta0)
-        self.names = ["stiffness"] * S + ["damping"] * S + ["mass"] * R + ["inertia"] * len(groups)
+        self.names = (["stiffness"] * S + ["damping"] * S + ["mass"] * R + ["inertia"] * len(groups)
+                      + ["law"] * len(self.law_idx))
         gi = torch.zeros(R, 3, len(groups), dtype=torch.float64)
         for g, (i, axes) in enumerate(groups):
             gi[i, axes, g] = 1.0
@@ -243,9 +304,19 @@ class _Problem:
             self.axial[:, i] = rot0[:, i, :, ax]
 
     def params(self, theta: torch.Tensor) -> SpringRodParams:
-        K, c, M, Ig = torch.split(theta.exp(), self.sizes)
+        K, c, M, Ig = torch.split(theta[:self.n_spring_rod].exp(), self.sizes)
         inertia = self.inertia_fixed + (self.gi * Ig).sum(-1)
         return replace(self.base, stiffness=K, damping=c, mass=M, inertia=inertia)
+
+    def law_theta(self, theta: torch.Tensor) -> torch.Tensor:
+        """The contact law's parameters (its natural units) at the unknowns ``theta``."""
+        x = theta[self.n_spring_rod:]
+        if not self.law_idx:
+            return self.law_values
+        v = torch.where(self.law_logit, torch.sigmoid(x), x.exp())
+        put = torch.zeros(self.law_values.numel(), len(self.law_idx), dtype=torch.float64)
+        put[self.law_idx, range(len(self.law_idx))] = 1.0  # the free parameters' places (a matrix: vmap-safe)
+        return self.law_values * (1.0 - put.sum(-1)) + put @ v
 
     def residuals(self, theta: torch.Tensor, dx: torch.Tensor, win: MarkerWindows | None = None,
                   axial: torch.Tensor | None = None) -> torch.Tensor:
@@ -259,7 +330,10 @@ class _Problem:
         if self.order > 0:  # the ground's wrench on each rod near it: free, polynomial in time
             coef = dx[..., 12:].unflatten(-1, (self.order, 6)) * (~free).unsqueeze(-1) * WRENCH_UNIT
             wrench = _Wrench(coef, H, self.held_axis)
-        eng = SpringRodEngine(self.model.topology, self.params(theta), self.dt, effects=() if wrench is None else [wrench])
+        effects = [] if wrench is None else [wrench]
+        if self.contact is not None:  # the contact law: every rod simulated, through its contacts
+            effects = [_Law(self.contact, self.law_theta(theta))]
+        eng = SpringRodEngine(self.model.topology, self.params(theta), self.dt, effects=effects)
         x0 = win.x0
         axial = self.axial if axial is None else axial
         across = lambda v: v - (v * axial).sum(-1, keepdim=True) * axial
@@ -274,7 +348,7 @@ class _Problem:
                 if wrench is not None:
                     wrench.n = n - 1
                 state = eng.step(state, win.rest[:, n - 1])
-                if self.order == 0:  # the rods near the ground move as reconstructed
+                if self.order == 0 and self.contact is None:  # the rods near the ground move as reconstructed
                     rec = win.states[:, n]
                     state = type(state)(torch.where(free, state.pos, rec[..., 0:3]),
                                         torch.where(free, state.quat, rec[..., 3:7]),
@@ -287,9 +361,11 @@ class _Problem:
         seen = win.seen if self.order > 0 else win.seen * win.free[:, win.site_rod].unsqueeze(1)
         return (pred - win.obs) * seen.unsqueeze(-1) / self.sigma
 
-    def jacobians(self, theta: torch.Tensor, dx: torch.Tensor, chunk: int | None = None) -> tuple[torch.Tensor, ...]:
+    def jacobians(self, theta: torch.Tensor, dx: torch.Tensor, chunk: int | None = None,
+                  params: bool = True) -> tuple[torch.Tensor, ...]:
         """Residuals r (W, m), their Jacobian with respect to each window's own state (W, m, 12 R)
-        and with respect to the parameters (W, m, P), by forward-mode differentiation."""
+        and with respect to the parameters (W, m, P), by forward-mode differentiation (``params``
+        false: the states' alone, the third ``None``)."""
         W, R = dx.shape[0], dx.shape[1]
         P = theta.numel()
         f = lambda th, d: self.residuals(th, d).reshape(W, -1)
@@ -297,8 +373,9 @@ class _Problem:
         k = self.n_x
         nx = k * R
         tangents_x = torch.eye(nx, dtype=dx.dtype).reshape(nx, 1, R, k).expand(nx, W, R, k)
-        tangents = [(torch.zeros(P, dtype=theta.dtype).expand(nx, P), tangents_x),
-                    (torch.eye(P, dtype=theta.dtype), torch.zeros(P, W, R, k, dtype=dx.dtype))]
+        tangents = [(torch.zeros(P, dtype=theta.dtype).expand(nx, P), tangents_x)]
+        if params:
+            tangents.append((torch.eye(P, dtype=theta.dtype), torch.zeros(P, W, R, k, dtype=dx.dtype)))
         chunk = chunk or max(16, 60_000 // max(W * R, 1))  # tangents per batched pass (bounded memory)
         cols = []
         for tth, tdx in tangents:
@@ -306,25 +383,31 @@ class _Problem:
                 push = lambda a, b: jvp(f, (theta, dx), (a, b))[1]
                 cols.append(vmap(push)(tth[k:k + chunk], tdx[k:k + chunk]))
         J = torch.cat(cols, 0).permute(1, 2, 0)  # (W, m, nx + P)
-        return r, J[..., :nx], J[..., nx:]
+        return r, J[..., :nx], J[..., nx:] if params else None
 
 
 def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
-                   order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN
-                   ) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
+                   order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN, contact=None,
+                   law_free: tuple[str, ...] = ()) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
     """The output-error problem of a recording at ``model``'s parameters, as the refinement, the
     bound and the staged fit all set it up: up to ``max_windows`` windows of ``frames`` frames spread
     evenly over the recording (of ``available``), the :class:`_Problem` on them, the windows'
     starting nuisances ``dx`` (W, R, n_x) (zero corrections; the ground carrying the weight of the
     rods near it when there is a wrench, ``order`` > 0), and the mask of the nuisances that act
     (W, R n_x) float: every simulated rod's state, the wrench of a rod near the ground.
+    With a ``contact`` law (:class:`_Problem`; ``law_free`` its unknown parameters) every rod is
+    simulated in every window, through the law, and the nuisances are the initial states alone.
     Returns ``(windows, available, problem, dx, active)``."""
-    win = marker_windows(rec, data, starts, model.topology, mjcf, frames, margin=margin)
+    if contact is not None:
+        order = 0
+    win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,
+                         margin=margin)
     available = win.n_windows
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
-    prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial)
+    prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial, contact=contact,
+                    law_free=tuple(law_free))
     W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
     dx = torch.zeros(W, R, k, dtype=torch.float64)
     if order > 0:  # the ground starts out carrying the weight of the rods near it

@@ -208,9 +208,11 @@ def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
             for n, e, t, s, c in zip(free, est, tl, se, crb)), flush=True)
     axial = [i for i, n in enumerate(b.bound.names) if n.startswith("I[") and n.endswith(":z]")]
     rel = b.bound.rel_se[axial]
-    print(f"  I about the rods' axes ({len(axial)}): not identifiable, every rod's markers lie on its axis (bound "
-          f"{100 * rel.min():.0f}-{100 * rel.max():.0f} %: the engine's discretisation couples the unseen spin at 1e-3)",
-          flush=True)
+    why = ("the contact law's friction at the capsule's surface couples the spin, and the bound holds the spin as "
+           "reconstructed: optimistic" if args.window_contact == "law" else
+           "the engine's discretisation couples the unseen spin at 1e-3")
+    print(f"  I about the rods' axes ({len(axial)}): not estimated, every rod's markers lie on its axis (bound "
+          f"{100 * rel.min():.0f}-{100 * rel.max():.0f} %: {why})", flush=True)
     return out
 
 

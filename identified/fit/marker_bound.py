@@ -122,10 +122,7 @@ def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, start
     r, Jx, Jp = prob.jacobians(theta, dx)
     Jx = Jx * acts.unsqueeze(1)
     F = window_information(Jx.numpy(), Jp.numpy()) * (available / W)
-    S, Rn = model.topology.n_springs, model.topology.n_rods
-    mass = np.asarray(model.mass, dtype=float)
-    g = np.zeros(theta.numel())
-    g[2 * S:2 * S + Rn] = mass / mass.sum()  # d log(total mass) / d log M
+    g = prob.total_mass_row(model.mass)
     cr = constrained_bound(F, _names(prob, model), natural_values(prob, theta), constraints=g[None])
     seen = (win.seen.sum() * 3).clamp(min=1)
     res = float((r.square().sum() / seen).sqrt()) * sigma

@@ -79,13 +79,10 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
         margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free)
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
-    S = start.topology.n_springs
     theta = prob.theta0.clone()
     P = theta.numel()
-    msl = slice(2 * S, 2 * S + R)
-    g = np.zeros(P)
-    g[msl] = start.mass / start.mass.sum()
-    U = torch.as_tensor(sla.null_space(g[None]))  # steps that keep the total mass (to first order)
+    msl = prob.mass_slice
+    U = torch.as_tensor(sla.null_space(prob.total_mass_row(start.mass)[None]))  # steps that keep the total mass
 
     def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """The windows' residuals; a trial step whose windows break the contact law's solve (a
@@ -153,8 +150,6 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     scale = torch.zeros(P, dtype=torch.float64)
     scale[:prob.n_spring_rod] = 1.0  # the global scale moves K, c, M, I, not the contact law
     theta = theta + scale * float(np.log(start.mass.sum()) - torch.logsumexp(theta[msl], 0))  # the exact total mass
-    M = theta[msl].exp().numpy()
-    gt = np.zeros(P)
-    gt[msl] = M / M.sum()
+    gt = prob.total_mass_row(theta[msl].exp().numpy())
     cov = constrained_bound(F / s2, _names(prob, start), natural_values(prob, theta), constraints=gt[None])
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0)

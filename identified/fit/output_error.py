@@ -308,6 +308,20 @@ class _Problem:
         inertia = self.inertia_fixed + (self.gi * Ig).sum(-1)
         return replace(self.base, stiffness=K, damping=c, mass=M, inertia=inertia)
 
+    @property
+    def mass_slice(self) -> slice:
+        """Where the rods' log-masses lie among the unknowns."""
+        S, R = self.sizes[0], self.sizes[2]
+        return slice(2 * S, 2 * S + R)
+
+    def total_mass_row(self, mass: np.ndarray) -> np.ndarray:
+        """(P,) the gradient of log(total mass) in the unknowns at the rods' masses ``mass`` (R,):
+        the row of the known total mass's constraint (which also fixes the scale no marker sees)."""
+        mass = np.asarray(mass, dtype=float)
+        g = np.zeros(self.theta0.numel())
+        g[self.mass_slice] = mass / mass.sum()
+        return g
+
     def law_theta(self, theta: torch.Tensor) -> torch.Tensor:
         """The contact law's parameters (its natural units) at the unknowns ``theta``."""
         x = theta[self.n_spring_rod:]

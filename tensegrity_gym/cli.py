@@ -347,7 +347,7 @@ def cmd_train(args: argparse.Namespace) -> None:
             f"; last {min(r.episodes, 20)} episodes: return {r.mean_return:.4g}, progress {r.mean_progress_m:.3g} m")
     print(f"wrote {args.algo} policy to {args.out} ({r.timesteps} steps on the {'plant' if args.plant else 'twin'} "
           f"with {cfg.n_envs} envs in {r.wall_s:.1f} s, {r.env_steps_per_s:.0f} steps/s{last})")
-    warning = divergence_warning(r)
+    warning = divergence_warning(r.diverged_episodes, r.episodes, args.plant)
     if warning:
         print(f"tensegrity: warning: {warning}", file=sys.stderr)
 
@@ -378,6 +378,7 @@ def _train_seeds(args: argparse.Namespace, cfg: Any) -> None:
     import dataclasses
 
     from tensegrity_gym.sweep import parse_seeds, run_sweep
+    from tensegrity_gym.training import divergence_warning
 
     if args.seed is not None:
         raise CommandError("give either --seed or --seeds, not both")
@@ -400,11 +401,10 @@ def _train_seeds(args: argparse.Namespace, cfg: Any) -> None:
                                           f"(std {sp['std']:.3f}, {sp['min']:.3f} to {sp['max']:.3f})")
     print(f"wrote {len(seeds)} {args.algo} policies to {args.out}/seed_*/ ({where}, {s['wall_s']:.1f} s{last}); "
           f"summary: {os.path.join(args.out, 'summary.json')}")
-    bad = [(r["seed"], r["diverged_episodes"], r["episodes"]) for r in s["runs"] if r.get("diverged_episodes")]
-    if bad:
-        print(f"tensegrity: warning: the {'plant' if args.plant else 'twin'}'s physics diverged (a non-finite state) "
-              "in training episodes of seed " + ", ".join(f"{k} ({n} of {m})" for k, n, m in bad) + ": the model is "
-              "not stable at its step (see the fit's warnings; a coarser --physics-dt makes it worse)", file=sys.stderr)
+    for r in s["runs"]:
+        warning = divergence_warning(r["diverged_episodes"], r["episodes"], args.plant, r["seed"])
+        if warning:
+            print(f"tensegrity: warning: {warning}", file=sys.stderr)
 
 
 def cmd_gap(args: argparse.Namespace) -> None:

@@ -244,16 +244,16 @@ class TrainResult:
     diverged_episodes: int = 0
 
 
-def divergence_warning(result: TrainResult) -> str | None:
-    """One line saying that the physics diverged in some of ``result``'s training episodes (``None``
-    when it never did): the policy then learned from a twin that blows up."""
-    n, m = result.diverged_episodes, result.episodes
-    if n == 0:
+def divergence_warning(diverged: int, episodes: int, plant: bool = False, seed: int | None = None) -> str | None:
+    """One line saying that the physics diverged in ``diverged`` of ``episodes`` training episodes
+    (of seed ``seed`` in a sweep; ``None`` when it never did): the policy then learned from a twin
+    that blows up (:attr:`TrainResult.diverged_episodes`)."""
+    if diverged == 0:
         return None
-    where = "plant" if result.config.get("plant") else "twin"
-    return (f"the {where}'s physics diverged (a non-finite state) in {n} of {m} training episodes: the model is "
-            "not stable at its step (see the fit's warnings; a coarser --physics-dt makes it worse), and a "
-            "policy trained on it may not transfer")
+    of_seed = "" if seed is None else f" of seed {seed}"
+    return (f"the {'plant' if plant else 'twin'}'s physics diverged (a non-finite state) in {diverged} of {episodes} "
+            f"training episodes{of_seed}: the model is not stable at its step (see the fit's warnings; a coarser "
+            "--physics-dt makes it worse), and a policy trained on it may not transfer")
 
 
 # ---------------------------------------------------------------------- helpers

@@ -364,7 +364,7 @@ def test_training_counts_and_reports_a_diverging_twin(robot, tmp_path):
     cfg = TrainConfig(timesteps=64, seed=0, identified=str(bad), envs=2, rollout=32)
     r = train(cfg, tmp_path / "P.zip", progress=False)
     assert r.episodes > 2 and r.diverged_episodes == r.episodes
-    assert f"in {r.episodes} of {r.episodes} training episodes" in divergence_warning(r)
+    assert f"in {r.episodes} of {r.episodes} training episodes" in divergence_warning(r.diverged_episodes, r.episodes)
     out = tmp_path / "Q.zip"
     proc = subprocess.run([sys.executable, "-m", "tensegrity_gym.cli", "train", "--identified", str(bad),
                            "--timesteps", "64", "--envs", "2", "--rollout", "32", "--quiet", "--out", str(out)],
@@ -377,4 +377,5 @@ def test_training_counts_and_reports_a_diverging_twin(robot, tmp_path):
 def test_stable_twin_reports_no_divergence(trained):
     from tensegrity_gym.training import divergence_warning
 
-    assert trained.diverged_episodes == 0 and divergence_warning(trained) is None
+    assert trained.diverged_episodes == 0
+    assert divergence_warning(trained.diverged_episodes, trained.episodes) is None

@@ -179,6 +179,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
                                    compile=backend.compile, per_env=per_env,
                                    actuators=backend.actuator_bank if backend.actuator_names else None)
         self._n_motors, self._n_actuators = backend.motor.n, len(backend.actuator_names)
+        self._engine_steps = backend.engine_steps(e.frame_skip)  # engine steps a control period (physics_dt)
         self.dt = e.dt
         self.render_mode = e.render_mode
         self.metadata = {**self.metadata, "render_fps": e.metadata["render_fps"],
@@ -456,7 +457,7 @@ class TensegrityIcoVectorEnv(VectorEnv):
         ph.set_targets(now[:, :A])
         if self._n_actuators:
             ph.set_ctrl(now[:, A:])
-        ph.step(self.backend.engine_steps(e.frame_skip), self._pushes())
+        ph.step(self._engine_steps, self._pushes())
         pos, quat, vel, angvel = ph.states_numpy()
         quat = quat / np.sqrt(np.einsum("nri,nri->nr", quat, quat))[..., None]
         rest = ph.rest_numpy()

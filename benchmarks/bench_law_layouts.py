@@ -15,7 +15,7 @@ Prints the compile time and the time of one call::
     python benchmarks/bench_law_layouts.py same --big
 
 (Compiles in a fresh inductor cache unless ``TORCHINDUCTOR_CACHE_DIR`` is set. benchmarks/README.md,
-item 4: measured 2026-11-27 beside other jobs: lead 40 s / 325 us, same
+`bench_train.py`: measured 2026-11-27 beside other jobs: lead 40 s / 325 us, same
 249 s / 295 us, same --big 206 s / 110 us, trail 41 s / 2,376 us.)
 """
 

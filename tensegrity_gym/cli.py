@@ -312,7 +312,13 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from tensegrity_gym.training import TrainConfig, divergence_warning, resolve_randomize, train
+    from tensegrity_gym.training import (
+        TrainConfig,
+        divergence_warning,
+        resolve_physics_dt,
+        resolve_randomize,
+        train,
+    )
 
     if args.timesteps < 1:
         raise CommandError(f"--timesteps must be at least 1, got {args.timesteps}")
@@ -326,19 +332,25 @@ def cmd_train(args: argparse.Namespace) -> None:
         raise CommandError(f"{'--ray' if args.ray is not None else '--jobs'} runs several seeds: give them with "
                            "--seeds (e.g. --seeds 0-4)")
     own = _xml_file_kwargs(args)
-    if args.physics_dt is not None:
-        own["backend_kwargs"] = {**own.get("backend_kwargs", {}), "physics_dt": _physics_dt(args)}
+    physics_dt = _physics_dt(args)
     if args.seeds is None:
         _check_writable(args.out)
     cfg = TrainConfig(timesteps=args.timesteps, seed=0 if args.seed is None else args.seed, algo=args.algo,
                       identified=args.identified, plant=args.plant, envs=args.envs, rollout=args.rollout,
                       episode_steps=args.episode_steps, threads=args.threads, tensorboard=args.tensorboard,
-                      randomize=args.randomize, **own)
+                      randomize=args.randomize, physics_dt=physics_dt, **own)
     if not args.plant:
         try:
             resolve_randomize(cfg)
         except ValueError as exc:
             raise CommandError(f"--randomize {args.randomize}: {exc}") from None
+        try:  # once here, not in each seed's process; the step goes into the policy's metadata
+            step, why = resolve_physics_dt(cfg)
+        except ValueError as exc:
+            raise CommandError(f"--physics-dt {args.physics_dt}: {exc}") from None
+        cfg.physics_dt = step
+        if not args.quiet:
+            print(f"tensegrity: {why}")
     if args.seeds is not None:
         _train_seeds(args, cfg)
         return
@@ -650,7 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
     rp.set_defaults(func=cmd_reproduce)
 
-    from tensegrity_gym.training import DEFAULT_RANDOMIZE, DEFAULT_TIMESTEPS
+    from tensegrity_gym.training import DEFAULT_PHYSICS_DT, DEFAULT_RANDOMIZE, DEFAULT_TIMESTEPS
 
     t = sub.add_parser("train", help="train an SB3 policy on the identified twin (or on the plant)",
                        description="Train a Stable-Baselines3 policy to roll the robot forward on the identified "
@@ -688,10 +700,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--episode-steps", type=int, default=1000, metavar="T",
                    help="time limit of an episode, control steps (default 1000 = 20 s)")
     t.add_argument("--threads", type=int, default=1, help="torch threads while training (default 1)")
-    t.add_argument("--physics-dt", type=float, default=None, metavar="S",
-                   help="the twin's integration step, s: a whole multiple of the model's dt that divides the "
-                   "20 ms control period (e.g. 0.002 or 0.004: 2x or 4x fewer engine steps; default the model's "
-                   "dt, the plant's step). README 'Training on the twin' measures what it costs in transfer")
+    t.add_argument("--physics-dt", default=DEFAULT_PHYSICS_DT, metavar="auto|S",
+                   help="the twin's integration step: 'auto' (default: the coarsest whole multiple of the model's "
+                   "dt dividing the 20 ms control period at which the model, linearised at its standing pose, is "
+                   "stable at twice the step; 5 ms for the robot preset), or seconds (e.g. 0.001, the model's "
+                   "own dt and the plant's step). README 'Training on the twin' measures what it costs in transfer")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
     t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",
                    help="domain randomization of the twin, drawn per env at every reset: 'auto' (default: "
@@ -763,23 +776,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # ---------------------------------------------------------------------- helpers
-def _physics_dt(args: argparse.Namespace) -> float:
-    """``--physics-dt S`` checked against the twin's model (a whole multiple of its dt that divides
-    the env's 20-step control period); CommandError in the option's words."""
+def _physics_dt(args: argparse.Namespace) -> float | str:
+    """``--physics-dt auto|S``: ``"auto"`` or seconds, checked against the twin's model (a whole
+    multiple of its dt that divides the env's 20-step control period); CommandError in the
+    option's words."""
     from identified.model import load_model
     from tensegrity_gym.backends.identified_backend import coarsening
     from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
 
+    if args.physics_dt == "auto":
+        return "auto"
+    try:
+        h = float(args.physics_dt)
+    except ValueError:
+        raise CommandError(f"--physics-dt {args.physics_dt}: give 'auto' or a step in seconds (e.g. 0.004)") from None
     if args.plant:
         raise CommandError("--physics-dt sets the twin's integration step: the plant (--plant) steps at its own")
     try:
-        k = coarsening(args.physics_dt, load_model(args.identified).dt)
+        k = coarsening(h, load_model(args.identified).dt)
     except ValueError as exc:
-        raise CommandError(f"--physics-dt {args.physics_dt:g}: {exc}") from None
+        raise CommandError(f"--physics-dt {args.physics_dt}: {exc}") from None
     if FRAME_SKIP % k:
-        raise CommandError(f"--physics-dt {args.physics_dt:g}: {k} physics steps of the model do not divide the "
+        raise CommandError(f"--physics-dt {args.physics_dt}: {k} physics steps of the model do not divide the "
                            f"control period of {FRAME_SKIP} steps")
-    return float(args.physics_dt)
+    return h
 
 
 # ---------------------------------------------------------------------- helpers

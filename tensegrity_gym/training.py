@@ -118,6 +118,8 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
 #: ``tensegrity train``'s default budget and randomization (README, "Training on the twin")
 DEFAULT_TIMESTEPS = 300_000
 DEFAULT_RANDOMIZE = "auto"
+#: the twin's integration step when training: the coarsest stable one (:func:`resolve_physics_dt`)
+DEFAULT_PHYSICS_DT = "auto"
 #: ``VecNormalize`` settings (SB3's defaults); rewards are normalised for PPO only.
 NORMALIZE = {"clip_obs": 10.0, "epsilon": 1e-8}
 
@@ -154,6 +156,11 @@ class TrainConfig:
             (from the identified model's uncertainty and unexplained residual), ``"none"``/``None``,
             a FILE path, a mapping or a :class:`~tensegrity_gym.randomize.Randomization`; recorded
             in the policy's metadata. Ignored with ``plant=True``.
+        physics_dt: the twin's integration step: ``"auto"`` (default: the coarsest whole multiple
+            of the model's ``dt`` dividing the control period at which the model is stable with a
+            factor of safety of 2, :func:`tensegrity_gym.backends.step_size.stable_physics_dt`),
+            ``None`` (the model's own ``dt``, the plant's step) or seconds; recorded in the
+            policy's metadata. Ignored with ``plant=True``.
         init_policy: a policy file of :func:`train` to continue from (its network weights and its
             observation normalisation; the algorithm's other settings are this config's), e.g. on
             a refitted twin (:mod:`tensegrity_gym.improve`).
@@ -178,6 +185,7 @@ class TrainConfig:
     snapshots: bool = False
     randomize: Any = DEFAULT_RANDOMIZE
     init_policy: str | None = None
+    physics_dt: float | str | None = DEFAULT_PHYSICS_DT
 
     def validate(self) -> None:
         """ValueError with one line for every setting out of range."""
@@ -193,6 +201,12 @@ class TrainConfig:
             raise ValueError(f"'{self.identified}' does not exist or is not a file")
         if self.init_policy is not None and not os.path.isfile(self.init_policy):
             raise ValueError(f"'{self.init_policy}' does not exist or is not a file")
+        h = self.physics_dt
+        if not (h is None or h == "auto" or (isinstance(h, (int, float)) and not isinstance(h, bool)
+                                             and np.isfinite(h) and h > 0)):
+            raise ValueError(f"physics_dt must be 'auto', None or a positive number of seconds, got {h!r}")
+        if "physics_dt" in (self.backend_kwargs or {}):
+            raise ValueError("give the twin's step as physics_dt, not in backend_kwargs")
 
     @property
     def n_envs(self) -> int:
@@ -299,20 +313,51 @@ def resolve_randomize(cfg: TrainConfig) -> Any:
     """The :class:`~tensegrity_gym.randomize.Randomization` a twin run draws from (``None``: none)."""
     from identified.model import load_model
     from tensegrity_gym.backends.identified_backend import default_model_path
+    from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
     from tensegrity_gym.randomize import resolve_randomization
 
     if cfg.plant or cfg.randomize is None or (isinstance(cfg.randomize, str) and cfg.randomize == "none"):
         return None
     model = load_model(cfg.identified if cfg.identified is not None else default_model_path())
-    return resolve_randomization(cfg.randomize, model, int(cfg.env_kwargs.get("frame_skip", 20)))
+    return resolve_randomization(cfg.randomize, model, int(cfg.env_kwargs.get("frame_skip", FRAME_SKIP)))
 
 
-def _make_twin_venv(cfg: TrainConfig, randomize: Any = None) -> Any:
+def resolve_physics_dt(cfg: TrainConfig) -> tuple[float | None, str]:
+    """The twin's integration step for ``cfg``, s (``None`` with ``plant=True``), and a line saying
+    why: for ``"auto"`` the coarsest stable step
+    (:func:`~tensegrity_gym.backends.step_size.stable_physics_dt`, a few seconds), else the
+    config's own value, checked against the model (ValueError naming ``physics_dt``)."""
+    from identified.model import load_model
+    from tensegrity_gym.backends.identified_backend import coarsening, default_model_path
+    from tensegrity_gym.backends.step_size import stable_physics_dt
+    from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
+
+    if cfg.plant:
+        return None, "the plant steps at its own dt"
+    period = int(cfg.env_kwargs.get("frame_skip", FRAME_SKIP))
+    bk = cfg.backend_kwargs or {}
+    if cfg.physics_dt == "auto":
+        choice = stable_physics_dt(cfg.identified, period, mjcf=bk.get("mjcf"), effects=bk.get("effects", ()))
+        return choice.step, f"the twin integrates at {choice.describe()} (auto)"
+    dt = float(load_model(cfg.identified if cfg.identified is not None else default_model_path()).dt)
+    if cfg.physics_dt is None:
+        return dt, f"the twin integrates at the model's own {1e3 * dt:g} ms"
+    k = coarsening(cfg.physics_dt, dt)
+    if period % k:
+        raise ValueError(f"physics_dt={float(cfg.physics_dt):g} s: {k} physics steps of the model do not divide "
+                         f"the control period of {period} steps")
+    return float(cfg.physics_dt), f"the twin integrates at {1e3 * float(cfg.physics_dt):g} ms (given)"
+
+
+def _make_twin_venv(cfg: TrainConfig, randomize: Any = None, physics_dt: float | None = None) -> Any:
     from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
 
+    backend_kwargs = dict(cfg.backend_kwargs or {})
+    if physics_dt is not None:
+        backend_kwargs["physics_dt"] = physics_dt
     venv = gym.make_vec(ENV_ID, num_envs=cfg.n_envs, vectorization_mode="vector_entry_point",
                         backend="identified", model=cfg.identified, max_episode_steps=cfg.episode_steps,
-                        backend_kwargs=dict(cfg.backend_kwargs) or None, randomize=randomize, **cfg.env_kwargs)
+                        backend_kwargs=backend_kwargs or None, randomize=randomize, **cfg.env_kwargs)
     return SB3VecEnvAdapter(venv)
 
 
@@ -531,6 +576,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
             raise ValueError("--tensorboard needs the tensorboard package (pip install tensorboard)") from None
 
     randomization = resolve_randomize(cfg)
+    physics_dt, _ = resolve_physics_dt(cfg)
     with torch_threads(cfg.threads):
         mjcf = None
         if cfg.plant:
@@ -541,7 +587,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
             probe.close()
             venv = _make_plant_venv(cfg, mjcf)
         else:
-            venv = _make_twin_venv(cfg, randomization)
+            venv = _make_twin_venv(cfg, randomization, physics_dt)
             dt = float(venv.venv.dt)
             spaces = (venv.observation_space, venv.action_space)
         base = venv
@@ -575,6 +621,7 @@ def train(cfg: TrainConfig, out: str | os.PathLike, progress: bool = True) -> Tr
                     "timesteps": int(model.num_timesteps),
                     "seed": int(cfg.seed),
                     "randomization": None if randomization is None else randomization.to_json(),
+                    "physics_dt": physics_dt,
                     "continued_from": None if cfg.init_policy is None else os.path.abspath(cfg.init_policy),
                     "envs": cfg.n_envs,
                     "hyperparameters": {k: v for k, v in hp.items() if isinstance(v, (int, float, str, dict))},

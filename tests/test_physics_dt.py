@@ -94,6 +94,7 @@ def test_period_not_divisible_is_refused() -> None:
     (["--physics-dt", "0.0015"], "--physics-dt 0.0015: physics_dt must be a whole multiple"),
     (["--physics-dt", "0.003"], "--physics-dt 0.003: 3 physics steps of the model do not divide"),
     (["--physics-dt", "0.002", "--plant"], "--physics-dt sets the twin's integration step"),
+    (["--physics-dt", "fast"], "--physics-dt fast: give 'auto' or a step in seconds"),
 ])
 def test_cli_refuses_bad_physics_dt(tmp_path, extra: list[str], words: str) -> None:
     out = tmp_path / "p.zip"

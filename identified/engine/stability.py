@@ -1,0 +1,135 @@
+"""Linear stability of the engine's step: how coarse a step a model can be integrated at.
+
+Semi-implicit Euler (the engine's and MuJoCo's default, :mod:`identified.engine.integration`)
+integrates a mode ``ẍ = -ω² x - γ ẋ`` by ``v' = v + h(-ω² x - γ v)``, ``x' = x + h v'``, whose
+map has trace ``2 - h²ω² - hγ`` and determinant ``1 - hγ``: it is stable while ``h²ω² + 2hγ < 4``
+(``hω < 2`` undamped).  A model's stiffest mode (its stiffest cable between its lightest rods,
+the ground's soft constraint) therefore bounds the step.  Rather than bound ``ω`` from the
+parameters, :func:`step_jacobian` linearises the engine's own step, with every force and effect
+it has, at a given state, in minimal coordinates: each rod's position, rotation vector (world
+frame), velocity and angular velocity, 12 numbers a rod.  :func:`spectral_radius` is the largest
+``|λ|`` of that Jacobian: a perturbation grows by at most this much a step.
+
+The parameters of an identified model are continuous-time quantities, so the same model can be
+stepped at any ``h`` (:func:`identified.twin.engine_from_model` with ``dt = h``);
+:func:`coarsest_stable_step` picks the coarsest of a set of steps that is stable with a factor
+of safety (the twin's ``physics_dt``, :mod:`tensegrity_gym.backends.step_size`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from identified.engine.engine import SpringRodEngine
+from identified.engine.integration import RodState
+from identified.rotation import quat_conjugate, quat_exp, quat_multiply
+
+#: growth rate (1/s) below which a mode of the linearised step counts as neutral, not unstable:
+#: a rod's slow drift at a state that is not an exact equilibrium gives |λ| = 1 + O(1e-6) a step
+NEUTRAL_RATE = 0.1
+
+
+def step_jacobian(engine: SpringRodEngine, state: RodState, rest_length: Any) -> np.ndarray:
+    """The Jacobian (12R, 12R) of one :meth:`~identified.engine.SpringRodEngine.step` at ``state``
+    (unbatched, R rods) and ``rest_length`` (S,), in float64 minimal coordinates ordered
+    ``(dpos, drot, dvel, dangvel)``, each (R, 3) flattened; ``drot`` the world-frame rotation
+    vector of the perturbation, ``q = exp(drot) q0`` in and ``2 vec(q' q0'^*)`` out."""
+    s = RodState(*(torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, torch.Tensor) else x,
+                                   dtype=torch.float64) for x in state))
+    rest = torch.as_tensor(rest_length, dtype=torch.float64)
+    if engine.dtype != torch.float64:
+        raise ValueError("step_jacobian needs a float64 engine (the linearisation is to rounding)")
+    R = s.pos.shape[-2]
+    with torch.no_grad():
+        ref = engine.step(s, rest)
+
+    def one_step(x: torch.Tensor) -> torch.Tensor:
+        dp, dr, dv, dw = x.view(4, R, 3)
+        out = engine.step(RodState(s.pos + dp, quat_multiply(quat_exp(dr), s.quat), s.vel + dv, s.angvel + dw), rest)
+        dq = quat_multiply(out.quat, quat_conjugate(ref.quat))
+        rot = 2.0 * dq[..., 1:] * torch.sign(dq[..., :1])
+        return torch.cat([(out.pos - ref.pos).reshape(-1), rot.reshape(-1), (out.vel - ref.vel).reshape(-1),
+                          (out.angvel - ref.angvel).reshape(-1)])
+
+    x0 = torch.zeros(12 * R, dtype=torch.float64)
+    return torch.autograd.functional.jacobian(one_step, x0).numpy()
+
+
+def spectral_radius(engine: SpringRodEngine, state: RodState, rest_length: Any) -> float:
+    """``max |λ|`` of :func:`step_jacobian`: the most a small perturbation grows in one step; NaN
+    where the step itself is not finite at ``state``."""
+    J = step_jacobian(engine, state, rest_length)
+    if not np.isfinite(J).all():
+        return float("nan")
+    return float(np.abs(np.linalg.eigvals(J)).max())
+
+
+def is_stable(rho: float, h: float) -> bool:
+    """Whether a step of ``h`` s whose Jacobian has spectral radius ``rho`` is stable: no mode
+    grows faster than :data:`NEUTRAL_RATE` per second (NaN: not stable)."""
+    return bool(np.isfinite(rho) and np.log(max(rho, 1e-300)) <= NEUTRAL_RATE * h)
+
+
+@dataclass(frozen=True)
+class StepChoice:
+    """What :func:`coarsest_stable_step` chose and why.
+
+    ``step``: the chosen step, s; ``margin``: the factor of safety (each candidate ``h`` was tested
+    at ``margin * h``); ``radii``: ``{tested step (s): spectral radius}`` for every step tested,
+    coarsest first; ``stable_at_finest``: False when even the finest candidate fails (the model is
+    not stable at its own step: ``step`` is then the finest candidate, and the twin may diverge).
+    """
+
+    step: float
+    margin: float
+    radii: dict[float, float]
+    stable_at_finest: bool
+
+    def describe(self) -> str:
+        """One line: the step and the evidence, e.g. ``5 ms: stable at 10 ms (2x the step), not at
+        20 ms (|λ| 4.4 a step)``."""
+        def ms(h: float) -> str:
+            return f"{1e3 * h:g} ms"
+
+        tested = self.margin * self.step
+        bad = [(h, r) for h, r in self.radii.items() if h >= tested and not is_stable(r, h)]
+        worst = ""
+        if bad:
+            h, r = min(bad)
+            worst = f"{ms(h)} (|λ| {r:.3g} a step)" if np.isfinite(r) else f"{ms(h)} (not finite)"
+        if not self.stable_at_finest:
+            return f"{ms(self.step)}, the finest step: the model is not stable even at {worst}"
+        return (f"{ms(self.step)}: stable at {ms(tested)} ({self.margin:g}x the step)"
+                + (f", not at {worst}" if worst else ""))
+
+
+def coarsest_stable_step(engine_at: Callable[[float], SpringRodEngine], state: RodState, rest_length: Any,
+                         candidates: Sequence[float], margin: float = 2.0,
+                         filter_time_constants: Sequence[float] = ()) -> StepChoice:
+    """The coarsest step ``h`` of ``candidates`` whose engine (``engine_at(margin * h)``, float64)
+    is stable (:func:`is_stable`) at ``state`` and ``rest_length``: the step is ``margin`` times
+    finer than the stability limit there, room for the states the linearisation did not see
+    (deeper contacts, stretched cables); each first-order actuator filter of time constant ``τ``
+    (``act += h (ctrl - act) / τ``, stable while ``h / τ < 2``) must hold at ``margin * h`` too.
+    Falls back to the finest candidate (``stable_at_finest`` False) when none is stable."""
+    if not margin >= 1:
+        raise ValueError(f"margin must be >= 1, got {margin!r}")
+    steps = sorted({float(h) for h in candidates}, reverse=True)
+    if not steps or steps[-1] <= 0:
+        raise ValueError(f"candidate steps must be positive, got {list(candidates)!r}")
+    taus = [float(t) for t in filter_time_constants if t and t > 0]
+    radii: dict[float, float] = {}
+    for h in steps:
+        tested = margin * h
+        if any(tested / tau >= 2.0 for tau in taus):
+            continue
+        rho = spectral_radius(engine_at(tested), state, rest_length)
+        radii[tested] = rho
+        if is_stable(rho, tested):
+            return StepChoice(h, float(margin), radii, True)
+    return StepChoice(steps[-1], float(margin), radii, False)

@@ -287,6 +287,20 @@ def updates_table(rollout: int, repeats: int = 3) -> dict:
     return {"rows": rows, "per_minibatch_s": a, "per_sample_epoch_s": b, "overhead_share_at_128": share}
 
 
+def _physics_dt(text: str) -> float | str | None:
+    """``--physics-dt``: ``"auto"``, ``None`` for ``model`` (the model's own dt) or seconds."""
+    return text if text == "auto" else None if text == "model" else float(text)
+
+
+def _step_line(args: argparse.Namespace) -> str:
+    """The twin's step as the trainings will take it, and why (the choice takes ~2 s, inside the
+    twin's wall clock below as it is inside ``tensegrity train``'s)."""
+    from tensegrity_gym.training import TrainConfig, resolve_physics_dt
+
+    return resolve_physics_dt(TrainConfig(timesteps=1, identified=args.identified,
+                                          physics_dt=_physics_dt(args.physics_dt)))[1]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--identified", default=os.path.join(ROOT, "identified", "data", "robot.json"))
@@ -302,8 +316,9 @@ def main() -> None:
     ap.add_argument("--fused-adam", action="store_true",
                     help="Adam's fused CPU kernel (the same update rule; tensegrity train's default already)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of both trainings (default 1)")
-    ap.add_argument("--physics-dt", type=float, default=None,
-                    help="the twin's integration step, s (tensegrity train --physics-dt; default the model's dt)")
+    ap.add_argument("--physics-dt", default="auto",
+                    help="the twin's integration step: 'auto' (tensegrity train's default: the coarsest stable "
+                    "step, 5 ms for the robot preset), 'model' (the model's own dt, 1 ms) or seconds")
     ap.add_argument("--curve", action="store_true",
                     help="also evaluate on the plant: the twin policy and the learning curve of the plant run")
     ap.add_argument("--no-curve", action="store_true", help=argparse.SUPPRESS)  # the default now
@@ -344,7 +359,7 @@ def main() -> None:
         cfg = TrainConfig(timesteps=args.timesteps, seed=args.seed, identified=args.identified, plant=plant,
                           envs=args.plant_envs if plant else args.twin_envs, rollout=rollout, threads=args.threads,
                           hyperparameters=dict(hp), snapshots=args.curve and plant and os.path.basename(args.policy_out) == "plant-quiet.zip",
-                          backend_kwargs={} if plant or args.physics_dt is None else {"physics_dt": args.physics_dt})
+                          physics_dt=_physics_dt(args.physics_dt))
         print(json.dumps(train_timed(cfg, args.policy_out), default=str))
         return
     conds = {"both": ("quiet", "busy"), "none": ("quiet",), "only": ("busy",)}[args.busy]
@@ -362,7 +377,7 @@ def main() -> None:
               "('stored': compiled now, a model structure's first training; 'hit': from the cache on disk)", flush=True)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
           f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}; the twin's step "
-          f"{'the model dt' if args.physics_dt is None else f'{args.physics_dt:g} s'}", flush=True)
+          f"{_step_line(args)}", flush=True)
     runs: dict = {}
     for cond in conds:
         runs[cond] = {}

@@ -89,8 +89,8 @@ def test_coarsest_stable_step_keeps_a_factor_of_safety() -> None:
 
 
 def test_shipped_robot_trains_at_5_ms() -> None:
-    """The robot preset's model is stable to 11.2 ms at its standing pose (bisected: between 11.13
-    and 11.22 ms), so with the factor of 2 the coarsest step dividing 20 ms is 5 ms."""
+    """The robot preset's model is stable to about 11.1 ms at its standing pose (bisected by
+    benchmarks/bench_physics_dt.py), so with the factor of 2 the coarsest step dividing 20 ms is 5 ms."""
     choice = stable_physics_dt(None, 20)
     assert choice.step == pytest.approx(0.005) and choice.stable_at_finest
     radius = {round(1e3 * h): r for h, r in choice.radii.items()}  # ms: |λ|

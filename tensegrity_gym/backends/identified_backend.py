@@ -182,7 +182,8 @@ class IdentifiedBackend(Backend):
             (``k`` must divide ``n``: the env's ``frame_skip``).  The model's parameters are
             continuous-time quantities, so a coarser step integrates the same physics less
             accurately and ``k`` times cheaper (README, "Training on the twin": what it costs in
-            transfer).
+            transfer). ``tensegrity train`` takes the coarsest stable one by default
+            (:func:`tensegrity_gym.backends.step_size.stable_physics_dt`).
 
     Physics step ``dt`` is the model's (:attr:`dt`; :attr:`physics_dt` the engine's); gravity the
     model's. The nominal pose is the source MJCF's

@@ -7,7 +7,7 @@ The identified parameters are continuous-time quantities, so the twin may integr
 and run ``k`` times fewer engine steps; how coarse is each robot's own matter (its stiffest cable,
 its contact), found here by linearising the model's engine at the robot's standing pose
 (:mod:`identified.engine.stability`) rather than by a fixed number.  The robot preset's shipped
-model is stable up to a step of 11.2 ms, so the default factor of safety of 2 picks 5 ms (README,
+model is stable up to a step of about 11.1 ms (benchmarks/bench_physics_dt.py), so the default factor of safety of 2 picks 5 ms (README,
 "Training on the twin": what it costs in transfer).
 """
 

@@ -197,11 +197,14 @@ class _Wrench:
 
 
 def _law_transform(names: list[str], values: np.ndarray) -> np.ndarray:
-    """The contact law's parameters as the windows' unknowns: logits of the impedances
-    (``imp_*``, in (0, 1)), logarithms of the others (positive)."""
+    """The contact law's parameters as the windows' unknowns: logits ``log(v / (1 - v))`` of the
+    impedances (``imp_*``, in (0, 1)), logarithms ``log v`` of the others (positive)."""
     v = np.asarray(values, dtype=float)
-    logit = np.array([n.startswith("imp_") for n in names])
-    return np.where(logit, np.log(v / (1 - np.where(logit, v, 0.5))), np.log(v))
+    logit = np.array([n.startswith("imp_") for n in names], dtype=bool)
+    out = np.empty_like(v)
+    out[logit] = np.log(v[logit] / (1 - v[logit]))
+    out[~logit] = np.log(v[~logit])
+    return out
 
 
 class _Law:

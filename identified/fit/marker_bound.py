@@ -21,6 +21,7 @@ parameters unknowns too where ``law_free`` names them.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,30 +70,49 @@ def natural_values(prob: _Problem, theta: torch.Tensor) -> np.ndarray:
     return out.detach().numpy()
 
 
+def nuisance_step(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, cost: float,
+                  mu: float, residuals: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                  tries: int = 8) -> tuple[torch.Tensor, torch.Tensor, float, float, bool]:
+    """One Levenberg-Marquardt step in the windows' nuisances ``dx`` (W, R, n_x) alone at the
+    parameters ``theta``: with ``J`` the windows' Jacobian in their nuisances (the columns of
+    ``acts`` (W, R n_x) that act), ``dx - (JᵀJ + μ diag(JᵀJ) + diag(1 - acts) + 1e-12 I)⁻¹ Jᵀ r``,
+    ``μ`` raised fourfold (at most ``tries`` times) until the step lowers ``cost`` (``Σ r²``), then
+    lowered threefold (not below 1e-7).  ``residuals(theta, dx)`` (W, m): a trial's residuals
+    (``None``: :meth:`_Problem.residuals`).  Returns ``(dx, r, cost, mu, moved)``: the nuisances,
+    their residuals (W, m) and cost, the damping, and whether a step was taken."""
+    W, R, k = dx.shape
+    if residuals is None:
+        def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                return prob.residuals(th, d).reshape(W, -1)
+    r, Jx, _ = prob.jacobians(theta, dx, params=False)
+    Jx = Jx * acts.unsqueeze(1)
+    A0 = Jx.transpose(1, 2) @ Jx
+    gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
+    for _ in range(tries):
+        A = A0 + torch.diag_embed(mu * torch.diagonal(A0, dim1=-2, dim2=-1) + (1 - acts) + 1e-12)
+        ddx = torch.cholesky_solve(gx, torch.linalg.cholesky(A))
+        new = dx - (ddx.squeeze(-1) * acts).reshape(W, R, k)
+        r_new = residuals(theta, new)
+        c = float(r_new.square().sum())
+        if np.isfinite(c) and c < cost:
+            return new, r_new, c, max(mu / 3, 1e-7), True
+        mu *= 4
+    return dx, r, cost, mu, False
+
+
 def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, steps: int,
            progress: bool = False) -> torch.Tensor:
     """The windows' nuisances ``dx`` after ``steps`` Levenberg-Marquardt steps in them alone at the
-    parameters ``theta`` (a step taken only where it lowers the cost; plain Gauss-Newton steps from
-    a constant ground wrench overshoot: measured 30 Hz, clean markers, 0.27 s windows, 310 mm of
-    residual after two)."""
-    W, R, k = dx.shape
+    parameters ``theta`` (:func:`nuisance_step`: a step taken only where it lowers the cost; plain
+    Gauss-Newton steps from a constant ground wrench overshoot: measured 30 Hz, clean markers,
+    0.27 s windows, 310 mm of residual after two)."""
+    W = dx.shape[0]
     with torch.no_grad():
         r = prob.residuals(theta, dx).reshape(W, -1)
     cost, mu = float(r.square().sum()), 1e-3
     for j in range(steps):
-        r, Jx, _ = prob.jacobians(theta, dx, params=False)
-        Jx = Jx * acts.unsqueeze(1)
-        A0 = Jx.transpose(1, 2) @ Jx
-        gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
-        for _ in range(8):
-            A = A0 + torch.diag_embed(mu * torch.diagonal(A0, dim1=-2, dim2=-1) + (1 - acts) + 1e-12)
-            new = dx - (torch.linalg.solve(A, gx).squeeze(-1) * acts).reshape(W, R, k)
-            with torch.no_grad():
-                c = float(prob.residuals(theta, new).square().sum())
-            if np.isfinite(c) and c < cost:
-                dx, cost, mu = new, c, max(mu / 3, 1e-7)
-                break
-            mu *= 4
+        dx, r, cost, mu, _ = nuisance_step(prob, theta, dx, acts, cost, mu)
         if progress:
             rms = np.sqrt(cost / max(r.numel(), 1)) * prob.sigma
             print(f"bound: nuisance step {j + 1}, marker residual {1e3 * rms:.3f} mm", flush=True)

@@ -9,9 +9,11 @@ reaches it fits them directly, through the engine (the windows, nuisances and co
 known:
 
 1. the windows' nuisances (initial states, the ground's wrench) alone, the parameters held at the
-   start: Levenberg-Marquardt, window by window (``state_iters``);
+   start: Levenberg-Marquardt, window by window (``state_iters``;
+   :func:`identified.fit.marker_bound.nuisance_step`, the steps of the bound's ``settle``);
 2. then parameters and nuisances together, the nuisances eliminated by their Schur complement
-   (``joint_iters``), with the total mass held (which also fixes the scale no marker sees).
+   (``joint_iters``; :mod:`identified.fit.window_solve`), with the total mass held (which also
+   fixes the scale no marker sees).
 
 Joint steps from states that the start parameters have not yet fitted move the parameters far
 (measured: the joint refinement from such a start, 30 Hz / 1 cm, stalled at a marker residual of
@@ -32,8 +34,9 @@ import torch
 
 from identified.dataset import Dataset
 from identified.fit.bound import CramerRao, constrained_bound, window_information
-from identified.fit.marker_bound import _names, natural_values
+from identified.fit.marker_bound import _names, natural_values, nuisance_step
 from identified.fit.output_error import CONTACT_MARGIN, window_problem
+from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording
 
@@ -97,45 +100,41 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
         r = prob.residuals(theta, dx).reshape(W, -1)
     r_shape = r.shape
     n = r.numel()
-    history = [float(r.square().sum()) / n]
+    cost = float(r.square().sum())
+    history = [cost / n]
     mu = 1e-3
     for it in range(state_iters + joint_iters):
         joint = it >= state_iters
-        _, Jx, Jp = prob.jacobians(theta, dx, params=joint)
-        Jx = Jx * acts.unsqueeze(1)
-        Jp = Jp @ U if joint else torch.zeros(W, Jx.shape[1], P - 1, dtype=torch.float64)
-        A0 = Jx.transpose(1, 2) @ Jx
-        gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
-        B = Jx.transpose(1, 2) @ Jp
-        gp = (Jp.transpose(1, 2) @ r.unsqueeze(-1)).sum(0)
-        moved = False
-        for _ in range(8):  # Levenberg-Marquardt: damping raised until a step lowers the cost
-            A = A0 + torch.diag_embed(mu * torch.diagonal(A0, dim1=-2, dim2=-1) + (1 - acts) + 1e-12)
-            L = torch.linalg.cholesky(A)
-            Aig = torch.cholesky_solve(gx, L)
-            dphi = torch.zeros(P - 1, 1, dtype=torch.float64)
-            if joint:
-                AiB = torch.cholesky_solve(B, L)
-                Ssc = (Jp.transpose(1, 2) @ Jp).sum(0) - (B.transpose(1, 2) @ AiB).sum(0)
-                Ssc = 0.5 * (Ssc + Ssc.T)
-                gs = gp - (B.transpose(1, 2) @ Aig).sum(0)
+        if not joint:  # the nuisances alone, the parameters held (the bound's settle)
+            dx, r, cost, mu, moved = nuisance_step(prob, theta, dx, acts, cost, mu, residuals)
+        else:
+            _, Jx, Jp = prob.jacobians(theta, dx)
+            Jx = Jx * acts.unsqueeze(1)
+            Jp = Jp @ U
+            A0 = Jx.transpose(1, 2) @ Jx
+            gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
+            B = Jx.transpose(1, 2) @ Jp
+            C = (Jp.transpose(1, 2) @ Jp).sum(0)
+            gp = (Jp.transpose(1, 2) @ r.unsqueeze(-1)).sum(0)
+            moved = False
+            for _ in range(8):  # Levenberg-Marquardt: damping raised until a step lowers the cost
+                A = A0 + torch.diag_embed(mu * torch.diagonal(A0, dim1=-2, dim2=-1) + (1 - acts) + 1e-12)
+                sc = window_schur(A, B, C)
+                Aig, gs = sc.reduce(gx, gp)
                 # a parameter the windows do not move (a contact law's impedance width when every
                 # contact is deeper) has a zero row: a ridge keeps it where it is
-                ridge = 1e-12 * float(Ssc.diagonal().max()) * torch.eye(P - 1, dtype=torch.float64)
-                dphi = -torch.linalg.solve(Ssc + mu * torch.diag(Ssc.diagonal()) + ridge, gs)
-                ddx = -(Aig + AiB @ dphi)
-            else:
-                ddx = -Aig
-            th_new = theta + (U @ dphi).squeeze(-1)
-            dx_new = dx + (ddx.squeeze(-1) * acts).reshape(W, R, k)
-            r_new = residuals(th_new, dx_new)
-            c_new = float(r_new.square().sum()) / n
-            if np.isfinite(c_new) and c_new < history[-1]:
-                theta, dx, r, moved = th_new, dx_new, r_new, True
-                mu = max(mu / 3, 1e-7)
-                break
-            mu *= 4
-        history.append(history[-1] if not moved else c_new)
+                ridge = 1e-12 * float(sc.S.diagonal().max()) * torch.eye(P - 1, dtype=torch.float64)
+                dphi = -torch.linalg.solve(sc.S + mu * torch.diag(sc.S.diagonal()) + ridge, gs)
+                th_new = theta + (U @ dphi).squeeze(-1)
+                dx_new = dx + (sc.back_substitute(Aig, dphi).squeeze(-1) * acts).reshape(W, R, k)
+                r_new = residuals(th_new, dx_new)
+                c_new = float(r_new.square().sum())
+                if np.isfinite(c_new) and c_new < cost:
+                    theta, dx, r, cost, moved = th_new, dx_new, r_new, c_new, True
+                    mu = max(mu / 3, 1e-7)
+                    break
+                mu *= 4
+        history.append(cost / n)
         if progress:
             print(f"marker fit: {'joint' if joint else 'states'} step {it + 1}, cost per residual {history[-1]:.4f} "
                   f"(damping {mu:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)

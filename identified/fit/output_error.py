@@ -27,7 +27,8 @@ equations near them are weighed out.  Here the markers themselves are the measur
   parameters ``θ`` (the logarithms of K, c, M and the observable moments of inertia) and every
   window's initial state and ground wrench by Gauss-Newton (a Jacobian reused for a few steps, each
   step halved until it lowers the cost), the windows' unknowns eliminated by their Schur
-  complement (each window's residuals depend on its own unknowns only).
+  complement (each window's residuals depend on its own unknowns only;
+  :mod:`identified.fit.window_solve`).
 
 The Jacobian is exact (forward-mode automatic differentiation through the engine,
 :func:`torch.func.jvp` batched over tangents with :func:`torch.func.vmap`).  The standard errors
@@ -56,6 +57,7 @@ from torch.func import jvp, vmap
 
 from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
+from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording
 from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
@@ -195,11 +197,14 @@ class _Wrench:
 
 
 def _law_transform(names: list[str], values: np.ndarray) -> np.ndarray:
-    """The contact law's parameters as the windows' unknowns: logits of the impedances
-    (``imp_*``, in (0, 1)), logarithms of the others (positive)."""
+    """The contact law's parameters as the windows' unknowns: logits ``log(v / (1 - v))`` of the
+    impedances (``imp_*``, in (0, 1)), logarithms ``log v`` of the others (positive)."""
     v = np.asarray(values, dtype=float)
-    logit = np.array([n.startswith("imp_") for n in names])
-    return np.where(logit, np.log(v / (1 - np.where(logit, v, 0.5))), np.log(v))
+    logit = np.array([n.startswith("imp_") for n in names], dtype=bool)
+    out = np.empty_like(v)
+    out[logit] = np.log(v[logit] / (1 - v[logit]))
+    out[~logit] = np.log(v[~logit])
+    return out
 
 
 class _Law:
@@ -471,20 +476,14 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
         # diagonal, the directions no marker sees (a rod's spin about its markers' line) by a ridge
         A = Jx.transpose(1, 2) @ Jx + torch.diag_embed(1.0 - free_x)
         A = A + torch.diag_embed(1e-10 * torch.diagonal(A, dim1=-2, dim2=-1).amax(-1, keepdim=True).expand(-1, A.shape[-1]))
-        L = torch.linalg.cholesky(A)
-        B = Jx.transpose(1, 2) @ Jp  # (W, nx, P)
-        AiB = torch.cholesky_solve(B, L)
-        Ssc = (Jp.transpose(1, 2) @ Jp).sum(0) - (B.transpose(1, 2) @ AiB).sum(0)
-        Ssc = 0.5 * (Ssc + Ssc.T)
-        Sreg = Ssc + (u @ u.T) * Ssc.diagonal().mean()
+        sc = window_schur(A, Jx.transpose(1, 2) @ Jp, (Jp.transpose(1, 2) @ Jp).sum(0))
+        Sreg = sc.S + (u @ u.T) * sc.S.diagonal().mean()
         if j == jacobians - 1:
-            cov = proj @ torch.linalg.pinv(proj @ Ssc @ proj, hermitian=True) @ proj
+            cov = proj @ torch.linalg.pinv(proj @ sc.S @ proj, hermitian=True) @ proj
         for _ in range(chord_steps):
-            gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
-            Aig = torch.cholesky_solve(gx, L)
-            gp = (Jp.transpose(1, 2) @ r.unsqueeze(-1)).sum(0) - (B.transpose(1, 2) @ Aig).sum(0)
-            dp = -torch.linalg.solve(Sreg, gp) * float(fit_params)
-            dxs = -(Aig + AiB @ dp)
+            Aig, gs = sc.reduce(Jx.transpose(1, 2) @ r.unsqueeze(-1), (Jp.transpose(1, 2) @ r.unsqueeze(-1)).sum(0))
+            dp = -torch.linalg.solve(Sreg, gs) * float(fit_params)
+            dxs = sc.back_substitute(Aig, dp)
             step = 1.0
             while step > 0.1:
                 th_new = theta + step * (proj @ dp).squeeze(-1)

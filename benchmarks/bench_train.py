@@ -376,8 +376,7 @@ def main() -> None:
         print(f"twin warm-up ({2 * rollout} steps): compiled substep {row['compile_cache']} in {row['compile_s']:.1f} s "
               "('stored': compiled now, a model structure's first training; 'hit': from the cache on disk)", flush=True)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {args.timesteps} steps, seed {args.seed}, "
-          f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}; the twin's step "
-          f"{_step_line(args)}", flush=True)
+          f"{args.threads} torch thread(s); overrides {hp or 'none'}, rollout {rollout}; {_step_line(args)}", flush=True)
     runs: dict = {}
     for cond in conds:
         runs[cond] = {}

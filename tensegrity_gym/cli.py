@@ -349,8 +349,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         except ValueError as exc:
             raise CommandError(f"--physics-dt {args.physics_dt}: {exc}") from None
         cfg.physics_dt = step
-        if not args.quiet:
-            print(f"tensegrity: {why}")
+        print(f"tensegrity: {why}")
     if args.seeds is not None:
         _train_seeds(args, cfg)
         return

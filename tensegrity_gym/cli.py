@@ -369,12 +369,15 @@ def cmd_improve(args: argparse.Namespace) -> None:
     for name in ("rounds", "episodes", "timesteps"):
         if getattr(args, name) < 1:
             raise CommandError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    if args.episode_steps is not None and args.episode_steps < 1:
+        raise CommandError(f"--episode-steps must be at least 1, got {args.episode_steps}")
     for p in (args.identified, args.data, args.policy):
         _check_readable(p)
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise CommandError(f"--out '{args.out}' exists and is not a folder")
     cfg = ImproveConfig(rounds=args.rounds, episodes=args.episodes, timesteps=args.timesteps,
-                        randomize=args.randomize, effects=args.effects, seed=args.seed)
+                        randomize=args.randomize, effects=args.effects, seed=args.seed,
+                        episode_steps=args.episode_steps)
     rows = improve(args.identified, args.data, args.policy, args.out, cfg, mjcf=args.model, progress=not args.quiet)
     for r in rows:
         e = r["twin_error_on_policy_states"]
@@ -731,6 +734,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the plant's MJCF (default: the one the model was fitted against)")
     im.add_argument("--rounds", type=int, default=2, help="rounds (default 2)")
     im.add_argument("--episodes", type=int, default=2, help="plant episodes recorded per round (default 2)")
+    im.add_argument("--episode-steps", type=int, default=None, metavar="T",
+                    help="control steps of each recorded plant episode (default: the policy's own episode, 1000 = "
+                    "20 s); shorter episodes spend less robot time a round")
     im.add_argument("--timesteps", type=int, default=100_000, metavar="N",
                     help="training steps on each new twin (default 100,000)")
     im.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",

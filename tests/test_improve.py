@@ -81,14 +81,16 @@ def test_concat_and_twin_errors(setup):
 def test_improve_command_runs_rounds(setup, capsys):
     out = setup["dir"] / "run"
     code = main(["improve", "--identified", setup["twin"], "--data", setup["data"], "--policy", setup["policy"],
-                 "--model", setup["xml"], "--rounds", "1", "--episodes", "1", "--timesteps", "64",
-                 "--effects", "ground_contact", "--randomize", "none", "--out", str(out), "--quiet"])
+                 "--model", setup["xml"], "--rounds", "1", "--episodes", "1", "--episode-steps", "40",
+                 "--timesteps", "64", "--effects", "ground_contact", "--randomize", "none", "--out", str(out),
+                 "--quiet"])
     assert code == 0, capsys.readouterr().err
     rep = json.loads((out / "improve.json").read_text())
     rows = rep["rounds"]
     assert [r["round"] for r in rows] == [0, 1]
     base = 4 * 400 * 0.001
     rec = load_dataset(out / "round1" / "plant.npz")
+    assert rec.n_episodes * rec.n_steps == 40 * 20  # --episode-steps 40 control steps of 20 physics steps
     assert rows[0]["plant_data_s"] == pytest.approx(base + rec.n_episodes * rec.n_steps * 0.001)
     assert rows[0]["twin_fitted_on_s"] == pytest.approx(base)
     assert rows[1]["twin_fitted_on_s"] == pytest.approx(rows[0]["plant_data_s"])
@@ -123,4 +125,7 @@ def test_improve_rejects_missing_inputs(tmp_path, capsys):
     code = main(["improve", "--identified", str(tmp_path / "no.json"), "--data", "x.npz", "--policy", "p.zip",
                  "--out", str(tmp_path / "o")])
     assert code == 2 and "no.json" in capsys.readouterr().err
+    code = main(["improve", "--identified", str(tmp_path / "no.json"), "--data", "x.npz", "--policy", "p.zip",
+                 "--episode-steps", "0", "--out", str(tmp_path / "o")])
+    assert code == 2 and "--episode-steps must be at least 1, got 0" in capsys.readouterr().err
     _ = fit_model  # the refit's entry point, imported here so a rename fails this file first

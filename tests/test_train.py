@@ -24,6 +24,7 @@ import tensegrity_gym  # noqa: F401  (registers the env)
 from identified import Topology
 from identified.fit.identify import identify
 from identified.model import load_model, save_model
+from tensegrity_gym.backends.step_size import stable_physics_dt
 from tensegrity_gym.cli import main
 from tensegrity_gym.collect import CollectConfig, collect
 from tensegrity_gym.envs.sb3 import SB3VecEnvAdapter
@@ -93,6 +94,8 @@ def test_train_on_twin_end_to_end_never_steps_mujoco(robot, tmp_path, monkeypatc
     assert pol.meta["trained_on"] == "twin" and pol.meta["timesteps"] >= 256
     assert pol.meta["observation_shape"] == [133] and pol.meta["action_shape"] == [24]
     assert pol.meta["hyperparameters"]["n_steps"] == 32  # rollout 128 over 4 envs
+    step = stable_physics_dt(str(robot["twin"]), 20).step  # --physics-dt auto: said, used, recorded
+    assert f"the twin integrates at {1e3 * step:g} ms: stable at" in said and pol.meta["physics_dt"] == step
     assert np.all(pol.obs_var > 0) and pol.meta["normalize"]["count"] > 256  # statistics were updated
     with zipfile.ZipFile(out) as zf:
         assert {"policy.pth", "data", "tensegrity.json"} <= set(zf.namelist())

@@ -30,12 +30,13 @@ from tensegrity_gym.backends.identified_backend import IdentifiedBackend, defaul
 from tensegrity_gym.backends.step_size import stable_physics_dt
 
 
-def stability_limit(model, state, rest, lo: float, hi: float, tol: float = 1e-4) -> tuple[float, float]:
-    """Bisect the step (s) between a stable ``lo`` and an unstable ``hi`` to ``tol``."""
+def stability_limit(model, state, rest, lo: float, hi: float, own: float, tol: float = 1e-4) -> tuple[float, float]:
+    """Bisect the step (s) between a stable ``lo`` and an unstable ``hi`` to ``tol`` (stable: no
+    faster growth than the model's own, ``own`` 1/s)."""
     while hi - lo > tol:
         h = 0.5 * (lo + hi)
         rho = spectral_radius(engine_from_model(dataclasses.replace(model, dt=h)), state, rest)
-        lo, hi = (h, hi) if is_stable(rho, h) else (lo, h)
+        lo, hi = (h, hi) if is_stable(rho, h, own) else (lo, h)
     return lo, hi
 
 
@@ -73,11 +74,12 @@ def main() -> None:
     steps = [float(s) / 1e3 for s in args.steps_ms.split(",")]
     for h in sorted({*steps, 2 * choice.step}):
         rho = spectral_radius(engine_from_model(dataclasses.replace(m, dt=h)), state, rest)
-        print(f"  step {1e3 * h:5g} ms: |λ| {rho:.6f} a step, {'stable' if is_stable(rho, h) else 'UNSTABLE'}")
+        print(f"  step {1e3 * h:5g} ms: |λ| {rho:.6f} a step, "
+              f"{'stable' if is_stable(rho, h, choice.own_rate) else 'UNSTABLE'}")
     unstable = [h for h in (0.01, 0.02, 0.04, 0.08) if not is_stable(
-        spectral_radius(engine_from_model(dataclasses.replace(m, dt=h)), state, rest), h)]
+        spectral_radius(engine_from_model(dataclasses.replace(m, dt=h)), state, rest), h, choice.own_rate)]
     if unstable:
-        lo, hi = stability_limit(m, state, rest, unstable[0] / 2, unstable[0])
+        lo, hi = stability_limit(m, state, rest, unstable[0] / 2, unstable[0], choice.own_rate)
         print(f"stability limit at the standing pose: between {1e3 * lo:.2f} and {1e3 * hi:.2f} ms")
     marks = [float(s) for s in args.seconds.split(",")]
     T = max(marks)

@@ -83,9 +83,28 @@ def test_coarsest_stable_step_keeps_a_factor_of_safety() -> None:
     # a cable too stiff for even the finest step: that step, said to be unstable
     stiff = coarsest_stable_step(lambda h: _two_rods(1e8, 0.0, h)[0], state, rest, steps)
     assert stiff.step == pytest.approx(0.001) and not stiff.stable_at_finest
-    assert "not stable even at 2 ms" in stiff.describe()
+    assert "blows up at its own step" in stiff.describe()
     with pytest.raises(ValueError, match="margin"):
         coarsest_stable_step(engine_at, state, rest, steps, margin=0.5)
+
+
+def test_a_robot_that_tips_over_is_not_an_unstable_step() -> None:
+    """A cable of negative stiffness pushes the rods apart at ``σ = sqrt(-K (1/m0 + 1/m1))`` (the
+    physics: a robot tipping over at the linearisation's state); every step shows it
+    (``|λ| ≈ e^{σh}``), so only growth beyond the model's own counts and the coarsest step is taken."""
+    K = -100.0
+    sigma = np.sqrt(-K * INV)
+
+    def engine_at(h: float) -> SpringRodEngine:
+        return _two_rods(K, 0.0, h)[0]
+
+    _, state, rest = _two_rods(K, 0.0, 0.001)
+    choice = coarsest_stable_step(engine_at, state, rest, [k * 0.001 for k in whole_divisors(20)])
+    assert choice.own_rate == pytest.approx(sigma, rel=1e-4)  # semi-implicit Euler: σ (1 - (hσ)²/24 + ...)
+    assert choice.step == pytest.approx(0.020) and choice.stable_at_finest
+    assert "grows at 14.8/s there, at any step" in choice.describe()
+    rho = spectral_radius(engine_at(0.040), state, rest)
+    assert not is_stable(rho, 0.040) and is_stable(rho, 0.040, choice.own_rate)  # absolute vs relative
 
 
 def test_shipped_robot_trains_at_5_ms() -> None:

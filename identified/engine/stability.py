@@ -29,8 +29,8 @@ from identified.engine.engine import SpringRodEngine
 from identified.engine.integration import RodState
 from identified.rotation import quat_conjugate, quat_exp, quat_multiply
 
-#: growth rate (1/s) below which a mode of the linearised step counts as neutral, not unstable:
-#: a rod's slow drift at a state that is not an exact equilibrium gives |λ| = 1 + O(1e-6) a step
+#: growth rate (1/s) a coarser step may add to the model's own before it counts as unstable: a
+#: rod's slow drift at a state that is not an exact equilibrium gives |λ| = 1 + O(1e-6) a step
 NEUTRAL_RATE = 0.1
 
 
@@ -72,10 +72,17 @@ def spectral_radius(engine: SpringRodEngine, state: RodState, rest_length: Any) 
     return float(np.abs(np.linalg.eigvals(J)).max())
 
 
-def is_stable(rho: float, h: float) -> bool:
+def growth_rate(rho: float, h: float) -> float:
+    """The growth rate (1/s) of a step of ``h`` s whose Jacobian has spectral radius ``rho``:
+    ``ln(rho) / h``, at least 0 (inf where ``rho`` is not finite)."""
+    return max(float(np.log(rho)) / h, 0.0) if np.isfinite(rho) and rho > 0 else float("inf")
+
+
+def is_stable(rho: float, h: float, own_rate: float = 0.0) -> bool:
     """Whether a step of ``h`` s whose Jacobian has spectral radius ``rho`` is stable: no mode
-    grows faster than :data:`NEUTRAL_RATE` per second (NaN: not stable)."""
-    return bool(np.isfinite(rho) and np.log(max(rho, 1e-300)) <= NEUTRAL_RATE * h)
+    grows faster than the model's own fastest one, ``own_rate`` (1/s: a robot tipping over at the
+    state grows at any step, see :func:`coarsest_stable_step`), plus :data:`NEUTRAL_RATE`."""
+    return growth_rate(rho, h) <= own_rate + NEUTRAL_RATE
 
 
 @dataclass(frozen=True)
@@ -84,14 +91,17 @@ class StepChoice:
 
     ``step``: the chosen step, s; ``margin``: the factor of safety (each candidate ``h`` was tested
     at ``margin * h``); ``radii``: ``{tested step (s): spectral radius}`` for every step tested,
-    coarsest first; ``stable_at_finest``: False when even the finest candidate fails (the model is
-    not stable at its own step: ``step`` is then the finest candidate, and the twin may diverge).
+    coarsest first; ``stable_at_finest``: False when even the finest candidate fails (``step`` is
+    then the finest candidate, and the twin may diverge); ``own_rate``: the growth rate (1/s) of
+    the model's fastest growing mode at the finest candidate itself, the physics' own (a robot not
+    at rest at the state), which no step removes and against which the others are measured.
     """
 
     step: float
     margin: float
     radii: dict[float, float]
     stable_at_finest: bool
+    own_rate: float = 0.0
 
     def describe(self) -> str:
         """One line: the step and the evidence, e.g. ``5 ms: stable at 10 ms (2x the step), not at
@@ -100,15 +110,20 @@ class StepChoice:
             return f"{1e3 * h:g} ms"
 
         tested = self.margin * self.step
-        bad = [(h, r) for h, r in self.radii.items() if h >= tested and not is_stable(r, h)]
+        bad = [(h, r) for h, r in self.radii.items() if h >= tested and not is_stable(r, h, self.own_rate)]
         worst = ""
         if bad:
             h, r = min(bad)
             worst = f"{ms(h)} (|λ| {r:.3g} a step)" if np.isfinite(r) else f"{ms(h)} (not finite)"
+        own = (f"; a mode of the model itself grows at {self.own_rate:.3g}/s there, at any step"
+               if self.own_rate > NEUTRAL_RATE else "")
+        if not self.stable_at_finest and not worst:
+            return (f"{ms(self.step)}, the finest step: the model blows up at its own step (a mode grows at "
+                    f"{self.own_rate:.3g}/s at the standing pose)")
         if not self.stable_at_finest:
-            return f"{ms(self.step)}, the finest step: the model is not stable even at {worst}"
+            return f"{ms(self.step)}, the finest step: the model is not stable even at {worst}{own}"
         return (f"{ms(self.step)}: stable at {ms(tested)} ({self.margin:g}x the step)"
-                + (f", not at {worst}" if worst else ""))
+                + (f", not at {worst}" if worst else "") + own)
 
 
 def coarsest_stable_step(engine_at: Callable[[float], SpringRodEngine], state: RodState, rest_length: Any,
@@ -119,13 +134,21 @@ def coarsest_stable_step(engine_at: Callable[[float], SpringRodEngine], state: R
     finer than the stability limit there, room for the states the linearisation did not see
     (deeper contacts, stretched cables); each first-order actuator filter of time constant ``τ``
     (``act += h (ctrl - act) / τ``, stable while ``h / τ < 2``) must hold at ``margin * h`` too.
-    Falls back to the finest candidate (``stable_at_finest`` False) when none is stable."""
+    Stable means growing no faster than the engine at the finest candidate itself does: where the
+    state is not a rest (a robot tipping over) a mode grows at the same rate ``σ`` at every small
+    step (``|λ| = e^{σh}``), the physics, not the integrator, and only growth beyond it counts.
+    Falls back to the finest candidate (``stable_at_finest`` False) when none is stable, or when
+    the model's own growth is an e-fold within the coarsest candidate (a model that blows up: an
+    unidentified fit's negative inertia, say, not a robot tipping over)."""
     if not margin >= 1:
         raise ValueError(f"margin must be >= 1, got {margin!r}")
     steps = sorted({float(h) for h in candidates}, reverse=True)
     if not steps or steps[-1] <= 0:
         raise ValueError(f"candidate steps must be positive, got {list(candidates)!r}")
     taus = [float(t) for t in filter_time_constants if t and t > 0]
+    own = growth_rate(spectral_radius(engine_at(steps[-1]), state, rest_length), steps[-1])
+    if not own * steps[0] <= 1.0:  # e-fold within the coarsest candidate (the control period): it blows up
+        return StepChoice(steps[-1], float(margin), {steps[-1]: float(np.exp(own * steps[-1]))}, False, own)
     radii: dict[float, float] = {}
     for h in steps:
         tested = margin * h
@@ -133,6 +156,6 @@ def coarsest_stable_step(engine_at: Callable[[float], SpringRodEngine], state: R
             continue
         rho = spectral_radius(engine_at(tested), state, rest_length)
         radii[tested] = rho
-        if is_stable(rho, tested):
-            return StepChoice(h, float(margin), radii, True)
-    return StepChoice(steps[-1], float(margin), radii, False)
+        if is_stable(rho, tested, own):
+            return StepChoice(h, float(margin), radii, True, own)
+    return StepChoice(steps[-1], float(margin), radii, False, own)

@@ -45,8 +45,9 @@ def stable_physics_dt(model: str | os.PathLike | IdentifiedModel | None, period_
     and rest lengths), is stable at ``margin`` times the step, and every first-order actuator
     filter of the model too (:func:`identified.engine.stability.coarsest_stable_step`).  ``model``:
     as :class:`IdentifiedBackend` takes it (``None``: the shipped model); ``mjcf``: its source
-    MJCF where not the model's own.  A model not stable at its own ``dt`` gets ``dt``
-    (``StepChoice.stable_at_finest`` False).  A model file's answer is kept for the process (by
+    MJCF where not the model's own.  Stable means no faster growth than the model's own at its
+    ``dt`` (a twin not at rest at that pose tips over at any step); a model not stable at its own
+    ``dt``, or blowing up there, gets ``dt`` (``StepChoice.stable_at_finest`` False).  A model file's answer is kept for the process (by
     path, size and modification time): training runs ask once each."""
     if isinstance(model, (str, os.PathLike)) and not effects:
         path = os.path.realpath(model)

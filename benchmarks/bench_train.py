@@ -318,7 +318,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads of both trainings (default 1)")
     ap.add_argument("--physics-dt", default="auto",
                     help="the twin's integration step: 'auto' (tensegrity train's default: the coarsest stable "
-                    "step, 5 ms for the robot preset), 'model' (the model's own dt, 1 ms) or seconds")
+                    "step, 4 ms for the robot preset), 'model' (the model's own dt, 1 ms) or seconds")
     ap.add_argument("--curve", action="store_true",
                     help="also evaluate on the plant: the twin policy and the learning curve of the plant run")
     ap.add_argument("--no-curve", action="store_true", help=argparse.SUPPRESS)  # the default now

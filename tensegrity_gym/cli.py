@@ -705,7 +705,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--physics-dt", default=DEFAULT_PHYSICS_DT, metavar="auto|S",
                    help="the twin's integration step: 'auto' (default: the coarsest whole multiple of the model's "
                    "dt dividing the 20 ms control period at which the model, linearised at its standing pose, is "
-                   "stable at twice the step; 5 ms for the robot preset), or seconds (e.g. 0.001, the model's "
+                   "stable at 2.5 times the step; 4 ms for the robot preset), or seconds (e.g. 0.001, the model's "
                    "own dt and the plant's step). README 'Training on the twin' measures what it costs in transfer")
     t.add_argument("--tensorboard", default=None, metavar="DIR", help="write TensorBoard logs here")
     t.add_argument("--randomize", default=DEFAULT_RANDOMIZE, metavar="auto|none|FILE",

@@ -107,15 +107,17 @@ def test_a_robot_that_tips_over_is_not_an_unstable_step() -> None:
     assert not is_stable(rho, 0.040) and is_stable(rho, 0.040, choice.own_rate)  # absolute vs relative
 
 
-def test_shipped_robot_trains_at_5_ms() -> None:
+def test_shipped_robot_trains_at_4_ms() -> None:
     """The robot preset's model is stable to about 11.1 ms at its standing pose (bisected by
-    benchmarks/bench_physics_dt.py), so with the factor of 2 the coarsest step dividing 20 ms is 5 ms."""
+    benchmarks/bench_physics_dt.py), so with the factor of 2.5 the coarsest step dividing 20 ms is
+    4 ms (stable at 10 ms, not at 12.5 ms)."""
     choice = stable_physics_dt(None, 20)
-    assert choice.step == pytest.approx(0.005) and choice.stable_at_finest
-    radius = {round(1e3 * h): r for h, r in choice.radii.items()}  # ms: |λ|
-    assert sorted(radius) == [10, 20, 40] and is_stable(radius[10], 0.010) and not is_stable(radius[20], 0.020)
+    assert choice.step == pytest.approx(0.004) and choice.stable_at_finest and choice.margin == 2.5
+    radius = {round(1e4 * h): r for h, r in choice.radii.items()}  # tenths of ms: |λ|
+    assert sorted(radius) == [100, 125, 250, 500]
+    assert is_stable(radius[100], 0.010, choice.own_rate) and not is_stable(radius[125], 0.0125, choice.own_rate)
     step, why = resolve_physics_dt(TrainConfig(timesteps=1, identified=default_model_path()))
-    assert step == pytest.approx(0.005) and "5 ms: stable at 10 ms" in why
+    assert step == pytest.approx(0.004) and "4 ms: stable at 10 ms (2.5x the step)" in why
     assert resolve_physics_dt(TrainConfig(timesteps=1, physics_dt=None))[0] == pytest.approx(0.001)
     assert resolve_physics_dt(TrainConfig(timesteps=1, physics_dt=0.002))[0] == pytest.approx(0.002)
     with pytest.raises(ValueError, match="do not divide the control period"):

@@ -104,8 +104,8 @@ class StepChoice:
     own_rate: float = 0.0
 
     def describe(self) -> str:
-        """One line: the step and the evidence, e.g. ``5 ms: stable at 10 ms (2x the step), not at
-        20 ms (|λ| 4.4 a step)``."""
+        """One line: the step and the evidence, e.g. ``4 ms: stable at 10 ms (2.5x the step), not at
+        12.5 ms (|λ| 1.34 a step)``."""
         def ms(h: float) -> str:
             return f"{1e3 * h:g} ms"
 

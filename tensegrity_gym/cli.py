@@ -782,13 +782,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 # ---------------------------------------------------------------------- helpers
 def _physics_dt(args: argparse.Namespace) -> float | str:
-    """``--physics-dt auto|S``: ``"auto"`` or seconds, checked against the twin's model (a whole
-    multiple of its dt that divides the env's 20-step control period); CommandError in the
-    option's words."""
-    from identified.model import load_model
-    from tensegrity_gym.backends.identified_backend import coarsening
-    from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
-
+    """``--physics-dt auto|S`` parsed: ``"auto"`` or seconds (checked against the model by
+    :func:`tensegrity_gym.training.resolve_physics_dt`); CommandError in the option's words."""
     if args.physics_dt == "auto":
         return "auto"
     try:
@@ -797,13 +792,6 @@ def _physics_dt(args: argparse.Namespace) -> float | str:
         raise CommandError(f"--physics-dt {args.physics_dt}: give 'auto' or a step in seconds (e.g. 0.004)") from None
     if args.plant:
         raise CommandError("--physics-dt sets the twin's integration step: the plant (--plant) steps at its own")
-    try:
-        k = coarsening(h, load_model(args.identified).dt)
-    except ValueError as exc:
-        raise CommandError(f"--physics-dt {args.physics_dt}: {exc}") from None
-    if FRAME_SKIP % k:
-        raise CommandError(f"--physics-dt {args.physics_dt}: {k} physics steps of the model do not divide the "
-                           f"control period of {FRAME_SKIP} steps")
     return h
 
 

@@ -158,7 +158,7 @@ class TrainConfig:
             in the policy's metadata. Ignored with ``plant=True``.
         physics_dt: the twin's integration step: ``"auto"`` (default: the coarsest whole multiple
             of the model's ``dt`` dividing the control period at which the model is stable with a
-            factor of safety of 2, :func:`tensegrity_gym.backends.step_size.stable_physics_dt`),
+            factor of safety of 2.5, :func:`tensegrity_gym.backends.step_size.stable_physics_dt`),
             ``None`` (the model's own ``dt``, the plant's step) or seconds; recorded in the
             policy's metadata. Ignored with ``plant=True``.
         init_policy: a policy file of :func:`train` to continue from (its network weights and its
@@ -344,8 +344,8 @@ def resolve_physics_dt(cfg: TrainConfig) -> tuple[float | None, str]:
         return dt, f"the twin integrates at the model's own {1e3 * dt:g} ms"
     k = coarsening(cfg.physics_dt, dt)
     if period % k:
-        raise ValueError(f"physics_dt={float(cfg.physics_dt):g} s: {k} physics steps of the model do not divide "
-                         f"the control period of {period} steps")
+        raise ValueError(f"{k} physics steps of the model do not divide the control period of {period} steps "
+                         f"(physics_dt={float(cfg.physics_dt):g} s)")
     return float(cfg.physics_dt), f"the twin integrates at {1e3 * float(cfg.physics_dt):g} ms (given)"
 
 

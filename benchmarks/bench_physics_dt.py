@@ -28,6 +28,7 @@ from identified.model import load_model
 from identified.twin import engine_from_model
 from tensegrity_gym.backends.identified_backend import IdentifiedBackend, default_model_path
 from tensegrity_gym.backends.step_size import stable_physics_dt
+from tensegrity_gym.envs.tensegrity_ico_v0 import FRAME_SKIP
 
 
 def stability_limit(model, state, rest, lo: float, hi: float, own: float, tol: float = 1e-4) -> tuple[float, float]:
@@ -67,7 +68,7 @@ def main() -> None:
     args = ap.parse_args()
     m = load_model(args.identified)
     t0 = time.perf_counter()
-    choice = stable_physics_dt(args.identified, 20)
+    choice = stable_physics_dt(args.identified, FRAME_SKIP)
     print(f"auto step ({time.perf_counter() - t0:.1f} s): {choice.describe()}")
     b = IdentifiedBackend(m, dtype="float64", compile=False)
     state, rest = b.nominal_states(), b.nominal_rest_lengths()
@@ -92,7 +93,7 @@ def main() -> None:
         tracks = {e: com_track(args.identified, h, T, seed=e) for e in ref}
         row = []
         for t in marks:
-            k = round(t / 0.02) - 1  # the control step ending at t (20 ms a step)
+            k = round(t / (FRAME_SKIP * m.dt)) - 1  # the control step ending at t
             d = np.array([np.linalg.norm(tracks[e][k] - ref[e][k]) for e in ref])
             row.append(f"after {t:g} s {1e3 * np.nanmean(d):.2f} / {1e3 * np.nanmax(d):.2f}"
                        + ("" if np.isfinite(d).all() else " (diverged)"))

@@ -39,11 +39,10 @@ def step_jacobian(engine: SpringRodEngine, state: RodState, rest_length: Any) ->
     (unbatched, R rods) and ``rest_length`` (S,), in float64 minimal coordinates ordered
     ``(dpos, drot, dvel, dangvel)``, each (R, 3) flattened; ``drot`` the world-frame rotation
     vector of the perturbation, ``q = exp(drot) q0`` in and ``2 vec(q' q0'^*)`` out."""
-    s = RodState(*(torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, torch.Tensor) else x,
-                                   dtype=torch.float64) for x in state))
-    rest = torch.as_tensor(rest_length, dtype=torch.float64)
     if engine.dtype != torch.float64:
         raise ValueError("step_jacobian needs a float64 engine (the linearisation is to rounding)")
+    s = engine.state(*state)
+    rest = torch.as_tensor(np.asarray(rest_length, dtype=np.float64), device=engine.device)
     R = s.pos.shape[-2]
     with torch.no_grad():
         ref = engine.step(s, rest)

@@ -7,8 +7,8 @@ The identified parameters are continuous-time quantities, so the twin may integr
 and run ``k`` times fewer engine steps; how coarse is each robot's own matter (its stiffest cable,
 its contact), found here by linearising the model's engine at the robot's standing pose
 (:mod:`identified.engine.stability`) rather than by a fixed number.  The robot preset's shipped
-model is stable up to a step of about 11.1 ms (benchmarks/bench_physics_dt.py), so the default factor of safety of 2.5 picks 4 ms (README,
-"Training on the twin": what it costs in transfer).
+model is stable up to a step of about 11.1 ms (benchmarks/bench_physics_dt.py), so the default
+factor of safety of 2.5 picks 4 ms (README, "Training on the twin": what it costs in transfer).
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def stable_physics_dt(model: str | os.PathLike | IdentifiedModel | None, period_
     as :class:`IdentifiedBackend` takes it (``None``: the shipped model); ``mjcf``: its source
     MJCF where not the model's own.  Stable means no faster growth than the model's own at its
     ``dt`` (a twin not at rest at that pose tips over at any step); a model not stable at its own
-    ``dt``, or blowing up there, gets ``dt`` (``StepChoice.stable_at_finest`` False).  A model file's answer is kept for the process (by
-    path, size and modification time): training runs ask once each."""
+    ``dt``, or blowing up there, gets ``dt`` (``StepChoice.stable_at_finest`` False).  A model
+    file's answer is kept for the process (by path, size and modification time)."""
     if isinstance(model, (str, os.PathLike)) and not effects:
         path = os.path.realpath(model)
         st = os.stat(path)

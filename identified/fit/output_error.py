@@ -196,11 +196,17 @@ class _Wrench:
         return w[..., :3], torque
 
 
+def _impedances(names: list[str]) -> np.ndarray:
+    """(n,) bool: which of the contact law's parameters are impedances (``imp_*``, in (0, 1): their
+    unknowns are logits), the others positive (their unknowns are logarithms)."""
+    return np.array([n.startswith("imp_") for n in names], dtype=bool)
+
+
 def _law_transform(names: list[str], values: np.ndarray) -> np.ndarray:
     """The contact law's parameters as the windows' unknowns: logits ``log(v / (1 - v))`` of the
-    impedances (``imp_*``, in (0, 1)), logarithms ``log v`` of the others (positive)."""
+    impedances (:func:`_impedances`), logarithms ``log v`` of the others."""
     v = np.asarray(values, dtype=float)
-    logit = np.array([n.startswith("imp_") for n in names], dtype=bool)
+    logit = _impedances(names)
     out = np.empty_like(v)
     out[logit] = np.log(v[logit] / (1 - v[logit]))
     out[~logit] = np.log(v[~logit])
@@ -282,12 +288,13 @@ class _Problem:
                 raise ValueError(f"{contact.name} has no parameter {', '.join(unknown)} (it has {', '.join(names)})")
             self.law_idx = [names.index(n) for n in law_free]
             vals = np.asarray(contact.values, dtype=float)
-            bad = [names[i] for i in self.law_idx if not vals[i] > 0 or (names[i].startswith("imp_") and vals[i] >= 1)]
+            imp = _impedances(names)
+            bad = [names[i] for i in self.law_idx if not vals[i] > 0 or (imp[i] and vals[i] >= 1)]
             if bad:
                 raise ValueError(f"{contact.name}: {', '.join(bad)} must start positive (impedances below 1) to be estimated")
             self.law_names = [names[i] for i in self.law_idx]
             self.law_values = torch.as_tensor(vals, dtype=torch.float64)
-            self.law_logit = torch.as_tensor([n.startswith("imp_") for n in self.law_names])
+            self.law_logit = torch.as_tensor(imp[self.law_idx])
             theta0.append(torch.as_tensor(_law_transform(self.law_names, vals[self.law_idx]), dtype=torch.float64))
         self.theta0 = torch.cat(theta0)
         self.names = (["stiffness"] * S + ["damping"] * S + ["mass"] * R + ["inertia"] * len(groups)

@@ -476,7 +476,7 @@ def cmd_gap(args: argparse.Namespace) -> None:
 def _gap_over_policies(args: argparse.Namespace, policies: list[str],
                        backend_kwargs: dict[str, Any] | None = None) -> None:
     """``gap`` of several policies: one line each, then mean and spread over them."""
-    from tensegrity_gym.gap import measure_gaps
+    from tensegrity_gym.gap import CLEAR_Z, against_line, measure_gaps
 
     r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
                      video_dir=args.video, progress=not args.quiet, threads=args.threads,
@@ -486,11 +486,12 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
         return
     print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}; "
           "forward progress per episode (m), mean over the episodes")
-    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin ± s.e.':>19s}")
+    print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin ± s.e.':>19s}  {'at 90 %'}")
     for path, rep in zip(policies, r["reports"], strict=True):
         ratio, se = rep["transfer"]["plant_over_twin"], rep["transfer"].get("plant_over_twin_stderr")
         cell = "n/a" if ratio is None else f"{ratio:.2f}" + ("" if se is None else f" ± {se:.2f}")
-        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}{cell:>19s}")
+        print(f"  {path[-40:]:40s}{rep['twin']['progress_m']:9.3f}{rep['plant']['progress_m']:9.3f}{cell:>19s}  "
+              f"{against_line(ratio, se) or 'n/a'}")
     o = r["over_policies"]
 
     def line(label: str, sp: dict) -> str:
@@ -509,7 +510,8 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
         print(f"  plant / twin over every policy's episodes together: {pooled['ratio']:.2f}{se}")
     print(f"  random policy on the plant: {o['random_plant']['progress_m']:.3f} m; "
           f"{o['plant_progress_at_least_0.5m']} of {len(policies)} policies roll >= 0.5 m on the plant, "
-          f"{o['plant_over_twin_at_least_0.9']} reach 90 % of their twin progress")
+          f"{o['plant_over_twin_at_least_0.9']} reach 90 % of their twin progress, "
+          f"{o['plant_over_twin_under_0.9_beyond_noise']} fall under it by more than {CLEAR_Z:g} standard errors")
 
 
 # ---------------------------------------------------------------------- parser

@@ -32,7 +32,7 @@ import numpy as np
 from tensegrity_gym.randomize import Randomization
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["EpisodeSet", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
+__all__ = ["CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
            "twin_layout", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
@@ -235,6 +235,24 @@ def transfer_ratios(twin: dict[str, Any], plant: dict[str, Any], random_plant: d
             "plant_over_random": _ratio(plant["progress_m"], random_plant["progress_m"])}
 
 
+#: Standard errors a plant/twin ratio must lie under a line to be called under it (:func:`against_line`).
+CLEAR_Z = 2.0
+
+
+def against_line(ratio: float | None, stderr: float | None, line: float = 0.9, z: float = CLEAR_Z) -> str | None:
+    """A plant/twin ratio read against ``line`` with its standard error: ``"met"`` (at or above
+    it), ``"under"`` (under it by more than ``z`` standard errors: the twin over-predicts the plant
+    beyond the episodes' noise), ``"within noise"`` (under it, but by less: the episodes cannot tell
+    it from a ratio at the line; also without a standard error) or ``None`` (no ratio: the twin
+    made no progress). Ten episodes of rolls leave a ratio of 1 uncertain by 0.1-0.2, so a policy
+    the twin predicts falls under 0.9 one time in five or six; this says which misses are real."""
+    if ratio is None:
+        return None
+    if ratio >= line:
+        return "met"
+    return "under" if stderr is not None and ratio + z * stderr < line else "within noise"
+
+
 def _ratio_stderr(ratio: float | None, num: dict[str, Any], den: dict[str, Any]) -> float | None:
     a, b = (np.asarray(x.get("progress_per_episode_m", []), dtype=float) for x in (num, den))
     if ratio is None or len(a) < 2 or len(b) < 2 or a.mean() == 0:
@@ -420,7 +438,8 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
     ``plant_over_twin`` ratio, the mean, standard deviation, minimum and maximum over the policies
     (:func:`tensegrity_gym.sweep.spread`), plus ``random_plant`` (run once per episode length and
     env settings: the same for every policy that shares them), how many policies roll at least
-    ``0.5`` m on the plant and reach 90 % of their twin progress, and ``plant_over_twin_pooled``:
+    ``0.5`` m on the plant and reach 90 % of their twin progress, how many are under 90 % by more
+    than :data:`CLEAR_Z` standard errors (:func:`against_line`), and ``plant_over_twin_pooled``:
     the ratio of the mean plant to the mean twin progress over every policy's episodes together,
     with its standard error (as :func:`transfer_ratios`). ``video_dir``: the videos
     of policy ``i`` in ``video_dir/<i>``.
@@ -451,6 +470,10 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
                             "return": spread(r["random_plant"]["return"] for r in reports)["mean"]}
     over["plant_progress_at_least_0.5m"] = sum(r["plant"]["progress_m"] >= 0.5 for r in reports)
     over["plant_over_twin_at_least_0.9"] = sum((r["transfer"]["plant_over_twin"] or 0.0) >= 0.9 for r in reports)
+    # under the line beyond each policy's own noise (``against_line``): the twin exploited, not a draw
+    over["plant_over_twin_under_0.9_beyond_noise"] = sum(
+        against_line(r["transfer"]["plant_over_twin"], r["transfer"]["plant_over_twin_stderr"]) == "under"
+        for r in reports)
     # every policy's episodes together: does the twin predict the plant over the policies?
     pooled = {w: {"progress_per_episode_m": [x for r in reports for x in r[w]["progress_per_episode_m"]]}
               for w in ("twin", "plant")}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tensegrity_gym.gap import EpisodeSet, open_loop_divergence, run_episodes, transfer_ratios
+from tensegrity_gym.gap import EpisodeSet, against_line, open_loop_divergence, run_episodes, transfer_ratios
 
 
 class _Line:
@@ -91,3 +91,14 @@ def test_open_loop_divergence_by_hand():
     assert out["at"]["1s"] == pytest.approx(0.5) and out["at"]["5s"] is None
     assert out["time_to_0.1m_s"] == pytest.approx(0.5) and out["time_to_0.5m_s"] == pytest.approx(2.0)
     assert out["final_m"] == pytest.approx(1.0) and out["mean_m"] == pytest.approx(0.45)
+
+
+def test_a_ratio_is_under_the_line_only_beyond_its_standard_errors():
+    # 0.80 + 2 x 0.04 = 0.88 < 0.9: under beyond the noise; 0.80 + 2 x 0.06 = 0.92: within it
+    assert against_line(0.80, 0.04) == "under"
+    assert against_line(0.80, 0.06) == "within noise"
+    assert against_line(0.80, 0.05, z=1.0) == "under" and against_line(0.80, 0.05) == "within noise"
+    assert against_line(0.90, 0.50) == "met" and against_line(1.3, None) == "met"
+    assert against_line(0.2, None) == "within noise"  # no error bar: the data cannot tell
+    assert against_line(None, 0.1) is None
+    assert against_line(0.45, 0.02, line=0.5) == "under" and against_line(0.45, 0.03, line=0.5) == "within noise"

@@ -198,11 +198,15 @@ def test_gap_over_a_sweep_folder_reports_mean_and_spread(sweep, twin, capsys):
         assert r["over_policies"]["plant_over_twin_pooled"]["ratio"] is None
     assert r["over_policies"]["plant_over_twin_at_least_0.9"] == sum(
         (rep["transfer"]["plant_over_twin"] or 0) >= 0.9 for rep in r["reports"])
+    assert r["over_policies"]["plant_over_twin_under_0.9_beyond_noise"] == sum(
+        rep["transfer"]["plant_over_twin"] is not None and rep["transfer"]["plant_over_twin_stderr"] is not None
+        and rep["transfer"]["plant_over_twin"] + 2 * rep["transfer"]["plant_over_twin_stderr"] < 0.9
+        for rep in r["reports"])
     # the random policy ran once: both reports hold the same block
     assert r["reports"][0]["random_plant"] == r["reports"][1]["random_plant"]
     assert main(args) == 0
     said = capsys.readouterr().out
-    assert "over the policies:" in said and "plant progress (m): mean" in said
+    assert "over the policies:" in said and "plant progress (m): mean" in said and "standard errors" in said
 
 
 def test_train_seeds_on_the_command_line(twin, tmp_path, capsys):

@@ -10,7 +10,14 @@ import pytest
 import torch
 
 from identified.fit.markers import states_from_recording
-from identified.fit.output_error import DISAGREE, _disagreement, _Problem, marker_windows, refine_markers
+from identified.fit.output_error import (
+    DISAGREE,
+    OFF_MARKERS,
+    _disagreement,
+    _Problem,
+    marker_windows,
+    refine_markers,
+)
 from identified.model import IdentifiedModel
 from identified.topology import Topology
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
@@ -112,6 +119,25 @@ def test_bound_scales_with_the_marker_noise(floorless):
         se.append(np.concatenate([out.stderr[k] for k in ("stiffness", "damping", "mass")]))
     assert np.all(se[0] > 0)
     np.testing.assert_allclose(se[1], 4 * se[0], rtol=1e-6)
+
+
+def test_windows_that_do_not_follow_the_markers_keep_the_regression(floorless):
+    """Stiffnesses 10x the truth: the windows leave the clean markers centimetres off, far beyond their
+    noise, and the refinement keeps the model it was given (saying why) instead of error bars taken
+    at such a residual; at the truth it is kept open (the residual is the noise's)."""
+    path, _, rec, ms = floorless
+    truth = _truth(path)
+    truth.stderr = {k: 0.01 * getattr(truth, k) for k in ("stiffness", "damping", "mass")}
+    wrong = IdentifiedModel(**truth.__dict__)
+    wrong.stiffness = 10.0 * truth.stiffness
+    kw = {"frames": 10, "max_windows": 2, "jacobians": 1, "chord_steps": 1, "sigma": 1e-3}
+    out = refine_markers(wrong, rec, ms.data, ms.starts, None, ms.unobservable, **kw)
+    oe = out.metrics["output_error"]
+    assert oe["residual_rms_m"] > OFF_MARKERS * 1e-3 and "do not follow" in oe["kept_regression"]
+    np.testing.assert_array_equal(out.stiffness, wrong.stiffness)
+    assert out.stderr is not None and np.array_equal(out.stderr["stiffness"], truth.stderr["stiffness"])
+    near = refine_markers(truth, rec, ms.data, ms.starts, None, ms.unobservable, **kw).metrics["output_error"]
+    assert near["residual_rms_m"] < 1e-3 and "kept_regression" not in near
 
 
 def test_disagreement_in_combined_standard_errors(tmp_path):

@@ -457,7 +457,10 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     it (the chord method: each step costs one run of the windows), a step taken only where it
     lowers the cost.  The standard errors come from the last Jacobian, scaled by the residual's
     variance (``known_noise``: by ``sigma`` itself -- with ``fit_params`` false and the true
-    parameters, the Cramer-Rao bound of the windows' markers)."""
+    parameters, the Cramer-Rao bound of the windows' markers).  Where the windows end more than
+    :data:`OFF_MARKERS` times the markers' noise off them, or the refinement moves a parameter more
+    than :data:`DISAGREE` combined standard errors, the regression's model is returned, its
+    ``metrics.output_error.kept_regression`` saying why."""
     t0 = time.perf_counter()
     sig = float(sigma or rec.noise_pos or 1e-3)
     win, available, prob, dx, free_x = window_problem(model, rec, data, starts, mjcf, sig, hold_inertia, frames,
@@ -520,6 +523,15 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     fit_s2 = history[-1] / max(dof, 1.0)
     out = _result(model, prob, theta, cov * s2, history, win, fit_s2, sig, time.perf_counter() - t0)
     out.metrics["output_error"]["windows_available"] = available
+    if fit_params and np.sqrt(fit_s2) > OFF_MARKERS:
+        # the windows do not follow the recording (started too far, a rate too low for the engine's
+        # windows): their Gauss-Newton error bars, taken at such a residual, say nothing
+        kept = replace(model, metrics=dict(model.metrics))
+        kept.metrics["output_error"] = out.metrics["output_error"] | {
+            "kept_regression": f"the windows leave the markers {np.sqrt(fit_s2) * sig:.3g} m off, more than "
+                               f"{OFF_MARKERS:g} times their noise ({sig:.3g} m): the engine's windows do not follow "
+                               f"this recording"}
+        return kept
     if fit_params:
         moved = _disagreement(model, out)
         if moved > DISAGREE:  # two estimates of the same data that their error bars cannot reconcile
@@ -530,6 +542,10 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
             return kept
     return out
 
+
+#: the windows' residual RMS, in units of the markers' noise, beyond which the refinement is not
+#: trusted (at 100 Hz and 1 mm it is 1.0; from a 10 Hz regression, whose windows diverge, ~900)
+OFF_MARKERS = 10.0
 
 #: combined standard errors by which the refinement may move a parameter from the regression
 #: before its result is distrusted (its Gauss-Newton error bars assume it is near linear)

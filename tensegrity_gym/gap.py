@@ -32,8 +32,8 @@ import numpy as np
 from tensegrity_gym.randomize import Randomization
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence", "run_episodes", "transfer_ratios",
-           "twin_layout", "write_mp4"]
+__all__ = ["CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence",
+           "run_episodes", "transfer_ratios", "twin_layout", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
 #: Videos: frame size (pixels) and by default one frame every this many control steps (25 fps at

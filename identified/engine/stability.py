@@ -34,6 +34,12 @@ from identified.rotation import quat_conjugate, quat_exp, quat_multiply
 NEUTRAL_RATE = 0.1
 
 
+#: the least and the most rotation a step (rad) of an eigenvalue of the step that count as an
+#: oscillation of the model (:func:`oscillation_frequencies`)
+MIN_TURN = 1e-6
+MAX_TURN = 0.5 * np.pi
+
+
 def step_jacobian(engine: SpringRodEngine, state: RodState, rest_length: Any) -> np.ndarray:
     """The Jacobian (12R, 12R) of one :meth:`~identified.engine.SpringRodEngine.step` at ``state``
     (unbatched, R rods) and ``rest_length`` (S,), in float64 minimal coordinates ordered
@@ -69,6 +75,25 @@ def spectral_radius(engine: SpringRodEngine, state: RodState, rest_length: Any) 
     if not np.isfinite(J).all():
         return float("nan")
     return float(np.abs(np.linalg.eigvals(J)).max())
+
+
+def oscillation_frequencies(engine: SpringRodEngine, state: RodState, rest_length: Any) -> np.ndarray:
+    """The frequencies (Hz, ascending, one per conjugate pair) of the oscillating modes of the
+    engine's step at ``state``: ``|arg λ| / (2π h)`` of each complex eigenvalue of
+    :func:`step_jacobian` (the step's own rotation per step; for semi-implicit Euler's map of
+    ``ẍ = -ω² x - γ ẋ`` it tends to the damped ``sqrt(ω² - γ²/4)`` as ``h ω -> 0``). Modes that do not
+    oscillate (overdamped cables, rigid-body drift) and the integrator's own sign flips (a quarter
+    turn a step or more, :data:`MAX_TURN`) are not in it; empty where none do, or where the step is
+    not finite at ``state``."""
+    J = step_jacobian(engine, state, rest_length)
+    if not np.isfinite(J).all():
+        return np.zeros(0)
+    arg = np.angle(np.linalg.eigvals(J))
+    # one of each conjugate pair; a turn of under 1e-6 rad a step (a period of 6e6 steps) is the
+    # rounding of the neutral modes' repeated eigenvalue 1 (a Jordan block splits it by ~1e-10), not
+    # a mode; one of more than a quarter turn a step is the integrator's own (an eigenvalue near -1:
+    # a stiff mode at the edge of the step's stability flipping sign each step), not a motion it resolves
+    return np.sort(arg[(arg > MIN_TURN) & (arg < MAX_TURN)] / (2.0 * np.pi * engine.dt))
 
 
 def growth_rate(rho: float, h: float) -> float:

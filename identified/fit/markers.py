@@ -477,9 +477,12 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
     (true, or the options of :func:`identified.fit.output_error.refine_markers`): then K, c, M and
     the observable moments refined against the markers themselves.  A ground contact law's friction
     damping is then chosen by the short free runs from the reconstructed states
-    (:mod:`identified.fit.contact_damping`)."""
+    (:mod:`identified.fit.contact_damping`).  Where the identified robot oscillates faster than half
+    the recording's rate, the dampings', masses' and moments' standard errors are withheld and a
+    warning says why (:mod:`identified.fit.sampling_rate`; ``metrics.recording.fastest_oscillation_hz``)."""
     from identified.fit.derivatives import default_window
     from identified.fit.pipeline import fit_model
+    from identified.fit.sampling_rate import fastest_oscillation, withhold_unresolved
 
     topo = Topology.from_mjcf(mjcf)
     rec = labelled(rec, topo, mjcf)
@@ -505,6 +508,9 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
     if damping[0] is not None:
         model.metrics["recording"]["friction_damping"] = damping[0]
+    fastest = fastest_oscillation(model, ms.data)
+    model.metrics["recording"]["fastest_oscillation_hz"] = fastest
+    withhold_unresolved(model, rec.rate_hz(), fastest)
     if output_error:
         from identified.fit.output_error import refine_markers
 

@@ -173,3 +173,31 @@ def test_a_warm_starting_effect_is_refitted_from_the_values_the_search_found(mon
     assert final[:2] == (both, 4) and final[2][0] == [k + 1.0] * len(final[2][0]) and final[2][1] is None
     _, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=1.0, warm=False)
     assert all(v is None for f in fits for v in f[2])
+
+
+def test_a_search_that_adds_nothing_says_so_when_the_bare_model_is_not_identified(monkeypatch, tmp_path):
+    """The search adds no effect and the spring-rod model alone is not identified (a robot on the
+    ground with no contact law): the refusal names the search's outcome and what to do, keeping the
+    rank error's parameters; a fit asked for no effects keeps the rank error as it is."""
+    import pytest
+
+    from identified.fit import pipeline
+    from identified.fit.regression import IdentifiabilityError
+    from tensegrity_gym.collect import CollectConfig, collect
+    from tensegrity_gym.models import write_model
+
+    def identify(data, topology, effects=(), **kw):
+        raise IdentifiabilityError("the data cannot identify cable0.stiffness", ["cable0.stiffness"])
+
+    monkeypatch.setattr(pipeline, "identify", identify)
+    monkeypatch.setattr(pipeline, "_select_effects", lambda *a, **k: ([], [], False, {}, None))
+    path = str(tmp_path / "ico.xml")
+    write_model(path, "ico", preset="paper-uniform")
+    data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))
+    with pytest.raises(IdentifiabilityError) as err:
+        pipeline.fit_model(data, path, effects="auto", jobs=1)
+    said = str(err.value)
+    assert said.startswith("--effects auto added no effect") and "cable0.stiffness" in said
+    assert "--effects ground_contact" in said and err.value.names == ["cable0.stiffness"]
+    with pytest.raises(IdentifiabilityError, match="^the data cannot identify cable0.stiffness$"):
+        pipeline.fit_model(data, path, effects="none", jobs=1)

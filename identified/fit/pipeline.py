@@ -196,7 +196,17 @@ def fit_model(
         model, seconds = early.model, early.seconds  # fitted during the search's last round
     else:
         t0 = time.perf_counter()
-        model = identify(data, topo, effects=_build(names, topo, mjcf, fixed), progress=progress, **kw)
+        try:
+            model = identify(data, topo, effects=_build(names, topo, mjcf, fixed), progress=progress, **kw)
+        except IdentifiabilityError as err:
+            if spec != "auto" or names:
+                raise
+            # the search added nothing and the spring-rod model alone is not identified: that is the
+            # news (a robot on the ground with no contact law), not the rank error's parameter list
+            raise IdentifiabilityError(
+                f"--effects auto added no effect (none of its candidates ran on the held-out episodes "
+                f"well enough) and without one {err}; name the effects instead, e.g. --effects ground_contact",
+                err.names) from err
         seconds = time.perf_counter() - t0
     model.metrics["fit_seconds"] = round(seconds, 4)
     if selection is not None:

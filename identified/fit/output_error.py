@@ -523,24 +523,29 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     fit_s2 = history[-1] / max(dof, 1.0)
     out = _result(model, prob, theta, cov * s2, history, win, fit_s2, sig, time.perf_counter() - t0)
     out.metrics["output_error"]["windows_available"] = available
-    if fit_params and np.sqrt(fit_s2) > OFF_MARKERS:
+    if not fit_params:
+        return out
+    off = float(np.sqrt(fit_s2))  # the windows' residual RMS in units of the markers' noise
+    if off > OFF_MARKERS:
         # the windows do not follow the recording (started too far, a rate too low for the engine's
         # windows): their Gauss-Newton error bars, taken at such a residual, say nothing
-        kept = replace(model, metrics=dict(model.metrics))
-        kept.metrics["output_error"] = out.metrics["output_error"] | {
-            "kept_regression": f"the windows leave the markers {np.sqrt(fit_s2) * sig:.3g} m off, more than "
-                               f"{OFF_MARKERS:g} times their noise ({sig:.3g} m): the engine's windows do not follow "
-                               f"this recording"}
-        return kept
-    if fit_params:
-        moved = _disagreement(model, out)
-        if moved > DISAGREE:  # two estimates of the same data that their error bars cannot reconcile
-            kept = replace(model, metrics=dict(model.metrics))
-            kept.metrics["output_error"] = out.metrics["output_error"] | {
-                "kept_regression": f"the refinement moved a parameter {moved:.1f} combined standard errors from the "
-                                   f"regression (more than {DISAGREE:g}): too few windows for its linearisation"}
-            return kept
+        return _kept_regression(model, out, f"the windows leave the markers {off * sig:.3g} m off, more than "
+                                            f"{OFF_MARKERS:g} times their noise ({sig:.3g} m): the engine's windows "
+                                            f"do not follow this recording")
+    moved = _disagreement(model, out)
+    if moved > DISAGREE:  # two estimates of the same data that their error bars cannot reconcile
+        return _kept_regression(model, out, f"the refinement moved a parameter {moved:.1f} combined standard errors "
+                                            f"from the regression (more than {DISAGREE:g}): too few windows for its "
+                                            f"linearisation")
     return out
+
+
+def _kept_regression(model: IdentifiedModel, refined: IdentifiedModel, why: str) -> IdentifiedModel:
+    """The regression's ``model``, with the refinement's report and why it was not taken
+    (``metrics.output_error.kept_regression``)."""
+    kept = replace(model, metrics=dict(model.metrics))
+    kept.metrics["output_error"] = refined.metrics["output_error"] | {"kept_regression": why}
+    return kept
 
 
 #: the windows' residual RMS, in units of the markers' noise, beyond which the refinement is not

@@ -49,7 +49,7 @@ def fastest_oscillation(model: IdentifiedModel, data: Dataset, takes: int = TAKE
 def withhold_unresolved(model: IdentifiedModel, rate_hz: float, fastest_hz: float) -> bool:
     """Where ``fastest_hz`` (the model's fastest oscillation) is above half of ``rate_hz`` (the
     recording's frame rate): the standard errors of the dampings, masses and moments of inertia set
-    to NaN (``null`` in the file), a line each in ``metrics.not_identifiable`` and one warning in
+    to NaN (``null`` in the file), one line in ``metrics.not_identifiable`` and one warning in
     ``metrics.warnings``; True where it did so.  The stiffnesses keep theirs."""
     nyquist = 0.5 * float(rate_hz)
     if not fastest_hz > nyquist:

@@ -508,9 +508,6 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
     if damping[0] is not None:
         model.metrics["recording"]["friction_damping"] = damping[0]
-    fastest = fastest_oscillation(model, ms.data)
-    model.metrics["recording"]["fastest_oscillation_hz"] = fastest
-    withhold_unresolved(model, rec.rate_hz(), fastest)
     if output_error:
         from identified.fit.output_error import refine_markers
 
@@ -522,6 +519,11 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
 
         refresh_physics(model)  # the checks and errors of the refined values
         attach_metrics(model, ms.data)
+    # on the model returned, refined or not: the refinement's windows start from the same splined
+    # states, and its error bars at a rate the robot outruns were never shown to cover
+    fastest = fastest_oscillation(model, ms.data)
+    model.metrics["recording"]["fastest_oscillation_hz"] = fastest
+    withhold_unresolved(model, rec.rate_hz(), fastest)
     return model
 
 

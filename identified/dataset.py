@@ -101,20 +101,27 @@ class Dataset:
         t = self.n_steps if steps is None else int(steps)
         if not 1 <= t <= self.n_steps:
             raise DatasetError(f"steps must be in 1..{self.n_steps}, got {t}")
-        ep = episodes
+        return self.span(episodes, 0, t)
+
+    def span(self, episodes: slice | np.ndarray | list[int], start: int, stop: int) -> Dataset:
+        """A sub-dataset: some episodes, their steps ``start .. stop - 1`` (the states at instants
+        ``start .. stop``) -- every per-step array cut alike, the noise replicas too."""
+        if not 0 <= start < stop <= self.n_steps:
+            raise DatasetError(f"a span of steps must lie in 0..{self.n_steps}, got {start}..{stop}")
+        ep, s, t = episodes, int(start), int(stop)
         return replace(
             self,
-            pos=self.pos[ep, : t + 1],
-            quat=self.quat[ep, : t + 1],
-            vel=self.vel[ep, : t + 1],
-            angvel=self.angvel[ep, : t + 1],
-            command=self.command[ep, :t],
-            rest_length=self.rest_length[ep, :t],
-            push_force=self.push_force[ep, :t],
-            push_point=self.push_point[ep, :t],
-            ctrl=self.ctrl[ep, :t] if self.ctrl.ndim == 3 and self.ctrl.shape[0] else self.ctrl,
-            weight=self.weight[ep, :t] if self.has_weight else self.weight,
-            replicas=tuple(r.select(episodes, steps) for r in self.replicas),
+            pos=self.pos[ep, s: t + 1],
+            quat=self.quat[ep, s: t + 1],
+            vel=self.vel[ep, s: t + 1],
+            angvel=self.angvel[ep, s: t + 1],
+            command=self.command[ep, s:t],
+            rest_length=self.rest_length[ep, s:t],
+            push_force=self.push_force[ep, s:t],
+            push_point=self.push_point[ep, s:t],
+            ctrl=self.ctrl[ep, s:t] if self.ctrl.ndim == 3 and self.ctrl.shape[0] else self.ctrl,
+            weight=self.weight[ep, s:t] if self.has_weight else self.weight,
+            replicas=tuple(r.span(episodes, s, t) for r in self.replicas),
         )
 
     @property

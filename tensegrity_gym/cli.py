@@ -230,10 +230,14 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         if os.path.exists(args.out) and not os.path.isdir(args.out):
             raise CommandError(f"--out '{args.out}' exists and is not a folder")
     model = load_model(args.identified)
+    scoring: dict[str, int] = {}
     if _is_recording(args.data):  # rod states reconstructed from the markers (identified.fit.markers)
-        from identified.fit.markers import recording_dataset
+        from identified.fit.markers import diagnosis_options, recording_dataset
+        from identified.recording import load_recording
 
-        data = recording_dataset(args.data, model)
+        rec = load_recording(args.data)
+        data = recording_dataset(rec, model)
+        scoring = diagnosis_options(rec, model.dt)  # the candidates scored as the fit reads a recording
     else:
         data = load_dataset(args.data)
     check_compatible(data, model.topology)
@@ -245,7 +249,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     mjcf = args.model
     if mjcf is not None:
         _check_readable(mjcf)
-    result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf)
+    result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf, **scoring)
     paths = write_report(result, args.out) if args.out else []
     if args.json:
         keep = {k: v for k, v in result.items() if k != "plot_data"}
@@ -254,7 +258,10 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     fmt = lambda x: "diverged" if x is None else f"{x:.4g} m"
     print(f"free-run position error over {result['horizon_s']:g} s: without the model's effects "
           f"{fmt(result['error_before'])}, with them ({', '.join(result['added']) or 'none'}) {fmt(result['error_after'])}")
-    print(f"residual explained: {result['explained']} ({result.get('explained_by') or 'structured residual left'})")
+    missing = result.get("unexplained_by") or []
+    why = (", ".join(f"{c['name']} removes {c['score_held_out']:.0%} of it on held-out data" for c in missing)
+           if missing else (result.get("explained_by") or "structured residual left"))
+    print(f"residual explained: {result['explained']} ({why})")
     for e in result["one_step"].get("effect_rows") or []:
         pct = lambda v: "n/a" if v is None else (f"{v:.1%}" if v >= 1e-3 else f"{v:.2g}")
         print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "
@@ -262,7 +269,8 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
               f"{pct(e['outside']['force'])}, {pct(e['outside']['torque'])}")
     for c in result["candidates"][:6]:
         score = "n/a" if c["score"] is None else f"{c['score']:.3f}"
-        print(f"  candidate {c['name']:<16} score {score}  {c.get('note') or ''}".rstrip())
+        held = "" if c.get("score_held_out") is None else f"  held out {c['score_held_out']:.3f}"
+        print(f"  candidate {c['name']:<16} score {score}{held}  {c.get('note') or ''}".rstrip())
     for p in paths:
         print(f"wrote {p}")
 

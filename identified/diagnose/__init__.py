@@ -33,7 +33,15 @@ alone, ``score = 1 - RSS(B, X) / RSS(B)`` (``unexplained = 1 - score``): the bas
 move, because a fit without the effect has bent them to mimic it.  1 = the candidate explains the
 residual completely, 0 = not at all; an unrelated candidate with ``P`` parameters scores about
 ``P / rows`` on white residuals.  ``score_alone`` is the fraction of ``y'y`` that ``X`` alone
-explains.  ``ground_contact`` needs the MJCF's ground plane and capsules (``mjcf=``, else
+explains.  ``score_held_out``: with the model's own columns regressed out over all the data, the
+candidate's columns fitted on one half of the data (blocks of 1 s, alternating) and the share of
+the residual they remove on the other half, the smaller of the two ways round
+(:func:`.residual.held_out_score`): an effect the data hold removes about as much as in-sample, one
+fitted to noise removes nothing; the candidates are listed best first by it.  On states reconstructed from a recording's markers (``weak_window``,
+``contact_margin``: :func:`identified.fit.markers.diagnosis_options`) the rows are those the fit
+reads: each episode's rows summed over the fit's 0.3 s windows (the splines' second derivatives
+carry the markers' noise, which dominates one-step rows), and the rows of the rods in contact,
+with a margin, left out (a spline spreads an impact over a few frames).  ``ground_contact`` needs the MJCF's ground plane and capsules (``mjcf=``, else
 ``model.source_model`` when it is a file); without them it is listed under ``skipped``.
 
 **Explained** (``explained``: ``True``, ``"partial"`` or ``False``; the reasons in
@@ -50,7 +58,9 @@ the recorded wrench on the other rows, in every episode that holds rows of both 
 runs agreeing; over the whole data a difference this large is never chance).  The effect's law then
 explains most of its force but not all of it, and what it misses is concentrated where it acts.
 ``False``: none of the three rules holds; the residual is structured and the model's effects do not
-account for it.
+account for it.  Also ``False`` whatever the rules, when a candidate is *supported*: its
+``score_held_out`` is at least :data:`SUPPORTED_GAIN` (``unexplained_by`` lists them): an effect
+the model lacks removes a clear share of what is left on data it was not fitted on.
 
 Also: the residual by region of state (each region an effect class declares -- ``near_ground``:
 the rods ground contact acts on --, slack cables -- springs shorter than their rest length when no
@@ -81,7 +91,8 @@ from .report import write_report
 from .residual import one_step
 from .stats import ALPHA, DOFS, LJUNG_BOX_LAGS, input_correlation, ljung_box, whiteness
 
-__all__ = ["DOFS", "K_STEPS", "at_rounding_level", "diagnose", "improved", "ljung_box", "verdict", "write_report"]
+__all__ = ["DOFS", "K_STEPS", "SUPPORTED_GAIN", "at_rounding_level", "diagnose", "improved", "ljung_box", "supported",
+           "verdict", "write_report"]
 
 #: k-step prediction errors are reported for these k
 K_STEPS = (1, 10, 100)
@@ -91,6 +102,9 @@ EXPLAINED_GAIN = 0.2  # error_after <= this x error_before
 PARTIAL_LEVEL = 0.01
 #: ... and at least this many times the other rows', in every episode
 PARTIAL_RATIO = 10.0
+#: a candidate effect the data support: it removes at least this share of the residual on each
+#: half of the data with its coefficients fitted on the other half
+SUPPORTED_GAIN = 0.15
 _CURVE_POINTS = 200
 _KSTEP_STARTS = 256
 
@@ -103,6 +117,8 @@ def diagnose(
     max_steps: int = 50_000,
     mjcf: str | os.PathLike | None = None,
     chunk_steps: int = 2048,
+    weak_window: int | None = None,
+    contact_margin: int | None = None,
 ) -> dict[str, Any]:
     """Residual analysis of ``model`` on ``data`` (see the module docstring for every rule).
 
@@ -116,7 +132,8 @@ def diagnose(
     Keys: ``error_before``, ``error_after`` (m), ``metric``, ``horizon_s``, ``added``,
     ``explained`` (``True``, ``"partial"``, ``False``), ``explained_by`` (``"rounding"``,
     ``"white"``, ``"improved"``), ``partial_by`` (the added effects whose rows leave a clear
-    signature), ``explained_rule``; ``candidates`` (best first: ``name``, ``score``,
+    signature), ``unexplained_by`` (the supported candidates), ``explained_rule``; ``candidates`` (best
+    first by ``score_held_out``: ``name``, ``score``, ``score_held_out``, ``score_held_out_halves``,
     ``unexplained``, ``score_alone``, ``n_params``, ``max_abs_corr``, ``best_feature``,
     ``top_features``, ``note``), ``score_rule``, ``skipped`` (``name``, ``reason``),
     ``base_refit_explains``; ``data``; ``one_step`` (``force_rms`` N and ``torque_rms`` N m per
@@ -135,7 +152,7 @@ def diagnose(
     (badly so on a loaded machine).
     """
     with threadpool_limits(1):
-        return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps)
+        return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps, weak_window, contact_margin)
 
 
 def at_rounding_level(relative: dict[str, float | None]) -> bool:
@@ -150,6 +167,14 @@ def improved(added: list[str], error_before: float | None, error_after: float | 
     eb, ea = error_before, error_after
     return bool(added) and ((eb is None and ea is not None)
                             or (eb is not None and ea is not None and eb > 0 and ea <= EXPLAINED_GAIN * eb))
+
+
+def supported(candidates: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The candidates the data support, best first: ``score_held_out`` (the smaller of its two
+    halves' held-out scores) at least :data:`SUPPORTED_GAIN`; each as ``name``, ``score_held_out``."""
+    hits = [c for c in candidates if c.get("score_held_out") is not None and c["score_held_out"] >= SUPPORTED_GAIN]
+    return [{"name": c["name"], "score_held_out": c["score_held_out"]}
+            for c in sorted(hits, key=lambda c: -c["score_held_out"])]
 
 
 def verdict(rounding: bool, white: bool, improved: bool,
@@ -176,7 +201,8 @@ def verdict(rounding: bool, white: bool, improved: bool,
 
 
 def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps: int,
-              mjcf: str | os.PathLike | None, chunk_steps: int) -> dict[str, Any]:
+              mjcf: str | os.PathLike | None, chunk_steps: int, weak_window: int | None,
+              contact_margin: int | None) -> dict[str, Any]:
     topo = model.topology
     if data.rod_names != topo.rod_names or data.tendon_names != topo.spring_names:
         missing = sorted(set(topo.rod_names + topo.spring_names) - set(data.rod_names + data.tendon_names))
@@ -201,7 +227,7 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
 
     candidates, skipped = _candidates(model, added, src)
     regions = _region_effects(model, candidates)
-    one = one_step(model, sub, candidates, regions, chunk_steps)
+    one = one_step(model, sub, candidates, regions, chunk_steps, weak_window, contact_margin)
     res = one["res"]  # (E, T', R, 6)
     lb = whiteness(res, topo.rod_names)
     rel = one["relative"]
@@ -212,7 +238,12 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
     for name, why in _unavailable_regions(regions, src).items():
         region_out[name] = why
 
-    cand = sorted(one["candidates"], key=lambda c: -(c["score"] if c["score"] is not None else -1))
+    # best first: by the share each removes on data it was not fitted on, then by the in-sample score
+    key = lambda v: -np.inf if v is None else v
+    cand = sorted(one["candidates"], key=lambda c: (-key(c.get("score_held_out")), -key(c["score"])))
+    missing = supported(cand)
+    if missing:  # a library effect removes a clear share of what is left, on data it was not fitted on
+        explained, partial = False, []
     result: dict[str, Any] = {
         "metric": (f"free-run position error: distance between predicted and recorded rod centres of mass, m, "
                    f"mean over rods, steps 1..{H} ({H * sub.dt:g} s) and {sub.n_episodes} episodes, from each "
@@ -225,19 +256,18 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
         "explained": explained,
         "explained_by": reasons,
         "partial_by": partial,
+        "unexplained_by": missing,
         "explained_rule": (f"explained (true) when the one-step residual is at rounding level (RMS < "
                            f"{ROUNDING_LEVEL:g} x the recorded wrench RMS, force and torque), or white (Ljung-Box, "
                            f"{LJUNG_BOX_LAGS} lags, no rod/dof series rejects at {ALPHA:g} after Bonferroni), or the "
                            f"added effects cut the free-run error at least {1 / EXPLAINED_GAIN:g}x; \"partial\" when "
                            f"so but an added effect acting on some rods leaves there a residual of at least "
                            f"{PARTIAL_LEVEL:g} of the recorded force or torque and at least {PARTIAL_RATIO:g}x the "
-                           f"other rods', in every episode; false otherwise"),
+                           f"other rods', in every episode; false otherwise, and false whenever a candidate effect "
+                           f"removes at least {SUPPORTED_GAIN:g} of the residual on each half of the data with its "
+                           f"coefficients fitted on the other half (unexplained_by)"),
         "candidates": cand,
-        "score_rule": ("fraction of the one-step residual (rows: force and torque / rod half-length, world frame, "
-                       "every rod and instant) that adding the candidate would remove: 1 - RSS(model columns + "
-                       "candidate columns) / RSS(model columns), least squares with the model's own K, c, M, I, h "
-                       "(total mass held) free to move; score_alone: the fraction the candidate's columns alone "
-                       "explain"),
+        "score_rule": _score_rule(weak_window, contact_margin, sub.dt),
         "skipped": skipped,
         "base_refit_explains": one["base_refit"],
         "data": {"episodes": sub.n_episodes, "steps_per_episode": sub.n_steps, "dt": sub.dt,
@@ -265,6 +295,22 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
 
 
 # ---------------------------------------------------------------------- parts
+def _score_rule(weak_window: int | None, contact_margin: int | None, dt: float) -> str:
+    """The candidates' score in words, for the rows it was computed on."""
+    rows = "the one-step residual (rows: force and torque / rod half-length, world frame, every rod and instant"
+    if weak_window and weak_window > 1:
+        rows += f", each episode's rows summed over {weak_window * dt:g} s windows: the fit's weak form"
+    if contact_margin is not None:
+        rows += (f"; the rows of the rods the model's regional effects act on, and within {contact_margin * dt:g} s "
+                 "of them, left out")
+    return (f"fraction of {rows}) that adding the candidate would remove: 1 - RSS(model columns + candidate "
+            "columns) / RSS(model columns), least squares with the model's own K, c, M, I, h (total mass held) free "
+            "to move; score_alone: the fraction the candidate's columns alone explain; score_held_out: with the "
+            "model's columns regressed out over all the data, the fraction of each half (1 s blocks, alternating) "
+            "that the candidate's columns fitted on the other half remove, the smaller of the two; best first by "
+            "score_held_out")
+
+
 def _candidates(model: IdentifiedModel, added: list[str], src: str | None
                 ) -> tuple[list[Effect], list[dict[str, str]]]:
     """The library's effects the model does not have, made for its system, and those that cannot

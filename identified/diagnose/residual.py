@@ -9,7 +9,7 @@ equations of the candidates' scores (:class:`_Scores`); the summaries are taken 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,9 @@ import torch
 from identified.dataset import Dataset
 from identified.effects import Effect
 from identified.evaluate import push_points, residual_wrench
+from identified.fit.derivatives import weak_form
 from identified.fit.features import RodColumns, equation_rows
+from identified.fit.identify import dilate_rows
 from identified.fit.layout import ParameterLayout
 from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel
@@ -26,21 +28,29 @@ from identified.rotation import matrix_apply
 from identified.samples import iter_chunks
 from identified.twin import effects_from_model, engine_from_model
 
-from .stats import explained_sum_of_squares
+from .stats import explained_sum_of_squares, least_squares
 
-__all__ = ["FAST_QUANTILE", "one_step"]
+__all__ = ["FAST_QUANTILE", "FOLDS", "held_out_score", "one_step"]
 
 FAST_QUANTILE = 0.9
+#: the candidates' sums are kept per half of the data, for the held-out scores ...
+FOLDS = 2
+#: ... the halves made of blocks of this many seconds, alternating
+FOLD_BLOCK_S = 1.0
 _TIME_POINTS = 600
 _SCATTER_POINTS = 3000
 _SAMPLE_INSTANTS = 400
 
 
 def one_step(model: IdentifiedModel, data: Dataset, candidates: list[Effect], region_effects: dict[str, Effect],
-             chunk_steps: int) -> dict[str, Any]:
+             chunk_steps: int, weak_window: int | None = None, contact_margin: int | None = None) -> dict[str, Any]:
     """The one-step residual of ``model`` on ``data`` (the keys of ``diagnose``'s ``one_step``,
     ``regions``, ``candidates``, ``best_feature``, and the raw residual ``res`` (E, T', R, 6) with
-    its instants ``times`` for the statistics).
+    its instants ``times`` for the statistics).  ``weak_window``: the candidates are scored on the
+    weak form of the rows (windows of that many steps; whole episodes are analysed at once);
+    ``contact_margin`` (steps): the rows of the rods the model's own regional effects act on (ground
+    contact's rods on the ground), and those within that many steps of them, are left out of the
+    candidates' scores (``None``: every row is scored).
 
     ``region_effects``: per region name (an effect class's ``region``), the effect whose
     :meth:`~identified.effects.Effect.rows_affected` defines it (the model's own when it has one).
@@ -51,7 +61,9 @@ def one_step(model: IdentifiedModel, data: Dataset, candidates: list[Effect], re
     eng = engine_from_model(model)
     half = torch.as_tensor(_half_lengths(model), dtype=torch.float64)
     rec = _Record(data.n_episodes, data.n_steps - first, topo.n_rods, topo.n_springs, list(region_effects))
-    scores = _Scores(model, data, candidates, rec, eng.params.gravity)
+    scores = _Scores(model, data, candidates, rec, eng.params.gravity, weak_window)
+    if scores.weak:  # the windows of the weak form lie within an episode: analysed whole
+        chunk_steps = max(chunk_steps, data.n_steps)
     own = {e.name for e in effects_from_model(model)}
 
     for win, eps, t_first in _windows(data, chunk_steps, first):
@@ -61,12 +73,20 @@ def one_step(model: IdentifiedModel, data: Dataset, candidates: list[Effect], re
         state = _state(ch)
         ctx = rw.terms.ctx
         rot = ctx.rot
+        region_rows = {k: e.rows_affected(state, ctx) for k, e in region_effects.items()}
+        if contact_margin is not None:  # the scores leave the model's regional effects' rows out
+            hit = torch.zeros(ch.pos.shape[:2], dtype=torch.bool)
+            for k, e in region_effects.items():
+                if e.name in own:
+                    hit |= region_rows[k]
+            hit = dilate_rows(hit, n_ep, contact_margin) if contact_margin > 0 else hit
+            ch.row_weight = (~hit).to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
         # the residual's rows: force, and torque / half-length in the world (both N)
         y = torch.cat((rw.force, matrix_apply(rot, rw.torque_body) / half[:, None]), -1)  # (N, R, 6)
         if ch.row_weight is not None:  # the central scheme leaves out rows across a push switch
             y = y * ch.row_weight[..., None]
         ts = np.arange(t_first, t_first + n_t) - first
-        rec.store(eps, ts, rw, ch, {k: e.rows_affected(state, ctx) for k, e in region_effects.items()},
+        rec.store(eps, ts, rw, ch, region_rows,
                   {k: e.contact_point(state, ctx) for k, e in region_effects.items() if hasattr(e, "contact_point")})
         ctx = ctx._replace(base_lin_acc=rw.terms.lin_acc, base_ang_acc_body=rw.terms.ang_acc_body,
                            recorded_lin_acc=ch.acc, recorded_ang_acc_body=ch.alpha_body)
@@ -209,7 +229,7 @@ class _Record:
 class _Accumulator:
     """Normal equations and moment sums of one candidate's columns ``X`` against the residual rows
     ``y`` and the base model's equation columns ``B``, added rod by rod (each rod's rows touch only
-    its own columns: the sums stay small)."""
+    its own columns: the sums stay small), per half of the data (:data:`FOLDS`)."""
 
     def __init__(self, eff: Effect, names: list[str], n_base: int) -> None:
         self.eff, self.names, self.n_base = eff, names, n_base
@@ -224,34 +244,40 @@ class _Accumulator:
             return
         kind = self.eff.kind
         P = self.P = self.eff.n_params if kind != "global" else max(len(xi) for _, xi in blocks)
-        self.XX, self.Xy, self.BX = np.zeros((P, P)), np.zeros(P), np.zeros((self.n_base, P))
+        self.XX, self.Xy = np.zeros((FOLDS, P, P)), np.zeros((FOLDS, P))
+        self.BX = np.zeros((FOLDS, self.n_base, P))
         self.sx, self.sxx = np.zeros(P), np.zeros(P)
 
-    def add(self, X: np.ndarray, xi: np.ndarray, y: np.ndarray, B: np.ndarray, bi: np.ndarray) -> None:
-        """One rod's rows: ``X`` (n, w) the candidate's columns ``xi``, ``B`` (n, nb) the base's ``bi``."""
-        self.XX[np.ix_(xi, xi)] += X.T @ X
-        self.Xy[xi] += X.T @ y
-        self.BX[np.ix_(bi, xi)] += B.T @ X
+    def add(self, f: int, X: np.ndarray, xi: np.ndarray, y: np.ndarray, B: np.ndarray, bi: np.ndarray) -> None:
+        """One rod's rows of half ``f``: ``X`` (n, w) the candidate's columns ``xi``, ``B`` (n, nb) the base's ``bi``."""
+        self.XX[f][np.ix_(xi, xi)] += X.T @ X
+        self.Xy[f][xi] += X.T @ y
+        self.BX[f][np.ix_(bi, xi)] += B.T @ X
         self.sx[xi] += X.sum(0)
         self.sxx[xi] += (X * X).sum(0)
 
 
 @dataclass
 class _Moments:
-    """Sums over the residual rows: their sum, sum of squares and count."""
+    """Sums over the residual rows: their sum, sum of squares per half of the data, and count."""
 
     sy: float = 0.0
-    syy: float = 0.0
+    syy: np.ndarray = field(default_factory=lambda: np.zeros(FOLDS))
     n: int = 0
 
 
 class _Scores:
     """The candidates' scores: least squares of the residual rows on the model's own equation
     columns (total mass held) with and without each candidate's columns, from normal equations
-    summed window by window."""
+    summed window by window -- on the rows as they are, or (``weak``) on their weak form, each
+    episode's rows summed over windows of ``weak`` steps with the fit's bump
+    (:func:`identified.fit.derivatives.weak_form`).  The sums are kept per half of the data for the
+    held-out scores: blocks of :data:`FOLD_BLOCK_S` (at most half an episode) alternate between the
+    halves, shifted by one from an episode to the next (a row belongs to the block of its instant,
+    a weak-form window to that of its middle)."""
 
     def __init__(self, model: IdentifiedModel, data: Dataset, candidates: list[Effect], rec: _Record,
-                 gravity: torch.Tensor) -> None:
+                 gravity: torch.Tensor, weak: int | None = None) -> None:
         topo = model.topology
         self.topo, self.R = topo, topo.n_rods
         # the base model's columns (its joint effects' too), refitted beside each candidate
@@ -262,12 +288,18 @@ class _Scores:
         self.base_idx = [np.flatnonzero(self.rcols.full[i] >= 0) for i in range(self.R)]  # local columns of rod i
         self.implicit_dt = data.dt if model.integrator == "implicit" else None
         self.gravity = gravity
-        self.GBB, self.bB = np.zeros((nb, nb)), np.zeros(nb)
+        self.weak = weak if weak and weak > 1 else None
+        self.GBB, self.bB = np.zeros((FOLDS, nb, nb)), np.zeros((FOLDS, nb))
         self.accs = [_Accumulator(c, c.param_names(topo.rod_names, topo.spring_names), nb) for c in candidates]
         self.m = _Moments()
         self.sample_rows: list[np.ndarray] = []
         E, Tn = rec.res.shape[:2]
+        if self.weak:
+            Tn = (Tn - self.weak) // max(1, self.weak // 4) + 1  # the windows per episode
         self.Tn = Tn
+        # the halves: blocks of FOLD_BLOCK_S seconds (at most half an episode), alternating in time
+        # and from one episode to the next -- each half sees every episode and every kind of motion
+        self.block = max(1, min(round(FOLD_BLOCK_S / data.dt), -(-rec.res.shape[1] // 2)))
         self.stride = max(1, E * Tn // _SAMPLE_INSTANTS)
 
     def add(self, ch: Any, state: Any, ctx: Any, rot: torch.Tensor, half: torch.Tensor, y: torch.Tensor,
@@ -279,25 +311,40 @@ class _Scores:
             Bt = _base_rows(equation_rows(self.topo, self.rcols, ch, self.gravity, self.implicit_dt, self.joint),
                             rot, half)
             cand_X = [self._candidate_columns(acc, state, ctx, half, ch.row_weight) for acc in self.accs]
+            row_t = ts  # each row's place in its episode (the weak form: its window's)
+            if self.weak:  # every row summed over windows of each episode's steps (whole episodes here)
+                n_ep, w, stride = len(eps), self.weak, max(1, self.weak // 4)
+                row_t = np.arange((len(ts) - w) // stride + 1)
+                ts = ts[0] + stride * row_t + w // 2  # the windows' middles
+                y, Bt = weak_form(y, n_ep, w), weak_form(Bt, n_ep, w)
+                cand_X = [[(weak_form(X, n_ep, w), xi) for X, xi in blocks] for blocks in cand_X]
+        fold = ((eps[:, None] + ts[None, :] // self.block) % FOLDS).reshape(-1)
+        rows_of = [np.flatnonzero(np.repeat(fold == f, 6)) for f in range(FOLDS)]  # a rod's rows: 6 per instant
         yv = y.reshape(-1).numpy()
         self.m.sy += float(yv.sum())
-        self.m.syy += float(yv @ yv)
         self.m.n += yv.size
+        yr = y.numpy()
+        for f in range(FOLDS):
+            yf = yr[fold == f]
+            self.m.syy[f] += float((yf * yf).sum())
         # instants kept for the scatter plot: global flat index (e * Tn + t) on the stride
-        flat = (eps[:, None] * self.Tn + ts[None, :]).reshape(-1)
+        flat = (eps[:, None] * self.Tn + row_t[None, :]).reshape(-1)
         keep = np.flatnonzero(flat % self.stride == 0)
         self.sample_rows.append(yv[(keep[:, None] * (R * 6) + np.arange(R * 6)).reshape(-1)])
-        yr = y.numpy()
         for i in range(R):
             yi = yr[:, i].reshape(-1)
             bi = self.base_idx[i]
             Bi = Bt[:, i][..., torch.as_tensor(bi)].reshape(-1, len(bi)).numpy()
             fi = self.rcols.full[i, bi]
-            self.GBB[np.ix_(fi, fi)] += Bi.T @ Bi
-            self.bB[fi] += Bi.T @ yi
-            for acc, blocks in zip(self.accs, cand_X):
-                X, xi = blocks[i]
-                acc.add(X.reshape(-1, len(xi)).numpy(), xi, yi, Bi, fi)
+            Xs = [(X.reshape(-1, len(xi)).numpy(), xi) for X, xi in (blocks[i] for blocks in cand_X)]
+            for f, rows in enumerate(rows_of):
+                if not len(rows):
+                    continue
+                Bf, yf = Bi[rows], yi[rows]
+                self.GBB[f][np.ix_(fi, fi)] += Bf.T @ Bf
+                self.bB[f][fi] += Bf.T @ yf
+                for acc, (X, xi) in zip(self.accs, Xs):
+                    acc.add(f, X[rows], xi, yf, Bf, fi)
         for acc, blocks in zip(self.accs, cand_X):  # the sampled instants' rows, dense
             Xs = np.zeros((len(keep), R, 6, acc.P))
             for i, (X, xi) in enumerate(blocks):
@@ -319,14 +366,16 @@ class _Scores:
     def results(self, rec: _Record) -> dict[str, Any]:
         """``candidates`` (scores, correlations), ``best_feature``, ``scatter``, ``base_refit``."""
         m = self.m
-        sy, syy, n_rows = m.sy, m.syy, m.n
+        sy, syy, n_rows = m.sy, float(m.syy.sum()), m.n
         cands, best = [], None
         my, vy = sy / max(n_rows, 1), syy / max(n_rows, 1) - (sy / max(n_rows, 1)) ** 2
         Z = _mass_total_held(self.nb, np.array([self.layout.m(i) for i in range(self.R)]))
-        GBB, bB = Z.T @ self.GBB @ Z, Z.T @ self.bB
+        GBB_f, bB_f = Z.T @ self.GBB @ Z, self.bB @ Z  # per half, in the total-mass-held directions
+        GBB, bB = GBB_f.sum(0), bB_f.sum(0)
         rss_base = max(syy - explained_sum_of_squares(GBB, bB), 0.0) if self.accs else None
         for acc in self.accs:
             entry, corr = self._score(acc, Z, GBB, bB, rss_base, my, vy)
+            entry.update(self._held_out(acc, Z, GBB_f, bB_f))
             cands.append(entry)
             P = acc.P
             j = int(np.argmax(np.abs(corr))) if P else 0
@@ -345,17 +394,33 @@ class _Scores:
         return {"candidates": cands, "best_feature": best_feature, "scatter": scatter,
                 "base_refit": None if rss_base is None or syy <= 0 else float(np.clip(1 - rss_base / syy, 0, 1))}
 
+    def _held_out(self, acc: _Accumulator, Z: np.ndarray, GBB_f: np.ndarray, bB_f: np.ndarray) -> dict[str, Any]:
+        """The candidate's score on each half of the data with its coefficients fitted on the
+        other half (:func:`held_out_score`); ``score_held_out`` is the smaller of the two (``None``
+        where a half holds no residual)."""
+        per: list[float | None] = []
+        if acc.P:
+            BX = np.einsum("ij,fjk->fik", Z.T, acc.BX)
+            sums = [(GBB_f[f], bB_f[f], BX[f], acc.XX[f], acc.Xy[f], float(self.m.syy[f])) for f in range(FOLDS)]
+            whole = (GBB_f.sum(0), bB_f.sum(0), BX.sum(0))
+            per = [held_out_score(sums[FOLDS - 1 - test], sums[test], whole) for test in range(FOLDS)]
+        held = None if not per or any(v is None for v in per) else float(min(per))
+        if acc.nonfinite > 0.01 * max(acc.entries, 1):
+            held, per = None, []
+        return {"score_held_out": held, "score_held_out_halves": [finite_or_none(v) for v in per]}
+
     def _score(self, acc: _Accumulator, Z: np.ndarray, GBB: np.ndarray, bB: np.ndarray, rss_base: float | None,
                my: float, vy: float) -> tuple[dict[str, Any], np.ndarray]:
         """One candidate's score (``1 - RSS(base + candidate) / RSS(base)``), the share its columns
         alone explain, and its columns' correlations with the residual rows."""
-        syy, n_rows, P = self.m.syy, self.m.n, acc.P
-        BX = Z.T @ acc.BX
+        syy, n_rows, P = float(self.m.syy.sum()), self.m.n, acc.P
+        BX = Z.T @ acc.BX.sum(0)
+        XX, Xy = acc.XX.sum(0), acc.Xy.sum(0)
         score = alone = unexplained = None
         if syy > 0:
-            alone = float(np.clip(explained_sum_of_squares(acc.XX, acc.Xy) / syy, 0.0, 1.0))
-            G = np.block([[GBB, BX], [BX.T, acc.XX]])
-            rss = max(syy - explained_sum_of_squares(G, np.concatenate((bB, acc.Xy))), 0.0)
+            alone = float(np.clip(explained_sum_of_squares(XX, Xy) / syy, 0.0, 1.0))
+            G = np.block([[GBB, BX], [BX.T, XX]])
+            rss = max(syy - explained_sum_of_squares(G, np.concatenate((bB, Xy))), 0.0)
             if rss_base > 0:
                 unexplained = float(np.clip(rss / rss_base, 0.0, 1.0))
                 score = 1.0 - unexplained
@@ -365,7 +430,7 @@ class _Scores:
                     f"parameters (a negative inertia?): not scored")
             score = unexplained = alone = None
         mx, vx = acc.sx / n_rows, acc.sxx / n_rows - (acc.sx / n_rows) ** 2
-        cov = acc.Xy / n_rows - mx * my
+        cov = Xy / n_rows - mx * my
         with np.errstate(all="ignore"):
             corr = np.where((vx > 0) & (vy > 0), cov / np.sqrt(np.clip(vx, 1e-300, None) * max(vy, 1e-300)), 0.0)
         j = int(np.argmax(np.abs(corr))) if P else 0
@@ -377,6 +442,39 @@ class _Scores:
                  "max_abs_corr": finite_or_none(abs(corr[j])) if P else None,
                  "best_feature": names[j] if P else None,
                  "top_features": [{"feature": names[i], "corr": finite_or_none(corr[i])} for i in top]}, corr)
+
+
+
+def held_out_score(fit: tuple, test: tuple, base: tuple) -> float | None:
+    """A candidate's score on the ``test`` rows with its coefficients fitted on the ``fit`` rows.
+
+    ``fit`` and ``test`` are the sums ``(B'B, B'y, B'X, X'X, X'y, y'y)`` of their rows (``B`` the
+    model's own columns, ``X`` the candidate's, ``y`` the residual); ``base`` is ``(B'B, B'y, B'X)``
+    over all the rows.  The model's own columns are taken out of ``X`` and ``y`` with their fit on
+    all the rows (Frisch-Waugh: ``X~ = X - B P``, ``y~ = y - B q``, ``P = (B'B)⁺ B'X``, ``q = (B'B)⁺
+    B'y``), as the in-sample score lets them move; the candidate's coefficients ``θ`` are the least
+    squares of ``y~`` on ``X~`` over the fitting rows, and the score is the share of the test rows'
+    ``|y~|²`` they remove, ``1 - |y~ - X~ θ|² / |y~|²``.  An effect the data do not hold has a ``θ``
+    fitted to the other half's noise, which removes nothing there (less than nothing, about ``-P /
+    rows``).  (Refitting the model's columns on half the rows instead leaves them and a candidate
+    poorly told apart on a short recording: a drag and the cables' dampings both pull against
+    velocity.)"""
+    GBB, bB, BX = base
+    P, q = least_squares(GBB, BX), least_squares(GBB, bB)
+
+    def tilde(s: tuple) -> tuple[np.ndarray, np.ndarray, float]:
+        G, b, BXs, XX, Xy, yy = s
+        XXt = XX - BXs.T @ P - P.T @ BXs + P.T @ G @ P
+        Xyt = Xy - P.T @ b - BXs.T @ q + P.T @ G @ q
+        return XXt, Xyt, float(yy - 2.0 * q @ b + q @ G @ q)
+
+    XX, Xy, _ = tilde(fit)
+    tXX, tXy, tyy = tilde(test)
+    if not tyy > 0:
+        return None
+    theta = least_squares(XX, Xy)
+    rest = tyy - 2.0 * theta @ tXy + theta @ tXX @ theta  # |y~ - X~ θ|²
+    return float(1.0 - max(rest, 0.0) / tyy)
 
 
 def _candidate_blocks(eff: Effect, state: Any, ctx: Any, topo: Any,
@@ -438,11 +536,7 @@ def _windows(data: Dataset, chunk_steps: int, first: int):
         spans = [(np.array([e]), t, min(t + chunk_steps, T)) for e in range(E) for t in range(0, T, chunk_steps)]
     for eps, t0, t1 in spans:
         a = max(t0 - first, 0)
-        win = replace(data, pos=data.pos[eps, a: t1 + 1], quat=data.quat[eps, a: t1 + 1],
-                      vel=data.vel[eps, a: t1 + 1], angvel=data.angvel[eps, a: t1 + 1],
-                      command=data.command[eps, a:t1], rest_length=data.rest_length[eps, a:t1],
-                      push_force=data.push_force[eps, a:t1], push_point=data.push_point[eps, a:t1])
-        yield win, eps, a + first
+        yield data.span(eps, a, t1), eps, a + first
 
 
 def _state(ch: Any) -> Any:

@@ -10,8 +10,8 @@ import numpy as np
 from identified.dataset import Dataset
 from identified.jsonsafe import finite_or_none
 
-__all__ = ["ALPHA", "DOFS", "LJUNG_BOX_LAGS", "corr_matrix", "explained_sum_of_squares", "input_correlation",
-           "ljung_box", "whiteness"]
+__all__ = ["ALPHA", "DOFS", "LJUNG_BOX_LAGS", "corr_matrix", "explained_sum_of_squares",
+           "input_correlation", "least_squares", "ljung_box", "whiteness"]
 
 #: the six residual components per rod: world force axes, rod-frame torque axes
 DOFS = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -121,13 +121,24 @@ def _max_corr(y: np.ndarray, x: np.ndarray, names: list[str], rod_names: tuple[s
 def explained_sum_of_squares(G: np.ndarray, b: np.ndarray) -> float:
     """``b' G⁺ b``: the sum of squares a least-squares fit on the columns behind ``G = X'X``,
     ``b = X'y`` explains (columns equilibrated; directions below 1e-12 of the largest dropped)."""
+    return float(b @ least_squares(G, b))
+
+
+def least_squares(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``G⁺ b``: the least-squares coefficients on the columns behind ``G = X'X``, ``b = X'y``
+    (``b`` a vector, or a matrix ``X'Y`` of several right-hand sides; columns equilibrated,
+    directions below 1e-12 of the largest dropped: the minimum-norm solution in the equilibrated
+    columns; a column that is all zero gets 0)."""
+    theta = np.zeros(b.shape)
     d = np.sqrt(np.clip(np.diag(G), 0.0, None))
     live = d > 0
     if not live.any():
-        return 0.0
+        return theta
+    dl = d[live].reshape((-1,) + (1,) * (b.ndim - 1))
     Gn = G[np.ix_(live, live)] / np.outer(d[live], d[live])
-    bn = b[live] / d[live]
     w, V = np.linalg.eigh(Gn)
     keep = w > w.max() * 1e-12
-    z = V[:, keep].T @ bn
-    return float(np.sum(z * z / w[keep]))
+    wk = w[keep].reshape((-1,) + (1,) * (b.ndim - 1))
+    theta[live] = (V[:, keep] @ ((V[:, keep].T @ (b[live] / dl)) / wk)) / dl
+    return theta
+

@@ -52,7 +52,7 @@ from identified.samples import iter_chunks
 from identified.topology import Topology
 from identified.twin import engine_from_model
 
-__all__ = ["ScaleSpec", "check_compatible", "identify", "resolve_anchor", "select_integrator"]
+__all__ = ["ScaleSpec", "check_compatible", "dilate_rows", "identify", "resolve_anchor", "select_integrator"]
 
 SOLVERS = ("lstsq", "adam")
 #: a rod's inertial parameters: all ten, the diagonal model, or chosen from the topology
@@ -323,7 +323,7 @@ def identify(
             ch.rest = _with_estimate(ch.rest, passive, rest_estimate)
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 hit = _affected(late, topology, ch)
-                keep = ~(_dilate(hit, n_ep, contact_margin) if contact_margin else hit)
+                keep = ~(dilate_rows(hit, n_ep, contact_margin) if contact_margin else hit)
                 ch.row_weight = keep.to(ch.pos.dtype) * (1.0 if ch.row_weight is None else ch.row_weight)
             fitted = [None if base and k in iterating else e for k, e in enumerate(joint)]
             A = equation_rows(topology, columns, ch, gravity, implicit_dt, fitted, dt=dataset.dt)
@@ -664,7 +664,7 @@ def fitted_min_lengths(dataset: Dataset, topology: Topology, late: Sequence[Effe
         keep = torch.ones(ch.pos.shape[:2], dtype=torch.bool, device=ch.pos.device)
         if late:
             hit = _affected(late, topology, ch)
-            keep = ~(_dilate(hit, n_ep, margin) if margin else hit)
+            keep = ~(dilate_rows(hit, n_ep, margin) if margin else hit)
         for k, j in enumerate(springs):
             seen = keep[:, [r for r in topology.springs[j].rods if r >= 0]].any(-1)
             if bool(seen.any()):
@@ -744,7 +744,7 @@ def _pinned(joint: Sequence[Effect], layout: ParameterLayout) -> dict[int, float
     return out
 
 
-def _dilate(mask: torch.Tensor, n_episodes: int, margin: int) -> torch.Tensor:
+def dilate_rows(mask: torch.Tensor, n_episodes: int, margin: int) -> torch.Tensor:
     """(N, R) bool over (episode, time) rows: true also within ``margin`` steps of a true row."""
     N, R = mask.shape
     x = mask.reshape(n_episodes, N // n_episodes, R).permute(0, 2, 1).reshape(-1, 1, N // n_episodes)

@@ -47,7 +47,7 @@ from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geo
 from identified.rotation import quat_multiply, quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["MarkerStates", "states_from_recording"]
+__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "recording_dataset", "states_from_recording"]
 
 GRAVITY = (0.0, 0.0, -9.81)
 #: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
@@ -534,14 +534,25 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
     return model
 
 
-def recording_dataset(path: str, model) -> Dataset:
-    """The rod states of the recording at ``path`` at the step of an identified ``model`` (whose
-    topology names the sites), for prediction and diagnosis on a recording."""
+def recording_dataset(path: str | Recording, model) -> Dataset:
+    """The rod states of the recording at ``path`` (or the recording itself) at the step of an
+    identified ``model`` (whose topology names the sites), for prediction and diagnosis on a recording."""
     from identified.recording import load_recording
 
-    rec = load_recording(path)
+    rec = load_recording(path) if isinstance(path, str) else path
     if rec.unlabelled:
         if not model.source_model:
-            raise RecordingError(f"'{path}': unlabelled markers need the model's MJCF to be labelled")
+            raise RecordingError(f"'{rec.source}': unlabelled markers need the model's MJCF to be labelled")
         rec = labelled(rec, model.topology, model.source_model)
     return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity)).data
+
+
+def diagnosis_options(rec: Recording, dt: float) -> dict[str, int]:
+    """How :func:`identified.diagnose.diagnose` scores its candidate effects on the states
+    reconstructed from ``rec`` at step ``dt``, as the fit reads them: on the weak form of the
+    equations (0.3 s windows, :func:`identified.fit.derivatives.default_window`: the splines'
+    second derivatives carry the markers' noise, which a window's sum removes), leaving out the
+    rows within :data:`CONTACT_FRAMES` frames of a contact (a spline spreads an impact over them)."""
+    from identified.fit.derivatives import default_window
+
+    return {"weak_window": default_window(dt), "contact_margin": int(np.ceil(CONTACT_FRAMES / (rec.rate_hz() * dt)))}

@@ -280,7 +280,7 @@ def test_one_smoothing_splines_columns_together():
 
 
 def test_effect_search_fits_a_recording_on_a_part_without_replicas(robot, monkeypatch):
-    """The effect search fits its candidates on the first steps of a recording's training takes
+    """The effect search fits its candidates on the middle steps of a recording's training takes
     (RECORDING_SEARCH_STEPS in all, at least 1000 a take), without the noise replicas; rod
     states not reconstructed from markers (no replicas) are searched on in full."""
     from identified.fit import pipeline
@@ -293,6 +293,10 @@ def test_effect_search_fits_a_recording_on_a_part_without_replicas(robot, monkey
     monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 1000)
     part = pipeline.search_part(ms.data)
     assert part.replicas == () and part.n_episodes == 2 and part.n_steps == 1000
-    np.testing.assert_array_equal(part.pos, ms.data.pos[:, :1001])
+    a = (ms.data.n_steps - 1000) // 2
+    assert a > 0
+    np.testing.assert_array_equal(part.pos, ms.data.pos[:, a:a + 1001])
+    np.testing.assert_array_equal(part.rest_length, ms.data.rest_length[:, a:a + 1000])
+    np.testing.assert_array_equal(part.weight, ms.data.weight[:, a:a + 1000])
     monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 3000)
     assert pipeline.search_part(ms.data).n_steps == min(1500, ms.data.n_steps)

@@ -83,9 +83,12 @@ class _Model:
         self.loop: list = []
 
 
-def _search(monkeypatch, residual: float, one_step: float, warm: bool, base_one_step: float = 1.0):
+def _search(monkeypatch, residual: float, one_step: float, warm: bool, base_one_step: float = 1.0,
+            recording_needs: int | None = None):
     """Run ``fit_model(effects="auto")`` in one process on stand-ins; the fits made, in order, as
-    (effects, takes, each effect's starting values)."""
+    (effects, takes, each effect's starting values, steps).  ``recording_needs``: the data are a
+    recording's (with a noise replica; 4 takes of 2400 steps, the search's part 3000 steps in all),
+    and a fit with effects on fewer steps a take than this is not identified."""
     from identified import predict
     from identified.effects.linear_drag import LinearDrag
     from identified.fit import checks, pipeline
@@ -100,7 +103,10 @@ def _search(monkeypatch, residual: float, one_step: float, warm: bool, base_one_
         if names not in _ERR:
             raise IdentifiabilityError("not a stand-in")
         assert torch.get_num_threads() == 1  # the fit runs on one torch thread
-        fits.append((names, data.n_episodes, [None if e.values is None else e.values.tolist() for e in effects]))
+        fits.append((names, data.n_episodes, [None if e.values is None else e.values.tolist() for e in effects],
+                     data.n_steps))
+        if names and recording_needs is not None and data.n_steps < recording_needs:
+            raise IdentifiabilityError("too few rows off the ground")
         for k, e in enumerate(effects):  # fitted values: the fit's index, so a start says which fit it came from
             e.values = np.full(e.n_params, float(len(fits)))
         return _Model(effects, data.n_episodes, residual)
@@ -122,7 +128,14 @@ def _search(monkeypatch, residual: float, one_step: float, warm: bool, base_one_
     with tempfile.TemporaryDirectory() as d:
         path = os.path.join(d, "ico.xml")
         write_model(path, "ico", preset="paper-uniform")
-        data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))
+        if recording_needs is None:
+            data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))
+        else:
+            from dataclasses import replace
+
+            data = collect(path, CollectConfig(episodes=4, steps=2400, seed=1))
+            data = replace(data, replicas=(data,))
+            monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 3000)
         threads = torch.get_num_threads()
         torch.set_num_threads(2)
         try:
@@ -160,6 +173,24 @@ def test_a_model_without_effects_that_leaves_nothing_is_not_searched(monkeypatch
     assert len(fits) == 5 and [s["added"] for s in model.loop] == ["linear_drag"]
 
 
+def test_a_recording_part_no_candidate_fits_on_is_doubled(monkeypatch):
+    """On a recording the candidates are fitted on the middle of each training take (3000 steps in
+    all: 1000 of each of 3 takes); where no candidate of the first round can be fitted there, the
+    search runs again on twice as much (2000 a take), and says what it was fitted on (a failed fit
+    has an infinite screen, as has a twin that diverged)."""
+    model, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=1.0, warm=False, recording_needs=2000)
+    first = [f for f in fits if f[3] == 1000]
+    assert [f[0] for f in first] == [(), ("linear_drag",), ("linear_drag",), ("constant_force",)]  # none ran
+    assert fits[len(first)][:2] == ((), 3) and fits[len(first)][3] == 2000  # the search again, on 2000
+    assert [s["added"] for s in model.loop] == ["linear_drag", "constant_force"]
+    assert model.metrics["effect_search"]["fitted_on"].startswith("the middle 2 s of each of 3 training takes")
+    assert fits[-1][:2] == (("linear_drag", "constant_force"), 4) and fits[-1][3] == 2400  # the final fit: all
+    # where the part suffices, one search on it
+    model, fits = _search(monkeypatch, residual=ROUNDING * 2, one_step=1.0, warm=False, recording_needs=1000)
+    assert {f[3] for f in fits[:-1]} == {1000}
+    assert model.metrics["effect_search"]["fitted_on"].startswith("the middle 1 s of each of 3 training takes")
+
+
 def test_a_warm_starting_effect_is_refitted_from_the_values_the_search_found(monkeypatch):
     """The final fit of an effect that ``warm_starts`` starts from the values of the fit that chose
     the model (the second round's, which added the constant force beside it); the rounds' refits
@@ -190,7 +221,7 @@ def test_a_search_that_adds_nothing_says_so_when_the_bare_model_is_not_identifie
         raise IdentifiabilityError("the data cannot identify cable0.stiffness", ["cable0.stiffness"])
 
     monkeypatch.setattr(pipeline, "identify", identify)
-    monkeypatch.setattr(pipeline, "_select_effects", lambda *a, **k: ([], [], False, {}, None))
+    monkeypatch.setattr(pipeline, "_select_effects", lambda *a, **k: ([], [], False, {}, None, None))
     path = str(tmp_path / "ico.xml")
     write_model(path, "ico", preset="paper-uniform")
     data = collect(path, CollectConfig(episodes=4, steps=30, seed=1))

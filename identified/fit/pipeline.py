@@ -97,7 +97,7 @@ ONE_STEP_FLOOR = 1e-6
 #: their free run one could halve it by chance: cable_slack's exact model got quadratic_drag)
 FREE_RUN_FLOOR = 1e-10
 #: the effect search on a recording (rod states reconstructed from markers, with noise replicas)
-#: fits its candidates on at most this many steps of the training takes, each take's first part,
+#: fits its candidates on at most this many steps of the training takes, the middle of each take,
 #: and without the replicas (no errors-in-variables correction: it moves K by a fraction of a
 #: percent, far below the factor the search asks of an effect); the final fit uses all of it
 RECORDING_SEARCH_STEPS = 8_000
@@ -189,7 +189,8 @@ def fit_model(
     fixed: dict[str, dict[str, Any]] = {}
     early = None
     if spec == "auto":
-        names, loop, explained, fixed, early = _select_effects(data, topo, mjcf, kw, horizon_s, min_gain, progress, jobs)
+        names, loop, explained, fixed, early, part = _select_effects(data, topo, mjcf, kw, horizon_s, min_gain,
+                                                                     progress, jobs)
     else:
         names = [] if spec == "none" else spec
     if early is not None and early.names == names and early.fixed == fixed and early.model is not None:
@@ -214,14 +215,12 @@ def fit_model(
     model.source_model = os.path.abspath(mjcf)
     model.loop = loop
     if spec == "auto":
-        E = data.n_episodes
-        part = search_part(data.select(episodes=slice(0, E - max(1, E // 4))))
         model.metrics["effect_search"] = {"explained": explained,
                                           "candidates": list(search_labels(markers=part is not None)),
                                           "metric": _metric(horizon_s), "min_gain": min_gain}
         if part is not None:
             model.metrics["effect_search"]["fitted_on"] = (
-                f"the first {part.n_steps * data.dt:g} s of each of {part.n_episodes} training takes, "
+                f"the middle {part.n_steps * data.dt:g} s of each of {part.n_episodes} training takes, "
                 "without noise replicas")
     if refine:
         from identified.fit.refine import refine as refine_model
@@ -367,32 +366,39 @@ def select_effects(
 
 def _select_effects(data: Dataset, topo: Topology, mjcf: str, fit_kwargs: dict[str, Any], horizon_s: float,
                     min_gain: float, progress: bool, jobs: int | str | None
-                    ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None]:
-    """:func:`select_effects`, and the final fit made beside the last round's candidates
-    (:func:`_search`), if any."""
+                    ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None,
+                               Dataset | None]:
+    """:func:`select_effects`, the final fit made beside the last round's candidates
+    (:func:`_search`), if any, and the part of a recording the candidates were fitted on.  On a
+    recording whose part no candidate's fit runs on the held-out takes (each not identified, or its
+    twin diverged: the robot lying still, or slowed by a drag, leaves few rows off the ground
+    there), the search runs again on a part twice as long, up to all of the training takes."""
     E = data.n_episodes
     if E < 2:
         raise DatasetError("--effects auto needs at least 2 episodes (one is held out to judge each effect)")
     n_hold = max(1, E // 4)
     train = data.select(episodes=slice(0, E - n_hold))
     held = data.select(episodes=slice(E - n_hold, E))
-    part = search_part(train)
-    final_kwargs = fit_kwargs
-    if part is not None:  # a recording: the candidates' fits on a part of it, without its replicas
-        train, fit_kwargs = part, {**fit_kwargs, "noise_copies": 0}
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
-    candidates = []
-    for name in search_labels(markers=part is not None):
-        try:
-            make_effect(name.split(":")[0], topo, mjcf)
-        except GeometryError:
-            continue  # e.g. no ground plane: ground contact cannot be there
-        candidates.append(name)
-    ctx = _Search(train, held, topo, mjcf, fit_kwargs, H, one_step_data(held), data, final_kwargs, part is not None)
-    jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
-    with TaskPool(_task, ctx, jobs) as pool:
-        names, loop, explained, fixed, final = _search(ctx, pool, candidates, min_gain, progress)
-    return names, loop, explained, _final_options(ctx, fixed), final
+    total = RECORDING_SEARCH_STEPS
+    while True:
+        part = search_part(train, total)
+        kwargs = fit_kwargs if part is None else {**fit_kwargs, "noise_copies": 0}  # a recording: no replicas
+        candidates = []
+        for name in search_labels(markers=part is not None):
+            try:
+                make_effect(name.split(":")[0], topo, mjcf)
+            except GeometryError:
+                continue  # e.g. no ground plane: ground contact cannot be there
+            candidates.append(name)
+        ctx = _Search(train if part is None else part, held, topo, mjcf, kwargs, H, one_step_data(held), data,
+                      fit_kwargs, part is not None)
+        n_jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
+        with TaskPool(_task, ctx, n_jobs) as pool:
+            names, loop, explained, fixed, final, starved = _search(ctx, pool, candidates, min_gain, progress)
+        if part is None or not starved or part.n_steps >= train.n_steps:
+            return names, loop, explained, _final_options(ctx, fixed), final, part
+        total *= 2
 
 
 def _final_options(ctx: _Search, fixed: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -407,19 +413,29 @@ def _final_options(ctx: _Search, fixed: dict[str, dict[str, Any]]) -> dict[str, 
     return {label: opts for label, opts in out.items() if opts}
 
 
-def search_part(train: Dataset) -> Dataset | None:
-    """The part of a recording's training takes the effect search fits its candidates on: each
-    take's first steps, :data:`RECORDING_SEARCH_STEPS` in all (at least 1000 a take), without the
-    noise replicas; ``None`` for rod states that are not reconstructed from markers (no replicas:
-    the search fits on all of them)."""
+def search_part(train: Dataset, total: int | None = None) -> Dataset | None:
+    """The part of a recording's training takes the effect search fits its candidates on: the
+    middle steps of each take, ``total`` in all (default :data:`RECORDING_SEARCH_STEPS`; at least
+    1000 a take), without the noise replicas; ``None`` for rod states that are not reconstructed
+    from markers (no replicas: the search fits on all of them).  The middle, not the start: a take
+    starts as the lab started it (the robot set down, settling).  A candidate's fit needs rows of
+    rods off the ground; where a part holds too few for any of them (measured: the robot in viscous
+    air, 8 takes of 5 s at 100 Hz, 1 mm: with a contact law the first second of each take does not
+    identify the cables' stiffnesses, two seconds do), the search takes twice as much
+    (:func:`_select_effects`)."""
     if not train.replicas:
         return None
-    steps = min(train.n_steps, max(RECORDING_SEARCH_STEPS // max(train.n_episodes, 1), 1000))
-    return replace(train, replicas=()).select(steps=steps)
+    total = RECORDING_SEARCH_STEPS if total is None else total
+    steps = min(train.n_steps, max(total // max(train.n_episodes, 1), 1000))
+    start = (train.n_steps - steps) // 2
+    return replace(train, replicas=()).span(slice(None), start, start + steps)
 
 
 def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float, progress: bool
-            ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None]:
+            ) -> tuple[list[str], list[dict[str, Any]], bool, dict[str, dict[str, Any]], _Final | None, bool]:
+    """The rounds of the search (module docstring); the last element says whether it was starved:
+    nothing added and no candidate of its first round ran on the held-out takes (each not
+    identified, or its twin diverged)."""
     # settings of a chosen effect found by its own profile scan (the contact regulariser) are kept
     # for the later rounds' refits
     fixed: dict[str, dict[str, Any]] = {}
@@ -428,6 +444,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
     # the slowest fits start first: the last round's time of each, else its effect's fit_cost
     cost = {name: EFFECTS[name.split(":")[0]].fit_cost for name in candidates}
     chosen: list[str] = []
+    starved = False
     final: _Final | None = None
     loop: list[dict[str, Any]] = []
     bar = None
@@ -470,6 +487,9 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         one_base, *one = _one_step_errors(ctx, [base_parts] + [parts[k] for k in names],
                                           [base_model] + [fits[k] for k in names])
         ones = dict(zip(names, one))
+        if not chosen and not any(np.isfinite(v) for v in screens.values()):
+            starved = True  # no candidate's twin ran on the held-out takes: not identified, or diverged
+            break
         best, runs = _judge(screens, base_screen, fits, ctx, min_gain, pool)
         err = runs[best]
         evidence = "free run" if halves(base_err, err, min_gain) else None
@@ -516,7 +536,7 @@ def _search(ctx: _Search, pool: TaskPool, candidates: list[str], min_gain: float
         done = exhausted(relative_residual(base_model), ones[best])
     if bar is not None:
         bar.close()
-    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed, final
+    return chosen, loop, search_explained(relative_residual(base_model), first_err, base_err), fixed, final, starved
 
 
 def exhausted(relative: float | None, one_step: float) -> bool:

@@ -178,6 +178,9 @@ def test_write_report(viscous_result, tmp_path):
     with open(out / "report.md", encoding="utf-8") as fh:
         text = fh.read()
     assert "NOT explained" in text and "**linear_drag**" in text
+    held = viscous_result["candidates"][0]["score_held_out"]
+    assert f"**Verdict: the residual is NOT explained**: linear_drag removes {held:.1%}" in text
+    assert f"| linear_drag | {held:.4f} |" in text
     for png in names:
         if png != "report.md":
             assert f"]({png})" in text  # the report shows every figure

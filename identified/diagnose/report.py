@@ -90,9 +90,16 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
     verdict = {"partial": "partly explained"}.get(r["explained"], "explained" if r["explained"] else "NOT explained")
     why = {"rounding": "the one-step residual is at rounding level", "white": "the residual is white (Ljung-Box)",
            "improved": "the added effects cut the free-run error at least 5x"}
-    L.append(f"**Verdict: the residual is {verdict}**"
-             + (f" ({'; '.join(why[x] for x in r['explained_by'])})." if r["explained_by"] else
-                ": it is structured and the model's effects do not account for it."))
+    missing = r.get("unexplained_by") or []
+    if missing:
+        L.append(f"**Verdict: the residual is {verdict}**: "
+                 + ", ".join(f"{c['name']} removes {c['score_held_out']:.1%}" for c in missing)
+                 + " of it on data its coefficients were not fitted on"
+                 + (f" (although {'; '.join(why[x] for x in r['explained_by'])})." if r["explained_by"] else "."))
+    else:
+        L.append(f"**Verdict: the residual is {verdict}**"
+                 + (f" ({'; '.join(why[x] for x in r['explained_by'])})." if r["explained_by"] else
+                    ": it is structured and the model's effects do not account for it."))
     for p in r.get("partial_by") or []:
         L.append(f"- {p['effect']} leaves a clear signature on its rows: the {p['part']} residual there is "
                  f"{f(p['relative_inside'], '.1%')} of the recorded {p['part']}, against "
@@ -157,19 +164,22 @@ def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
         else:
             L.append(f"- largest correlation with {k}: {v['corr']:+.3f} (rod {v['rod']} {v['dof']} with {v['input']})")
     L += ["", "## Candidate effects", "", f"Score: {r['score_rule']}.", "",
-          "| effect | score | unexplained | alone | parameters | best feature (corr) |", "|---|---|---|---|---|---|"]
+          "| effect | held out | score | unexplained | alone | parameters | best feature (corr) |",
+          "|---|---|---|---|---|---|---|"]
     for c in r["candidates"]:
         bf = f"{c['best_feature']} ({f(c['max_abs_corr'])})" if c["best_feature"] else "n/a"
         if c.get("note"):
             bf += f"; {c['note']}"
-        L.append(f"| {c['name']} | {f(c['score'], '.4f')} | {f(c['unexplained'])} | {f(c['score_alone'])} | "
-                 f"{c['n_params']} | {bf} |")
+        L.append(f"| {c['name']} | {f(c.get('score_held_out'), '.4f')} | {f(c['score'], '.4f')} | "
+                 f"{f(c['unexplained'])} | {f(c['score_alone'])} | {c['n_params']} | {bf} |")
     for s in r["skipped"]:
-        L.append(f"| {s['name']} | skipped | | | | {s['reason']} |")
+        L.append(f"| {s['name']} | skipped | | | | | {s['reason']} |")
     if r["candidates"]:
         top = r["candidates"][0]
+        held = top.get("score_held_out")
         L += ["", (f"The best candidate is **{top['name']}**: adding it would remove "
-                  f"{f(top['score'], '.1%') if top['score'] is not None else 'n/a'} of the residual.")]
+                  f"{f(top['score'], '.1%') if top['score'] is not None else 'n/a'} of the residual, "
+                  f"{f(held, '.1%') if held is not None else 'n/a'} on data its coefficients were not fitted on.")]
     if "feature" in figs:
         L += ["", f"![residual against its best-correlated feature]({figs['feature']})"]
     return "\n".join(L) + "\n"

@@ -135,6 +135,8 @@ def test_the_weak_form_keeps_exact_equations_exact(viscous):
     assert top["score"] > 1 - 1e-9 and top["score_held_out"] > 1 - 1e-9
     assert r["explained"] is False and r["unexplained_by"][0]["name"] == "linear_drag"
     assert "summed over 0.031 s windows" in r["score_rule"]
+    with pytest.raises(ValueError, match="shorter than one 0.5 s window of the weak form"):
+        diagnose(model, data, horizon_s=0.1, weak_window=500)  # the episodes hold 0.4 s
     # a window of one step is the rows as they are
     one = diagnose(model, data, horizon_s=0.1, weak_window=1)
     plain = diagnose(model, data, horizon_s=0.1)

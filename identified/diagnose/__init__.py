@@ -37,12 +37,14 @@ explains.  ``score_held_out``: with the model's own columns regressed out over a
 candidate's columns fitted on one half of the data (blocks of 1 s, alternating) and the share of
 the residual they remove on the other half, the smaller of the two ways round
 (:func:`.residual.held_out_score`): an effect the data hold removes about as much as in-sample, one
-fitted to noise removes nothing; the candidates are listed best first by it.  On states reconstructed from a recording's markers (``weak_window``,
-``contact_margin``: :func:`identified.fit.markers.diagnosis_options`) the rows are those the fit
-reads: each episode's rows summed over the fit's 0.3 s windows (the splines' second derivatives
-carry the markers' noise, which dominates one-step rows), and the rows of the rods in contact,
-with a margin, left out (a spline spreads an impact over a few frames).  ``ground_contact`` needs the MJCF's ground plane and capsules (``mjcf=``, else
-``model.source_model`` when it is a file); without them it is listed under ``skipped``.
+fitted to noise removes nothing; the candidates are listed best first by it.  On states
+reconstructed from a recording's markers (``weak_window``, ``contact_margin``:
+:func:`identified.fit.markers.diagnosis_options`) the rows are those the fit reads: each episode's
+rows summed over the fit's 0.3 s windows (the splines' second derivatives carry the markers'
+noise, which dominates one-step rows), and the rows of the rods in contact, with a margin, left
+out (a spline spreads an impact over a few frames).  ``ground_contact`` needs the MJCF's ground
+plane and capsules (``mjcf=``, else ``model.source_model`` when it is a file); without them it is
+listed under ``skipped``.
 
 **Explained** (``explained``: ``True``, ``"partial"`` or ``False``; the reasons in
 ``explained_by`` and ``partial_by``).  The residual is *explained* when it is at rounding level
@@ -125,9 +127,12 @@ def diagnose(
     ``horizon_s``: free-run horizon, s (the data must hold at least that much per episode);
     ``max_steps``: at most this many recorded steps are analysed (whole episodes first);
     ``mjcf``: path or text of the plant's MJCF, for the geometry a candidate effect reads (the
-    ground plane; default: the model's ``source_model`` when it is a readable file).  Raises
-    ``DatasetError`` when the data do not belong to the model, ``ValueError`` when they are too
-    short for the horizon.
+    ground plane; default: the model's ``source_model`` when it is a readable file);
+    ``weak_window`` (steps), ``contact_margin`` (steps): the candidates scored on the weak form of
+    the rows, without the rows of the model's regional effects and that many steps around them --
+    for states reconstructed from markers (:func:`identified.fit.markers.diagnosis_options`).
+    Raises ``DatasetError`` when the data do not belong to the model, ``ValueError`` when they are
+    too short for the horizon (or, with ``weak_window``, for one window).
 
     Keys: ``error_before``, ``error_after`` (m), ``metric``, ``horizon_s``, ``added``,
     ``explained`` (``True``, ``"partial"``, ``False``), ``explained_by`` (``"rounding"``,
@@ -214,6 +219,9 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
     if H < 1 or H > data.n_steps:
         raise ValueError(f"the data hold {data.n_steps * data.dt:g} s per episode, shorter than the "
                          f"{horizon_s:g} s horizon")
+    if weak_window is not None and weak_window > data.n_steps:
+        raise ValueError(f"the data hold {data.n_steps * data.dt:g} s per episode, shorter than one "
+                         f"{weak_window * data.dt:g} s window of the weak form the candidates are scored on")
     sub = _subset(data, int(max_steps), H)
     added = [str(e.get("name")) for e in model.effects]
     base = replace(model, effects=[])

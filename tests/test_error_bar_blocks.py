@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from identified.fit.identify import run_blocks
+from identified.fit.identify import run_blocks, shortest_cut_run
 from identified.fit.regression import accumulate
 from identified.fit.uncertainty import LinearSolve, block_slices, blocks_per_run, covariance
 
@@ -49,6 +49,12 @@ def test_run_blocks_of_recordings():
     assert run_blocks(takes(10, 4000), 4096, "forward", 301)["blocks"] == 1
     # a take longer than the chunks is already cut at them: 3 runs of 4096 steps and one of 1808
     assert run_blocks(takes(1, 14096), 4096, "forward", 301)["blocks"] == 1  # 1808 steps: 21 rows, 1 block
+    # the shortest takes the warning asks for are the shortest that are cut
+    for n in (2, 3, 6):
+        need = shortest_cut_run(n, 0.001, 301)
+        assert run_blocks(takes(n, need), 10**6, "forward", 301)["blocks"] > 1
+        assert run_blocks(takes(n, need - 1), 10**6, "forward", 301)["blocks"] == 1
+    assert shortest_cut_run(6, 0.001, 301) == 33 * 75 + 301  # 2 blocks of 17 rows
 
 
 def _rows(rng: np.random.Generator, runs: int, per: int, p: int = 3) -> tuple[np.ndarray, np.ndarray]:

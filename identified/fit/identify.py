@@ -559,15 +559,29 @@ def run_blocks(dataset: Dataset, chunk_steps: int, scheme: str, weak: int) -> di
     weak-form windows (:mod:`identified.fit.uncertainty`); ``k`` = 1 when no cut is needed or
     the runs are too short for one."""
     steps = run_steps(dataset, chunk_steps, scheme)
-    stride = max(1, weak // 4) if weak > 1 else 1
+    stride, min_rows = _block_rows(dataset.dt, weak)
     rows = [(n - weak) // stride + 1 if weak > 1 else n for n in steps]
-    min_steps = max(MIN_BLOCK_SECONDS / dataset.dt, MIN_BLOCK_WINDOWS * weak)
-    k = blocks_per_run(len(steps), min(rows, default=0), int(np.ceil(min_steps / stride)))
+    k = blocks_per_run(len(steps), min(rows, default=0), min_rows)
     if k == 1:
         return {"blocks": 1, "clusters": ""}
     seconds = sum(steps) * dataset.dt / (k * len(steps))
     return {"blocks": k, "clusters": f"{k * len(steps)} blocks of {seconds:.2g} s cut within {len(steps)} independent "
                                      f"runs (episodes; fewer than {MIN_RUNS})"}
+
+
+def _block_rows(dt: float, weak: int) -> tuple[int, int]:
+    """The weak form's stride (steps between rows; 1 without it) and the fewest rows of a block
+    (:func:`run_blocks`): at least ``MIN_BLOCK_SECONDS`` and ``MIN_BLOCK_WINDOWS`` windows."""
+    stride = max(1, weak // 4) if weak > 1 else 1
+    return stride, int(np.ceil(max(MIN_BLOCK_SECONDS / dt, MIN_BLOCK_WINDOWS * weak) / stride - 1e-9))
+
+
+def shortest_cut_run(runs: int, dt: float, weak: int) -> int:
+    """The fewest steps each of ``runs`` runs needs for :func:`run_blocks` to cut them into
+    ``MIN_RUNS`` blocks in all (runs of at most the chunks' length)."""
+    stride, min_rows = _block_rows(dt, weak)
+    rows = -(-MIN_RUNS // max(runs, 1)) * min_rows
+    return (rows - 1) * stride + weak if weak > 1 else rows
 
 
 #: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take

@@ -123,7 +123,8 @@ def covariance(
     else:
         dof = max(int(sum(factors.rows)) - Nul.shape[1], 1)
         cov_z = (lin.residual / dof) * (lin.M @ IKinv @ IKinv @ lin.M.T)
-        how = f"iid rows (only {runs} independent runs: the overlap of weak-form windows is ignored)"
+        how = (f"iid rows (only {runs} independent runs, too short to cut into {MIN_RUNS} blocks: the overlap of "
+               "weak-form windows is ignored)")
     return Nul @ cov_z @ Nul.T, how
 
 

@@ -101,3 +101,21 @@ def test_few_runs_error_bars_are_the_jackknife_over_blocks():
     d = loo - loo.mean(axis=0)
     want = (len(parts) - 1) / len(parts) * d.T @ d
     np.testing.assert_allclose(cov[:p, :p], want, rtol=1e-9, atol=1e-14 * np.abs(want).max())
+
+
+def test_clean_fit_from_three_episodes_is_exact_with_error_bars_over_blocks():
+    """3 clean episodes of 4 s: the error bars are the jackknife over 12 blocks of 1 s, and the fit
+    stays exact (the merged factors are those of the whole runs)."""
+    from identified.fit.identify import ScaleSpec, identify
+    from identified.topology import Topology
+    from tensegrity_gym.collect import CollectConfig, collect
+    from tensegrity_gym.models import build_model
+
+    xml = build_model("simple", "paper")
+    data = collect(xml, CollectConfig(episodes=3, steps=4000, seed=9))
+    model = identify(data, Topology.from_mjcf(xml), scale=ScaleSpec(masses=(("rod0", 10.0),)))
+    assert model.metrics["stderr"] == ("cluster-robust jackknife over 12 blocks of 1 s cut within 3 independent "
+                                       "runs (episodes; fewer than 10)")
+    np.testing.assert_allclose(model.stiffness, 100.0, rtol=1e-10)
+    np.testing.assert_allclose(model.damping, 10.0, rtol=1e-10)
+    assert np.all(model.stderr["stiffness"] < 1e-8)

@@ -28,11 +28,12 @@ runs over the blocks (large contiguous blocks of dependent data as clusters, who
 lives near their borders: Bester, Conley and Hansen 2011, J. Econometrics 165: 137).  Two
 neighbouring blocks of a run are not independent: the rows near their border share noise, through
 the windows that overlap across it and the correlation that the splines of a reconstruction leave
-in the states (over their smoothing length, a few frames).  For rows whose noise correlates over
-``l`` steps (a triangle ``rho(t) = (1 - |t|/l)+``, ``l`` ~ the window ``w``), two adjacent blocks
-of ``B`` steps have a covariance ``l/(6B)`` times each one's variance, so the jackknife, which
-takes the blocks as independent, misses at most ``2 l/(6B) <= 1/(3 MIN_BLOCK_WINDOWS) = 8 %`` of
-the variance (4 % of a standard error; ~3 % for the 2 s blocks of 4 s takes): small against the
+in the states (over the splines' smoothing length).  For rows whose noise correlates over
+``l`` steps (a triangle ``rho(t) = (1 - |t|/l)+``; ``l`` the window ``w`` plus the smoothing
+length), two adjacent blocks of ``B`` steps have a covariance ``l/(6B)`` times each one's variance,
+so the jackknife, which takes the blocks as independent, misses at most ``2 l/(6B)`` of the
+variance: with ``l = w``, ``<= 1/(3 MIN_BLOCK_WINDOWS) = 8 %`` (4 % of a standard error; ~3 % for
+the 2 s blocks of 4 s takes), and with a smoothing length as long again twice that: small against the
 jackknife's own spread over ~10 blocks (~45 % in variance), so no window is dropped at a cut (which
 would also change the estimate).  Measured on the robot from 6 takes of 4 s (README, "Fewer than
 10 takes"), the z-scores of K, c and M against the truth have an RMS of 1.2-1.3 (2.3-4.3 with the

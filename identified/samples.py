@@ -31,7 +31,7 @@ import torch
 from identified.dataset import Dataset
 from identified.rotation import matrix_apply, matrix_apply_transpose, quat_normalize, quat_to_matrix
 
-__all__ = ["SCHEMES", "Chunk", "iter_chunks"]
+__all__ = ["SCHEMES", "Chunk", "iter_chunks", "run_steps"]
 
 SCHEMES = ("forward", "central")
 
@@ -59,6 +59,17 @@ class Chunk:
     push_torque_body: torch.Tensor
     row_weight: torch.Tensor | None = None  # (N, R): 0 drops a rod's equations at an instant
     ctrl: torch.Tensor | None = None  # (N, U): the dataset's ``ctrl`` of step t (None: no actuators)
+
+
+def run_steps(data: Dataset, chunk_steps: int = 4096, scheme: str = "forward") -> list[int]:
+    """The steps of each independent run that :func:`iter_chunks` yields, in order: an episode, or
+    each slab of ``chunk_steps`` of an episode longer than that (its chunks are cut there)."""
+    E, T = data.n_episodes, data.n_steps
+    first = 1 if scheme == "central" else 0
+    n = T - first
+    if max(1, chunk_steps // max(n, 1)) > 1 or n <= chunk_steps:
+        return [n] * E
+    return [min(chunk_steps, T - t) for _ in range(E) for t in range(first, T, chunk_steps)]
 
 
 def iter_chunks(

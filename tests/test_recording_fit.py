@@ -68,7 +68,7 @@ def test_axial_inertia_is_not_identifiable(robot):
     m = fit_recording(rec, path, effects=["ground_contact"], scale=ScaleSpec(total_mass=21.0), jobs=1)
     assert len(m.metrics["not_identifiable"]) == 6
     assert np.isnan(m.stderr["inertia"][:, 2]).all() and np.isfinite(m.stderr["inertia"][:, :2]).all()
-    # two takes: no jackknife over them, and the fit says its error bars are too small
+    # two takes of 2 s: too short to cut into 10 blocks for the jackknife; the fit says its error bars are too small
     assert m.metrics["stderr"].startswith("iid rows")
     assert [w for w in m.metrics["warnings"] if w.startswith("only 2 take(s)")]
     from identified.fit.contact_damping import FACTORS

@@ -74,7 +74,8 @@ def residual_dof(rows: int, free: int, weak_window: int = 0) -> float:
 
 
 def widen_for_overlap(sol: Solution, weak_window: int) -> Solution:
-    """The iid covariance (fewer episodes than the cluster-robust sandwich needs) treats overlapping
+    """The iid covariance (fewer episodes than the cluster jackknife needs, too short to cut into
+    enough blocks: :func:`identified.fit.identify.run_blocks`) treats overlapping
     weak-form rows as independent: scale it by :func:`overlap_factor` (measured on 3-episode noisy
     fits: z-scores against the truth with an RMS of 1.5-1.7 without, ~1 with)."""
     f = overlap_factor(weak_window)

@@ -46,9 +46,10 @@ from identified.fit.regression import (
     free_parameters,
     solve,
 )
+from identified.fit.uncertainty import MIN_BLOCK_SECONDS, MIN_BLOCK_WINDOWS, MIN_RUNS, blocks_per_run
 from identified.jsonsafe import finite_or_none
 from identified.model import IdentifiedModel, rigid_body_from_regression
-from identified.samples import iter_chunks
+from identified.samples import iter_chunks, run_steps
 from identified.topology import Topology
 from identified.twin import engine_from_model
 
@@ -336,11 +337,12 @@ def identify(
     def rows() -> Iterator[torch.Tensor]:
         return (A for A, _ in runs(src["data"]))
 
+    cut = run_blocks(dataset, chunk_steps, scheme, weak)  # fewer than MIN_RUNS runs: blocks of them
     # the factor updates are many small LAPACK calls: one BLAS thread each is faster than a team
     # (and far faster on a shared, loaded machine); torch keeps its threads for the features
     with threadpool_limits(1, user_api="blas"):
         if solver == "lstsq":
-            factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+            factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full, **cut)
 
             def solve_holding(f: dict[int, float]) -> Any:
                 """Solve; parameters of an iterative effect the data cannot identify are held
@@ -481,7 +483,7 @@ def identify(
                     settled = not edge
                 if settled and (it > 0 or not released):  # the released inertia solved at least once
                     break
-                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full, **cut)
                 sol = solve_classified(fixed)
             if before_probe is not None and _misfit(sol) >= _misfit(before_probe["sol"]):
                 sol, factors, tau = before_probe["sol"], before_probe["factors"], before_probe["tau"]
@@ -491,7 +493,7 @@ def identify(
                     src["data"] = activation_dataset(dataset, layout.actuators, dynamics, tau)
             if rest_law and layout.rest_steps:  # the settled estimate: its steps held at 0, solved once more
                 fixed.update({i: 0.0 for i in steps})
-                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full, **cut)
                 sol = solve_classified(fixed)
             fixed.update({layout.bias(layout.actuators.index(n)): 0.0 for n in absorbed})  # held for good
             absorbed += [n for n in held_bias if n not in absorbed]
@@ -501,7 +503,7 @@ def identify(
                 tau_se = np.where(filters, np.sqrt(np.clip(np.diag(sol.cov)[d_i], 0, None)) / np.abs(sol.theta[g_i]),
                                   0.0) if sol.cov is not None else np.full(U, np.nan)
                 fixed.update({layout.gain_dtau(a): 0.0 for a in np.flatnonzero(filters)})
-                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full)
+                factors = accumulate(with_noise_replicates(runs, src["data"], noise_copies), columns, layout.n_full, **cut)
                 sol = solve_separating(fixed)
             fixed.update(_pinned(joint, layout))
             not_estimable = check_enough_data(sol, dataset.n_episodes * dataset.n_steps, weak)
@@ -547,6 +549,39 @@ def identify(
     model.metrics["stderr"] = sol.covariance or None
     model.metrics["errors_in_variables"] = sol.errors_in_variables
     return model
+
+
+def run_blocks(dataset: Dataset, chunk_steps: int, scheme: str, weak: int) -> dict[str, Any]:
+    """How :func:`~identified.fit.regression.accumulate` cuts the independent runs of ``dataset``
+    (:func:`identified.samples.run_steps`) for the error bars: ``{"blocks": k, "clusters": what}``.
+    With fewer than ``MIN_RUNS`` runs, each is cut into the fewest consecutive blocks that make
+    ``MIN_RUNS`` in all, each spanning at least ``MIN_BLOCK_SECONDS`` and ``MIN_BLOCK_WINDOWS``
+    weak-form windows (:mod:`identified.fit.uncertainty`); ``k`` = 1 when no cut is needed or
+    the runs are too short for one."""
+    steps = run_steps(dataset, chunk_steps, scheme)
+    stride, min_rows = _block_rows(dataset.dt, weak)
+    rows = [(n - weak) // stride + 1 if weak > 1 else n for n in steps]
+    k = blocks_per_run(len(steps), min(rows, default=0), min_rows)
+    if k == 1:
+        return {"blocks": 1, "clusters": ""}
+    seconds = sum(steps) * dataset.dt / (k * len(steps))
+    return {"blocks": k, "clusters": f"{k * len(steps)} blocks of {seconds:.2g} s cut within {len(steps)} independent "
+                                     f"runs (episodes; fewer than {MIN_RUNS})"}
+
+
+def _block_rows(dt: float, weak: int) -> tuple[int, int]:
+    """The weak form's stride (steps between rows; 1 without it) and the fewest rows of a block
+    (:func:`run_blocks`): at least ``MIN_BLOCK_SECONDS`` and ``MIN_BLOCK_WINDOWS`` windows."""
+    stride = max(1, weak // 4) if weak > 1 else 1
+    return stride, int(np.ceil(max(MIN_BLOCK_SECONDS / dt, MIN_BLOCK_WINDOWS * weak) / stride - 1e-9))
+
+
+def shortest_cut_run(runs: int, dt: float, weak: int) -> int:
+    """The fewest steps each of ``runs`` runs needs for :func:`run_blocks` to cut them into
+    ``MIN_RUNS`` blocks in all (runs of at most the chunks' length)."""
+    stride, min_rows = _block_rows(dt, weak)
+    rows = -(-MIN_RUNS // max(runs, 1)) * min_rows
+    return (rows - 1) * stride + weak if weak > 1 else rows
 
 
 #: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take

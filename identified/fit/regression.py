@@ -10,8 +10,8 @@ x, y, z, rotation about the rod's x, y, z -- to triangular factors ``R_b`` with
 ``||A_b theta||^2 = ||R_b theta||^2`` by a streaming QR (TSQR), so the fit never holds the whole
 design matrix and keeps the accuracy of an orthogonal solve (no normal equations: least squares on
 exactly matching features recovers the parameters to ~1e-13).  Every independent run of rows
-(an episode, :func:`accumulate`) keeps its own factors too, for the error bars
-(:mod:`identified.fit.uncertainty`).
+(an episode, :func:`accumulate`; with fewer than ten, consecutive blocks of each) keeps its own
+factors too, for the error bars (:mod:`identified.fit.uncertainty`).
 
 Weighting (feasible generalised least squares): without a noise model, the three translation and
 the three rotation equations of a rod share one weight, the inverse of their residual scale.
@@ -45,7 +45,7 @@ import torch
 
 from identified.fit.features import RodColumns
 from identified.fit.layout import ParameterLayout
-from identified.fit.uncertainty import BlockFactors, LinearSolve, covariance
+from identified.fit.uncertainty import BlockFactors, LinearSolve, block_slices, covariance
 
 __all__ = ["Anchor", "BlockFactors", "IdentifiabilityError", "Solution", "accumulate", "free_parameters", "solve"]
 
@@ -90,6 +90,8 @@ def accumulate(
     chunks: Iterable[torch.Tensor | tuple],
     columns: RodColumns,
     n_full: int,
+    blocks: int = 1,
+    clusters: str = "",
 ) -> BlockFactors:
     """Reduce chunks of compact equation rows (N, R, 6, 2D + 5) to per-block triangular factors.
 
@@ -97,9 +99,13 @@ def accumulate(
     equal, consecutive runs independent of each other (episodes; a bare ``A`` is one run), and
     ``replicates`` the same rows computed from the data with fresh sensor noise
     (:func:`identified.fit.noise.with_noise_replicates`), whose differences to ``A`` measure the
-    noise Gram.
+    noise Gram.  ``blocks`` > 1 cuts every run into that many consecutive blocks of its rows
+    (:func:`identified.fit.uncertainty.block_slices`: rows in time order, so stretches of time),
+    each kept as a run of its own for the error bars (``clusters`` says so in the covariance's
+    description); the merged factors, hence the estimate, are the same whatever the cut (to rounding).
     """
     n_rods = columns.full.shape[0]
+    per_run = blocks
     blocks = [(i, k) for i in range(n_rods) for k in range(EQUATIONS)]
     local = [columns.block_columns(i, rotation=k >= 3) for i, k in blocks]
     cluster_R: list[list[np.ndarray]] = []
@@ -112,8 +118,9 @@ def accumulate(
         N = An.shape[0]
         if N % n_runs:
             raise ValueError(f"{N} rows do not split into {n_runs} equal runs")
-        for g in range(n_runs):
-            part = slice(g * (N // n_runs), (g + 1) * (N // n_runs))
+        per = N // n_runs
+        parts = [slice(g * per + b.start, g * per + b.stop) for g in range(n_runs) for b in block_slices(per, per_run)]
+        for part in parts:
             Rg, Cg = [], []
             for b, (i, k) in enumerate(blocks):
                 x = An[part, i, k][:, local[b]]
@@ -141,7 +148,8 @@ def accumulate(
         noise = [_embed(sum(Cg[b] for Cg in cluster_C), cols, cols, n_full)
                  for b, cols in enumerate(full_cols)]
     return BlockFactors(R=merged, rows=rows, blocks=blocks, columns=full_cols, cluster_R=cluster_R,
-                        noise=noise, cluster_noise=cluster_C if noise is not None else None)
+                        noise=noise, cluster_noise=cluster_C if noise is not None else None,
+                        clusters=clusters if per_run > 1 else "")
 
 
 def solve(

@@ -18,20 +18,45 @@ sandwich ``A⁻¹ [G/(G-1) sum_g psi_g psi_gᵀ] A⁻¹`` (Liang and Zeger 1986,
 its first-order form ``A - A_g ~ A``: it is too narrow when a few runs hold most of the
 information about a parameter (a cable taut in one take only, an impact in one), the jackknife
 widens it by each run's leverage.  Each run keeps its own triangular factors, so ``psi_g`` and
-``A_g`` need no second pass over the data.  With fewer than :data:`MIN_RUNS` runs the spread of
-the runs is too noisy and the iid formula is used (``Solution.covariance`` says which).
+``A_g`` need no second pass over the data.
+
+With fewer than :data:`MIN_RUNS` independent runs the spread of the runs is too noisy: each run
+is then cut into consecutive blocks of its rows (:func:`blocks_per_run`, :func:`block_slices`) --
+contiguous in time, each at least :data:`MIN_BLOCK_SECONDS` and :data:`MIN_BLOCK_WINDOWS`
+weak-form windows long -- so that there are ``MIN_RUNS`` blocks or more, and the same jackknife
+runs over the blocks (large contiguous blocks of dependent data as clusters, whose dependence
+lives near their borders: Bester, Conley and Hansen 2011, J. Econometrics 165: 137).  Two
+neighbouring blocks of a run are not independent: the rows near their border share noise, through
+the windows that overlap across it and the correlation that the splines of a reconstruction leave
+in the states (over the splines' smoothing length).  For rows whose noise correlates over
+``l`` steps (a triangle ``rho(t) = (1 - |t|/l)+``; ``l`` the window ``w`` plus the smoothing
+length), two adjacent blocks of ``B`` steps have a covariance ``l/(6B)`` times each one's variance,
+so the jackknife, which takes the blocks as independent, misses at most ``2 l/(6B)`` of the
+variance: with ``l = w``, ``<= 1/(3 MIN_BLOCK_WINDOWS) = 8 %`` (4 % of a standard error; ~3 % for
+the 2 s blocks of 4 s takes), and with a smoothing length as long again twice that: small against the
+jackknife's own spread over ~10 blocks (~45 % in variance), so no window is dropped at a cut (which
+would also change the estimate).  Measured on the robot from 6 takes of 4 s (README, "Fewer than
+10 takes"), the z-scores of K, c and M against the truth have an RMS of 1.2-1.3 (2.3-4.3 with the
+iid formula).  Runs too short for ``MIN_RUNS`` such blocks keep the iid formula
+(``Solution.covariance`` says which was used).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
-__all__ = ["MIN_RUNS", "BlockFactors", "LinearSolve", "covariance"]
+__all__ = ["MIN_BLOCK_SECONDS", "MIN_BLOCK_WINDOWS", "MIN_RUNS", "BlockFactors", "LinearSolve", "block_slices",
+           "blocks_per_run", "covariance"]
 
 #: fewest independent runs (episodes) for the cluster-robust covariance
 MIN_RUNS = 10
+#: a block cut within a run for the jackknife spans at least this many seconds
+MIN_BLOCK_SECONDS = 1.0
+#: ... and at least this many weak-form windows (its border rows are then a small part of it)
+MIN_BLOCK_WINDOWS = 4
 
 
 @dataclass
@@ -42,7 +67,9 @@ class BlockFactors:
     ``blocks``: (rod, equation 0-5) of each block; ``columns``: full-vector index of each local
     column of a block; ``cluster_R``: [run][block] local triangular factor of that run's rows;
     ``noise`` / ``cluster_noise``: the same layout for the measured noise Gram ``E[ΔAᵀΔA]``
-    (``None`` without a noise model).
+    (``None`` without a noise model); ``clusters``: what the runs are when they were cut from
+    longer ones (:func:`block_slices`), e.g. "12 blocks of 2 s cut within 6 runs"; "" when each is
+    a whole independent run.
     """
 
     R: list[np.ndarray]
@@ -52,6 +79,7 @@ class BlockFactors:
     cluster_R: list[list[np.ndarray]]
     noise: list[np.ndarray] | None = None
     cluster_noise: list[list[np.ndarray]] | None = None
+    clusters: str = ""
 
 
 @dataclass
@@ -94,12 +122,34 @@ def covariance(
                                 Ainv, p) for g, (Rg, p) in enumerate(zip(factors.cluster_R, psi))])
         d -= d.mean(axis=0)
         cov_z = (runs - 1) / runs * (d.T @ d)
-        how = f"cluster-robust jackknife over {runs} independent runs (episodes)"
+        how = f"cluster-robust jackknife over {factors.clusters or f'{runs} independent runs (episodes)'}"
     else:
         dof = max(int(sum(factors.rows)) - Nul.shape[1], 1)
         cov_z = (lin.residual / dof) * (lin.M @ IKinv @ IKinv @ lin.M.T)
-        how = f"iid rows (only {runs} independent runs: the overlap of weak-form windows is ignored)"
+        how = (f"iid rows (only {runs} independent runs, too short to cut into {MIN_RUNS} blocks: the overlap of "
+               "weak-form windows is ignored)")
     return Nul @ cov_z @ Nul.T, how
+
+
+def blocks_per_run(runs: int, rows_per_run: int, min_rows: int, min_runs: int = MIN_RUNS) -> int:
+    """Into how many consecutive blocks to cut each of ``runs`` independent runs of (at least)
+    ``rows_per_run`` rows: the fewest that make ``min_runs`` blocks in all, each of ``min_rows``
+    rows or more; 1 (no cut) when the runs are enough already or too short to be cut so."""
+    if runs >= min_runs or runs <= 0:
+        return 1
+    k = -(-min_runs // runs)
+    return k if rows_per_run // k >= max(min_rows, 1) else 1
+
+
+def block_slices(n_rows: int, blocks: int) -> list[slice]:
+    """``blocks`` consecutive, contiguous slices covering rows ``0 .. n_rows - 1`` in order, of
+    equal size but the first ``n_rows % blocks``, one row longer (rows are in time order: a
+    block is a stretch of time)."""
+    if not 1 <= blocks <= max(n_rows, 1):
+        raise ValueError(f"cannot cut {n_rows} rows into {blocks} blocks")
+    size, extra = divmod(n_rows, blocks)
+    edges = np.cumsum([0] + [size + (g < extra) for g in range(blocks)])
+    return [slice(int(a), int(b)) for a, b in pairwise(edges)]
 
 
 def _influences(

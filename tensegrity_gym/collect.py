@@ -29,7 +29,7 @@ from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers"]
+__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers", "twin_recording"]
 
 
 @dataclass(frozen=True)
@@ -323,3 +323,24 @@ def _anonymise(rng: np.random.Generator, time: np.ndarray, episode: np.ndarray, 
             centre = np.nanmean(markers[f], axis=0)
             out[f, n:] = centre + rng.uniform(-1.0, 1.0, (rec.ghosts, 3))
     return tuple(f"marker{k + 1}" for k in range(n + rec.ghosts)), out
+
+
+def twin_recording(model, data: Dataset, mjcf: str | os.PathLike, like, noise_pos: float, seed: int = 0):
+    """The recording the identified ``model``'s own motion would give, made as ``like`` was made:
+    the model free-run (:func:`identified.evaluate.rollout`, the identified engine) from every
+    take's first state in ``data`` (the rod states reconstructed from ``like``) under its recorded
+    rest lengths and pushes, then recorded by :func:`record_markers` at ``like``'s rate, with its
+    share of missing samples and markers' noise ``noise_pos``.  It holds no effect the model lacks:
+    what a diagnosis finds in it is what reconstructing markers makes up (``diagnose``'s null)."""
+    from dataclasses import replace
+
+    from identified.evaluate import rollout
+
+    states = rollout(model, data)
+    twin = replace(data, pos=states.pos.numpy(), quat=states.quat.numpy(), vel=states.vel.numpy(),
+                   angvel=states.angvel.numpy(), weight=np.zeros((0, 0, 0)), replicas=())
+    if not np.isfinite(twin.pos).all():
+        raise ValueError("the identified model's own free run diverged under the recording's inputs")
+    cfg = RecordConfig(rate=min(like.rate_hz(), 1.0 / data.dt), noise_pos=noise_pos,
+                      dropout=min(like.missing_fraction(), 0.5))
+    return record_markers(twin, mjcf, cfg, seed=seed)

@@ -47,7 +47,8 @@ from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geo
 from identified.rotation import quat_multiply, quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "recording_dataset", "states_from_recording"]
+__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "recording_dataset", "recording_states",
+           "states_from_recording"]
 
 GRAVITY = (0.0, 0.0, -9.81)
 #: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
@@ -543,6 +544,12 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
 def recording_dataset(path: str | Recording, model) -> Dataset:
     """The rod states of the recording at ``path`` (or the recording itself) at the step of an
     identified ``model`` (whose topology names the sites), for prediction and diagnosis on a recording."""
+    return recording_states(path, model).data
+
+
+def recording_states(path: str | Recording, model, noise: bool = False) -> MarkerStates:
+    """:func:`recording_dataset` with what the reconstruction knows (``noise``: also the markers'
+    noise, ``MarkerStates.marker_noise``: the recording's statement, else what the splines leave)."""
     from identified.recording import load_recording
 
     rec = load_recording(path) if isinstance(path, str) else path
@@ -550,7 +557,8 @@ def recording_dataset(path: str | Recording, model) -> Dataset:
         if not model.source_model:
             raise RecordingError(f"'{rec.source}': unlabelled markers need the model's MJCF to be labelled")
         rec = labelled(rec, model.topology, model.source_model)
-    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity)).data
+    ms = states_from_recording(rec, model.topology, model.dt, tuple(model.gravity), replicas=1 if noise else 0)
+    return replace(ms, data=replace(ms.data, replicas=()))  # the noise measured, its copy not kept
 
 
 def diagnosis_options(rec: Recording, dt: float) -> dict[str, int]:

@@ -216,6 +216,7 @@ def test_the_command_scores_a_recording_as_the_fit_reads_it(recordings, tmp_path
     assert "on the model's own motion recorded alike)" in out and "(null " in out
 
 
+@pytest.mark.expensive  # 40-60 s; its cheap siblings: test_the_share_beyond_the_null, the command's test above
 def test_the_null_takes_out_what_coarse_markers_make_up(tmp_path, capsys):
     """The robot in still air recorded at 30 Hz with 1 cm of noise: scored alone, a constant force
     per rod explains most of the residual on held-out halves (the reconstruction's own error); the

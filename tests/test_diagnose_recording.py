@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from identified import Topology
-from identified.diagnose import SUPPORTED_GAIN, diagnose, held_out_share, supported
+from identified.diagnose import SUPPORTED_GAIN, diagnose, held_out_share, missing_effects, supported
 from identified.diagnose.residual import held_out_score
 from identified.diagnose.stats import explained_sum_of_squares, least_squares
 from identified.fit.identify import identify
@@ -79,6 +79,13 @@ def test_the_share_beyond_the_null():
     cands = [{"name": "constant_force", "score_held_out": 0.95, "score_held_out_null": 0.85},
              {"name": "linear_drag", "score_held_out": 0.31, "score_held_out_null": -1.2}]
     assert supported(cands) == [{"name": "linear_drag", "score_held_out": 0.31, "score_held_out_null": -1.2}]
+
+
+def test_a_residual_at_rounding_level_leaves_nothing_missing():
+    """Held-out shares of rounding noise mean nothing: at rounding level no candidate is missing."""
+    cands = [{"name": "cable_friction", "score_held_out": 0.9}]
+    assert missing_effects(cands, rounding=True) == []
+    assert missing_effects(cands, rounding=False) == [{"name": "cable_friction", "score_held_out": 0.9}]
 
 
 def test_supported_at_its_threshold():

@@ -253,7 +253,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         _check_readable(mjcf)
     null = None
     if rec is not None:
-        null = _recording_null(model, data, rec, states.marker_noise, mjcf, args.horizon, scoring)
+        null = _recording_null(model, data, rec, states.marker_noise, mjcf, scoring)
     result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf, null=null, **scoring)
     paths = write_report(result, args.out) if args.out else []
     if args.json:
@@ -290,13 +290,13 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
 NULL_DRAWS = 2
 
 
-def _recording_null(model, data, rec, noise: float | None, mjcf: str | None, horizon: float,
+def _recording_null(model, data, rec, noise: float | None, mjcf: str | None,
                     scoring: dict[str, int]) -> dict[str, float | None] | None:
     """Each candidate's held-out score on the diagnosis's null: the model's own motion under the
     recording's inputs, recorded with its rate, gaps and noise (``tensegrity_gym.collect.
     twin_recording``), reconstructed and scored alike, the largest over :data:`NULL_DRAWS` draws of
     the noise; ``None`` (and a note) where it cannot be made."""
-    from identified.diagnose import diagnose
+    from identified.diagnose import held_out_scores
     from identified.fit.markers import recording_dataset
     from tensegrity_gym.collect import twin_recording
 
@@ -312,10 +312,9 @@ def _recording_null(model, data, rec, noise: float | None, mjcf: str | None, hor
         except ValueError as exc:
             print(f"tensegrity: note: no null for the candidates ({exc})", file=sys.stderr)
             return None
-        result = diagnose(model, recording_dataset(twin, model), horizon_s=horizon, mjcf=mjcf, **scoring)
-        for c in result["candidates"]:
-            v, old = c["score_held_out"], out.get(c["name"])
-            out[c["name"]] = v if old is None else (old if v is None else max(old, v))
+        for name, v in held_out_scores(model, recording_dataset(twin, model), mjcf=src, **scoring).items():
+            old = out.get(name)
+            out[name] = v if old is None else (old if v is None else max(old, v))
     return out
 
 

@@ -99,9 +99,8 @@ from .report import write_report
 from .residual import one_step
 from .stats import ALPHA, DOFS, LJUNG_BOX_LAGS, input_correlation, ljung_box, whiteness
 
-__all__ = ["DOFS", "K_STEPS", "SUPPORTED_GAIN", "at_rounding_level", "diagnose", "held_out_share", "improved",
-           "ljung_box", "missing_effects", "supported", "verdict",
-           "write_report"]
+__all__ = ["DOFS", "K_STEPS", "SUPPORTED_GAIN", "at_rounding_level", "diagnose", "held_out_scores", "held_out_share",
+           "improved", "ljung_box", "missing_effects", "supported", "verdict", "write_report"]
 
 #: k-step prediction errors are reported for these k
 K_STEPS = (1, 10, 100)
@@ -169,6 +168,19 @@ def diagnose(
     """
     with threadpool_limits(1):
         return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps, weak_window, contact_margin, null)
+
+
+def held_out_scores(model: IdentifiedModel, data: Dataset, mjcf: str | os.PathLike | None = None,
+                    max_steps: int = 50_000, chunk_steps: int = 2048, weak_window: int | None = None,
+                    contact_margin: int | None = None) -> dict[str, float | None]:
+    """Each candidate effect's ``score_held_out`` on ``data``, scored as :func:`diagnose` scores
+    them (the same arguments), without the rest of the diagnosis (free runs, k-step errors): what a
+    null of the diagnosis needs (``null=``)."""
+    with threadpool_limits(1):
+        H = min(data.n_steps, max(1, int(weak_window or 1)))
+        one, _, _ = _one_step_pass(model, _subset(data, int(max_steps), H), _mjcf_source(model, mjcf), chunk_steps,
+                                   weak_window, contact_margin)
+    return {c["name"]: c["score_held_out"] for c in one["candidates"]}
 
 
 def at_rounding_level(relative: dict[str, float | None]) -> bool:
@@ -266,9 +278,7 @@ def _diagnose(model: IdentifiedModel, data: Dataset, horizon_s: float, max_steps
     k_after = k_step_errors(model, sub, K_STEPS, _KSTEP_STARTS)
     k_before = k_step_errors(base, sub, K_STEPS, _KSTEP_STARTS) if added else k_after
 
-    candidates, skipped = _candidates(model, added, src)
-    regions = _region_effects(model, candidates)
-    one = one_step(model, sub, candidates, regions, chunk_steps, weak_window, contact_margin)
+    one, regions, skipped = _one_step_pass(model, sub, src, chunk_steps, weak_window, contact_margin)
     res = one["res"]  # (E, T', R, 6)
     lb = whiteness(res, topo.rod_names)
     rel = one["relative"]
@@ -354,6 +364,16 @@ def _score_rule(weak_window: int | None, contact_margin: int | None, dt: float) 
             "model's columns regressed out over all the data, the fraction of each half (1 s blocks, alternating) "
             "that the candidate's columns fitted on the other half remove, the smaller of the two; best first by "
             "score_held_out")
+
+
+def _one_step_pass(model: IdentifiedModel, data: Dataset, src: str | None, chunk_steps: int,
+                   weak_window: int | None, contact_margin: int | None
+                   ) -> tuple[dict[str, Any], dict[str, Effect], list[dict[str, str]]]:
+    """The one-step pass (:func:`.residual.one_step`) with the library's candidates the model
+    lacks; the regions of the model's and the candidates' effects; the candidates not made."""
+    candidates, skipped = _candidates(model, [str(e.get("name")) for e in model.effects], src)
+    regions = _region_effects(model, candidates)
+    return one_step(model, data, candidates, regions, chunk_steps, weak_window, contact_margin), regions, skipped
 
 
 def _candidates(model: IdentifiedModel, added: list[str], src: str | None

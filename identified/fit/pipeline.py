@@ -380,20 +380,22 @@ def _select_effects(data: Dataset, topo: Topology, mjcf: str, fit_kwargs: dict[s
     train = data.select(episodes=slice(0, E - n_hold))
     held = data.select(episodes=slice(E - n_hold, E))
     H = max(1, min(held.n_steps, round(horizon_s / data.dt)))
+    recording = bool(train.replicas)  # rod states reconstructed from markers: fitted on a part (search_part)
+    kwargs = {**fit_kwargs, "noise_copies": 0} if recording else fit_kwargs  # the part without replicas
+    candidates = []
+    for name in search_labels(markers=recording):
+        try:
+            make_effect(name.split(":")[0], topo, mjcf)
+        except GeometryError:
+            continue  # e.g. no ground plane: ground contact cannot be there
+        candidates.append(name)
+    held_instants = one_step_data(held)
+    n_jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
     total = RECORDING_SEARCH_STEPS
     while True:
         part = search_part(train, total)
-        kwargs = fit_kwargs if part is None else {**fit_kwargs, "noise_copies": 0}  # a recording: no replicas
-        candidates = []
-        for name in search_labels(markers=part is not None):
-            try:
-                make_effect(name.split(":")[0], topo, mjcf)
-            except GeometryError:
-                continue  # e.g. no ground plane: ground contact cannot be there
-            candidates.append(name)
-        ctx = _Search(train if part is None else part, held, topo, mjcf, kwargs, H, one_step_data(held), data,
-                      fit_kwargs, part is not None)
-        n_jobs = min(resolve_jobs(jobs), len(candidates) + 1)  # a round has at most this many fits
+        ctx = _Search(train if part is None else part, held, topo, mjcf, kwargs, H, held_instants, data,
+                      fit_kwargs, recording)
         with TaskPool(_task, ctx, n_jobs) as pool:
             names, loop, explained, fixed, final, starved = _search(ctx, pool, candidates, min_gain, progress)
         if part is None or not starved or part.n_steps >= train.n_steps:

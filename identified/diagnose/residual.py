@@ -18,7 +18,7 @@ import torch
 from identified.dataset import Dataset
 from identified.effects import Effect
 from identified.evaluate import push_points, residual_wrench
-from identified.fit.derivatives import weak_form
+from identified.fit.derivatives import weak_form, weak_rows, weak_stride
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.identify import dilate_rows
 from identified.fit.layout import ParameterLayout
@@ -295,7 +295,7 @@ class _Scores:
         self.sample_rows: list[np.ndarray] = []
         E, Tn = rec.res.shape[:2]
         if self.weak:
-            Tn = (Tn - self.weak) // max(1, self.weak // 4) + 1  # the windows per episode
+            Tn = weak_rows(Tn, self.weak)  # the windows per episode
         self.Tn = Tn
         # the halves: blocks of FOLD_BLOCK_S seconds (at most half an episode), alternating in time
         # and from one episode to the next -- each half sees every episode and every kind of motion
@@ -313,9 +313,9 @@ class _Scores:
             cand_X = [self._candidate_columns(acc, state, ctx, half, ch.row_weight) for acc in self.accs]
             row_t = ts  # each row's place in its episode (the weak form: its window's)
             if self.weak:  # every row summed over windows of each episode's steps (whole episodes here)
-                n_ep, w, stride = len(eps), self.weak, max(1, self.weak // 4)
-                row_t = np.arange((len(ts) - w) // stride + 1)
-                ts = ts[0] + stride * row_t + w // 2  # the windows' middles
+                n_ep, w = len(eps), self.weak
+                row_t = np.arange(weak_rows(len(ts), w))
+                ts = ts[0] + weak_stride(w) * row_t + w // 2  # the windows' middles
                 y, Bt = weak_form(y, n_ep, w), weak_form(Bt, n_ep, w)
                 cand_X = [[(weak_form(X, n_ep, w), xi) for X, xi in blocks] for blocks in cand_X]
         fold = ((eps[:, None] + ts[None, :] // self.block) % FOLDS).reshape(-1)

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from identified.fit.derivatives import weak_stride
 from identified.fit.noise import has_noise
 from identified.fit.regression import IdentifiabilityError, Solution
 from identified.model import com_and_tensor, inertia_tensor
@@ -54,14 +55,14 @@ class InsufficientDataError(IdentifiabilityError):
 def overlap_factor(weak_window: int) -> float:
     """How much overlapping weak-form windows inflate the variance of a sum of their rows.
 
-    Windows of ``w`` steps advance by ``max(1, w // 4)`` (:func:`identified.fit.derivatives.weak_form`)
+    Windows of ``w`` steps advance by a quarter window (:func:`identified.fit.derivatives.weak_stride`)
     and weigh the steps with a Hann bump ``phi``: rows ``k`` windows apart share noise with
     correlation ``rho_k = sum phi(t) phi(t + k stride) / sum phi^2``, so a sum of rows has
     ``1 + 2 sum_k rho_k`` times the variance of independent ones (2.68 for the default window).
     """
     if weak_window <= 1:
         return 1.0
-    w, stride = int(weak_window), max(1, int(weak_window) // 4)
+    w, stride = int(weak_window), weak_stride(int(weak_window))
     phi = np.hanning(w + 2)[1:-1]
     norm = float(phi @ phi)
     return 1.0 + 2.0 * sum(float(phi[: w - k] @ phi[k:]) / norm for k in range(stride, w, stride))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["default_window", "weak_form"]
+__all__ = ["default_window", "weak_form", "weak_rows", "weak_stride"]
 
 
 def default_window(dt: float) -> int:
@@ -29,6 +29,18 @@ def default_window(dt: float) -> int:
     return n + 1 - n % 2
 
 
+def weak_stride(window: int) -> int:
+    """Steps between the starts of consecutive weak-form windows of ``window`` steps (a quarter
+    window; 1 for ``window`` <= 1: the rows as they are)."""
+    return max(1, int(window) // 4) if window > 1 else 1
+
+
+def weak_rows(steps: int, window: int) -> int:
+    """The rows :func:`weak_form` makes of an episode of ``steps`` steps: its windows (``window`` >
+    1, windows starting every :func:`weak_stride`), else its steps."""
+    return (int(steps) - int(window)) // weak_stride(window) + 1 if window > 1 else int(steps)
+
+
 def weak_form(A: torch.Tensor, n_episodes: int, window: int, stride: int | None = None) -> torch.Tensor:
     """Sum equation rows ``A`` (N = n_episodes x T, ...) over windows with a Hann bump.
 
@@ -38,7 +50,7 @@ def weak_form(A: torch.Tensor, n_episodes: int, window: int, stride: int | None 
     T = N // n_episodes
     if T < window:
         raise ValueError(f"episodes of {T} steps are shorter than the weak-form window ({window} steps)")
-    stride = stride or max(1, window // 4)
+    stride = stride or weak_stride(window)
     phi = torch.hann_window(window + 2, periodic=False, dtype=A.dtype, device=A.device)[1:-1]
     phi = phi / phi.sum()
     W = (T - window) // stride + 1

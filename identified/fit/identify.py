@@ -34,7 +34,7 @@ from identified.fit.checks import (
     widen_for_overlap,
 )
 from identified.fit.classification import iterate_classification
-from identified.fit.derivatives import default_window, weak_form
+from identified.fit.derivatives import default_window, weak_form, weak_rows, weak_stride
 from identified.fit.features import RodColumns, chunk_context, effect_rows, equation_rows, fit_context
 from identified.fit.layout import ParameterLayout
 from identified.fit.noise import has_noise, with_noise_replicates
@@ -559,8 +559,8 @@ def run_blocks(dataset: Dataset, chunk_steps: int, scheme: str, weak: int) -> di
     weak-form windows (:mod:`identified.fit.uncertainty`); ``k`` = 1 when no cut is needed or
     the runs are too short for one."""
     steps = run_steps(dataset, chunk_steps, scheme)
-    stride, min_rows = _block_rows(dataset.dt, weak)
-    rows = [(n - weak) // stride + 1 if weak > 1 else n for n in steps]
+    min_rows = _block_min_rows(dataset.dt, weak)
+    rows = [weak_rows(n, weak) for n in steps]
     k = blocks_per_run(len(steps), min(rows, default=0), min_rows)
     if k == 1:
         return {"blocks": 1, "clusters": ""}
@@ -569,19 +569,17 @@ def run_blocks(dataset: Dataset, chunk_steps: int, scheme: str, weak: int) -> di
                                      f"runs (episodes; fewer than {MIN_RUNS})"}
 
 
-def _block_rows(dt: float, weak: int) -> tuple[int, int]:
-    """The weak form's stride (steps between rows; 1 without it) and the fewest rows of a block
-    (:func:`run_blocks`): at least ``MIN_BLOCK_SECONDS`` and ``MIN_BLOCK_WINDOWS`` windows."""
-    stride = max(1, weak // 4) if weak > 1 else 1
-    return stride, int(np.ceil(max(MIN_BLOCK_SECONDS / dt, MIN_BLOCK_WINDOWS * weak) / stride - 1e-9))
+def _block_min_rows(dt: float, weak: int) -> int:
+    """The fewest rows of a block (:func:`run_blocks`): at least ``MIN_BLOCK_SECONDS`` and
+    ``MIN_BLOCK_WINDOWS`` windows (rows every :func:`~identified.fit.derivatives.weak_stride` steps)."""
+    return int(np.ceil(max(MIN_BLOCK_SECONDS / dt, MIN_BLOCK_WINDOWS * weak) / weak_stride(weak) - 1e-9))
 
 
 def shortest_cut_run(runs: int, dt: float, weak: int) -> int:
     """The fewest steps each of ``runs`` runs needs for :func:`run_blocks` to cut them into
     ``MIN_RUNS`` blocks in all (runs of at most the chunks' length)."""
-    stride, min_rows = _block_rows(dt, weak)
-    rows = -(-MIN_RUNS // max(runs, 1)) * min_rows
-    return (rows - 1) * stride + weak if weak > 1 else rows
+    rows = -(-MIN_RUNS // max(runs, 1)) * _block_min_rows(dt, weak)
+    return (rows - 1) * weak_stride(weak) + weak if weak > 1 else rows
 
 
 #: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take
@@ -595,7 +593,7 @@ def _cache_bytes(data: Dataset, columns: RodColumns, weak: int) -> int:
     """What :func:`_cached_runs` keeps of ``data``: every instant's states and step context, and its
     rows (summed over the weak form's windows, which start every quarter window)."""
     R, L = columns.full.shape
-    per = R * 6 * L * 8 / (max(1, weak // 4) if weak > 1 else 1)
+    per = R * 6 * L * 8 / weak_stride(weak)
     return int(data.n_episodes * data.n_steps * (per + _STATE_BYTES))
 
 

@@ -64,12 +64,20 @@ class Chunk:
 def run_steps(data: Dataset, chunk_steps: int = 4096, scheme: str = "forward") -> list[int]:
     """The steps of each independent run that :func:`iter_chunks` yields, in order: an episode, or
     each slab of ``chunk_steps`` of an episode longer than that (its chunks are cut there)."""
-    E, T = data.n_episodes, data.n_steps
-    first = 1 if scheme == "central" else 0
+    E = data.n_episodes
+    return [ts.stop - ts.start for ep, ts in _spans(E, data.n_steps, chunk_steps, scheme)
+            for _ in range(*ep.indices(E))]
+
+
+def _spans(E: int, T: int, chunk_steps: int, scheme: str) -> list[tuple[slice, slice]]:
+    """The (episodes, steps) of each of :func:`iter_chunks`' slabs: several whole episodes of at
+    most ``chunk_steps`` steps in all, or ``chunk_steps`` of one episode longer than that."""
+    first = 1 if scheme == "central" else 0  # the central difference needs instant t - 1
     n = T - first
-    if max(1, chunk_steps // max(n, 1)) > 1 or n <= chunk_steps:
-        return [n] * E
-    return [min(chunk_steps, T - t) for _ in range(E) for t in range(first, T, chunk_steps)]
+    per = max(1, chunk_steps // max(n, 1))
+    if per > 1 or n <= chunk_steps:
+        return [(slice(e, min(e + per, E)), slice(first, T)) for e in range(0, E, per)]
+    return [(slice(e, e + 1), slice(t, min(t + chunk_steps, T))) for e in range(E) for t in range(first, T, chunk_steps)]
 
 
 def iter_chunks(
@@ -87,15 +95,9 @@ def iter_chunks(
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {', '.join(SCHEMES)}, got '{scheme}'")
     E, T = data.n_episodes, data.n_steps
-    first = 1 if scheme == "central" else 0  # the central difference needs instant t - 1
-    if T - first < 1:
+    if T - (1 if scheme == "central" else 0) < 1:
         raise ValueError("the central scheme needs at least 2 steps per episode")
-    n = T - first
-    per = max(1, chunk_steps // n)
-    if per > 1 or n <= chunk_steps:
-        spans = [(slice(e, min(e + per, E)), slice(first, T)) for e in range(0, E, per)]
-    else:
-        spans = [(slice(e, e + 1), slice(t, min(t + chunk_steps, T))) for e in range(E) for t in range(first, T, chunk_steps)]
+    spans = _spans(E, T, chunk_steps, scheme)
 
     def cut(arr: np.ndarray, ep: slice, ts: slice, shift: int = 0) -> torch.Tensor:
         x = arr[ep, ts.start + shift : ts.stop + shift]

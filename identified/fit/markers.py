@@ -87,14 +87,15 @@ class MarkerStates:
 
 def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
                           gravity: tuple[float, float, float] = GRAVITY, lam: float | None = None,
-                          replicas: int = 0, seed: int = 0) -> MarkerStates:
+                          replicas: int = 0, seed: int = 0, measure_noise: bool = False) -> MarkerStates:
     """Rod states at every ``dt`` from a labelled, checked recording (the module docstring).
 
     ``lam``: the splines' smoothing (``None``: generalised cross validation per coordinate).
     ``replicas``: this many copies of the reconstruction from the markers with fresh noise of the
     recording's size added (antithetic pairs; each spline with the smoothing chosen for the
     recording itself), carried as ``Dataset.replicas`` for the fit's errors in variables
-    (:func:`noise_replicas`)."""
+    (:func:`noise_replicas`).  ``MarkerStates.marker_noise`` is measured (:func:`marker_noise`)
+    where there are replicas or ``measure_noise`` asks for it."""
     check_recording(rec, topology)
     missing = [s for s in topology.spring_names if s not in rec.rest_names]
     if missing:
@@ -139,7 +140,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         raise RecordingError(f"'{rec.source}': every take is too short to fit")
     data = _assemble(rec, topology, pieces, T, dt, gravity)
     sigma = None
-    if replicas > 0:
+    if replicas > 0 or measure_noise:
         sigma = marker_noise(rec, spans, geos, col, smoothing)
     if sigma is not None and sigma > CLEAN:
         data = replace(data, replicas=noise_replicas(rec, geos, col, spans, smoothing, data, replicas, sigma, seed))
@@ -557,8 +558,7 @@ def recording_states(path: str | Recording, model, noise: bool = False) -> Marke
         if not model.source_model:
             raise RecordingError(f"'{rec.source}': unlabelled markers need the model's MJCF to be labelled")
         rec = labelled(rec, model.topology, model.source_model)
-    ms = states_from_recording(rec, model.topology, model.dt, tuple(model.gravity), replicas=1 if noise else 0)
-    return replace(ms, data=replace(ms.data, replicas=()))  # the noise measured, its copy not kept
+    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity), measure_noise=noise)
 
 
 def diagnosis_options(rec: Recording, dt: float) -> dict[str, int]:

@@ -375,7 +375,7 @@ class _Scores:
         rss_base = max(syy - explained_sum_of_squares(GBB, bB), 0.0) if self.accs else None
         for acc in self.accs:
             entry, corr = self._score(acc, Z, GBB, bB, rss_base, my, vy)
-            entry.update(self._held_out(acc, Z, GBB_f, bB_f))
+            entry.update(self._held_out(acc, Z, GBB_f, bB_f, GBB, bB))
             cands.append(entry)
             P = acc.P
             j = int(np.argmax(np.abs(corr))) if P else 0
@@ -394,15 +394,17 @@ class _Scores:
         return {"candidates": cands, "best_feature": best_feature, "scatter": scatter,
                 "base_refit": None if rss_base is None or syy <= 0 else float(np.clip(1 - rss_base / syy, 0, 1))}
 
-    def _held_out(self, acc: _Accumulator, Z: np.ndarray, GBB_f: np.ndarray, bB_f: np.ndarray) -> dict[str, Any]:
+    def _held_out(self, acc: _Accumulator, Z: np.ndarray, GBB_f: np.ndarray, bB_f: np.ndarray, GBB: np.ndarray,
+                  bB: np.ndarray) -> dict[str, Any]:
         """The candidate's score on each half of the data with its coefficients fitted on the
-        other half (:func:`held_out_score`); ``score_held_out`` is the smaller of the two (``None``
-        where a half holds no residual)."""
+        other half (:func:`held_out_score`; ``GBB_f``, ``bB_f`` the base's sums per half, ``GBB``,
+        ``bB`` over both); ``score_held_out`` is the smaller of the two (``None`` where a half
+        holds no residual)."""
         per: list[float | None] = []
         if acc.P:
             BX = np.einsum("ij,fjk->fik", Z.T, acc.BX)
             sums = [(GBB_f[f], bB_f[f], BX[f], acc.XX[f], acc.Xy[f], float(self.m.syy[f])) for f in range(FOLDS)]
-            whole = (GBB_f.sum(0), bB_f.sum(0), BX.sum(0))
+            whole = (GBB, bB, BX.sum(0))
             per = [held_out_score(sums[FOLDS - 1 - test], sums[test], whole) for test in range(FOLDS)]
         held = None if not per or any(v is None for v in per) else float(min(per))
         if acc.nonfinite > 0.01 * max(acc.entries, 1):
@@ -442,7 +444,6 @@ class _Scores:
                  "max_abs_corr": finite_or_none(abs(corr[j])) if P else None,
                  "best_feature": names[j] if P else None,
                  "top_features": [{"feature": names[i], "corr": finite_or_none(corr[i])} for i in top]}, corr)
-
 
 
 def held_out_score(fit: tuple, test: tuple, base: tuple) -> float | None:

@@ -94,6 +94,8 @@ HEAD = "time,episode,rod0_end0.x,rod0_end0.y,rod0_end0.z,rod0_end1.x,rod0_end1.y
     ("0.00,0,0,0,0,0,0,1.7,0.9\n0.01,0,0,,0,0,0,1.7,0.9\n", "line 3, column 'rod0_end0.y'"),
     ("0.00,0,0,0,0,0,0,1700,0.9\n", "line 2, column 'rod0_end1.z'"),
     ("0.00,0,0,0,0,0,0,1.7,-0.9\n", "line 2, column 'cable0.rest'"),
+    # time in milliseconds: frames 10 "s" apart (median), the first take's second row named
+    ("0,0,0,0,0,0,0,1.7,0.9\n10,0,0,0,0,0,0,1.7,0.9\n20,0,0,0,0,0,0,1.7,0.9\n", "line 3, column 'time'"),
 ])
 def test_bad_rows_name_file_line_column(tmp_path, body, where):
     p = _csv(tmp_path, HEAD + body)
@@ -303,6 +305,53 @@ def test_c3d_file(tmp_path):
     assert np.isnan(rec.markers[2, 1]).all() and not np.isnan(rec.markers[3, 1]).any()
     np.testing.assert_allclose(rec.rest[:, 0], np.linspace(0.9, 1.0, 6), atol=1e-6)
     np.testing.assert_allclose(rec.time, np.arange(6) / 100)
+
+
+def test_time_in_seconds_at_the_slowest_accepted():
+    """Frames exactly SLOW apart are accepted, further apart refused with the median gap; a take's
+    one slow gap (a pause) does not count, the median of its gaps does."""
+    from identified.recording.format import SLOW
+
+    ok = parse_recording(f"time,a.x,a.y,a.z\n0,0,0,0\n{SLOW},0,0,0\n", "x.csv")
+    assert ok.n_frames == 2
+    paused = parse_recording("time,a.x,a.y,a.z\n0,0,0,0\n0.01,0,0,0\n5,0,0,0\n5.01,0,0,0\n", "x.csv")
+    assert paused.n_frames == 4
+    with pytest.raises(RecordingError, match=r"line 3, column 'time': frames 1\.5 s apart .*milliseconds"):
+        parse_recording("time,a.x,a.y,a.z\n0,0,0,0\n1.5,0,0,0\n3,0,0,0\n", "x.csv")
+
+
+@pytest.mark.parametrize("raw, words", [
+    (b"\x1f\x8b\x08\x00" + bytes(range(200, 256)), "gzip-compressed"),
+    (b"PK\x03\x04" + bytes(range(200, 256)), "zip archive"),
+    (bytes(range(128, 256)), "byte 0x80 at position 0 is not UTF-8"),
+])
+def test_a_file_that_is_not_text_is_named_in_one_line(tmp_path, raw, words):
+    """Compressed or binary files: one line naming the file and what it is, from the CSV reader and
+    from the loader that dispatches on the first line (no UnicodeDecodeError traceback)."""
+    p = tmp_path / "take.csv"
+    p.write_bytes(raw)
+    for read in (read_recording, load_recording):
+        with pytest.raises(RecordingError) as err:
+            read(p)
+        msg = str(err.value)
+        assert f"'{p}'" in msg and words in msg and "\n" not in msg
+
+
+def test_separators_and_line_endings(tmp_path):
+    """A UTF-8 byte-order mark and Windows line endings read as the plain file; semicolons or tabs
+    are named."""
+    plain = "time,a.x,a.y,a.z\n0,1,2,3\n0.01,1,2,3\n"
+    want = parse_recording(plain, "x.csv")
+    for k, raw in enumerate((b"\xef\xbb\xbf" + plain.encode(), plain.replace("\n", "\r\n").encode())):
+        p = tmp_path / f"v{k}.csv"
+        p.write_bytes(raw)
+        got = load_recording(p)
+        assert got.marker_names == ("a",)
+        np.testing.assert_array_equal(got.markers, want.markers)
+        np.testing.assert_array_equal(got.time, want.time)
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        with pytest.raises(RecordingError, match=f"line 1: the header is one cell of names separated by {name}"):
+            parse_recording(plain.replace(",", sep), "x.csv")
 
 
 def test_parse_needs_time_and_rows():

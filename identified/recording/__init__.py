@@ -10,6 +10,7 @@ from identified.recording.format import (
     Recording,
     RecordingError,
     check_recording,
+    not_text,
     parse_recording,
     read_recording,
     save_recording,
@@ -43,6 +44,8 @@ def load_recording(path, up: str | None = None) -> Recording:
         try:
             with open(p, encoding="utf-8-sig") as fh:
                 first = fh.readline()
+        except UnicodeDecodeError as exc:
+            raise RecordingError(not_text(p, exc)) from None
         except OSError:
             first = ""
         if first.startswith("Format Version"):

@@ -46,6 +46,8 @@ UNLABELLED = re.compile(r"^marker\d+$")
 _AXES = ("x", "y", "z")
 #: a marker further than this from the world origin is not in metres (m)
 FAR = 100.0
+#: a take whose frames lie further apart than this (median, s) does not have its time in seconds
+SLOW = 1.0
 
 
 class RecordingError(ValueError):
@@ -123,9 +125,30 @@ def read_recording(path: str | os.PathLike) -> Recording:
             text = fh.read()
     except FileNotFoundError:
         raise RecordingError(f"recording '{p}' does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"cannot read recording '{p}': {getattr(exc, 'strerror', None) or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise RecordingError(not_text(p, exc)) from None
+    except OSError as exc:
+        raise RecordingError(f"cannot read recording '{p}': {exc.strerror or exc}") from None
     return parse_recording(text, p)
+
+
+def not_text(path: str, exc: UnicodeDecodeError) -> str:
+    """The one-line message for a recording that is not UTF-8 text (compressed, binary, another
+    encoding)."""
+    head = b""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+    except OSError:
+        pass
+    if head[:2] == b"\x1f\x8b":
+        what = "a gzip-compressed file, not a text CSV: decompress it first"
+    elif head[:4] == b"PK\x03\x04":
+        what = "a zip archive, not a text CSV: extract the CSV first"
+    else:
+        what = (f"not a text CSV: byte 0x{exc.object[exc.start]:02x} at position {exc.start} is not UTF-8 (a binary "
+                "file, or text in another encoding: save it as UTF-8)")
+    return f"cannot read recording '{path}': {what}"
 
 
 def parse_recording(text: str, source: str = "<recording>") -> Recording:
@@ -186,6 +209,7 @@ def parse_recording(text: str, source: str = "<recording>") -> Recording:
         r = int(bad[0]) + 1
         raise RecordingError(f"'{source}', line {lines_a[r]}, column 'time': {time[r]:g} s is not after the "
                              f"previous row's {time[r - 1]:g} s in the same take (time must increase)")
+    _check_rate(time, episode, lines_a, source)
     names = tuple(cols["markers"])
     markers = np.stack([table[:, [cols["markers"][n][a] for a in range(3)]] for n in names], axis=1) \
         if names else np.zeros((len(rows), 0, 3))
@@ -204,6 +228,19 @@ def parse_recording(text: str, source: str = "<recording>") -> Recording:
     )
     _check_values(rec, header)
     return rec
+
+
+def _check_rate(time: np.ndarray, episode: np.ndarray, lines: np.ndarray, source: str) -> None:
+    """A take whose frames are more than :data:`SLOW` apart (median) has its time in other units
+    than seconds (milliseconds: 1000x): one line naming its first row."""
+    for e in np.unique(episode):
+        rows = np.flatnonzero(episode == e)
+        if rows.size < 2:
+            continue
+        gap = float(np.median(np.diff(time[rows])))
+        if gap > SLOW:
+            raise RecordingError(f"'{source}', line {lines[rows[1]]}, column 'time': frames {gap:g} s apart "
+                                 f"(median of the take): time must be in seconds (divide milliseconds by 1000)")
 
 
 def _numbered_rows(text: str):
@@ -246,6 +283,11 @@ def _columns(header: list[str], source: str, line: int) -> dict:
             raise RecordingError(f"'{source}', line {line}, column '{name}': unknown suffix '.{kind}' (expected "
                                  ".x/.y/.z, .rest, .ctrl or .length)")
     if "time" not in cols:
+        sep = next((name for sep, name in ((";", "semicolons"), ("\t", "tabs")) if len(header) == 1 and sep in header[0]),
+                   None)
+        if sep:
+            raise RecordingError(f"'{source}', line {line}: the header is one cell of names separated by {sep}: "
+                                 "a recording is comma-separated")
         raise RecordingError(f"'{source}', line {line}: no 'time' column")
     for base, idx in cols["markers"].items():
         if None in idx:

@@ -25,7 +25,7 @@ import re
 
 import numpy as np
 
-from identified.recording.format import Recording, RecordingError
+from identified.recording.format import Recording, RecordingError, not_text
 
 __all__ = ["read_c3d", "read_motive_csv"]
 
@@ -100,8 +100,10 @@ def read_motive_csv(path: str | os.PathLike, up: str = "y") -> Recording:
             rows = list(csv.reader(io.StringIO(fh.read())))
     except FileNotFoundError:
         raise RecordingError(f"recording '{p}' does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"cannot read '{p}': {getattr(exc, 'strerror', None) or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise RecordingError(not_text(p, exc)) from None
+    except OSError as exc:
+        raise RecordingError(f"cannot read '{p}': {exc.strerror or exc}") from None
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
         raise RecordingError(f"'{p}' is not a Motive CSV export (its first cell is not 'Format Version')")
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}

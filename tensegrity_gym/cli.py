@@ -220,6 +220,7 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
 def cmd_diagnose(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
     from identified.diagnose import diagnose, write_report
+    from identified.diagnose.report import EXPLAINED_BY
     from identified.fit.identify import check_compatible
     from identified.model import load_model
 
@@ -268,8 +269,13 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
                          if c.get("score_held_out_null") is not None else "")
     why = (", ".join(f"{c['name']} removes {c['score_held_out']:.0%} of it on held-out data{on_null(c)}"
                      for c in missing)
-           if missing else (result.get("explained_by") or "structured residual left"))
+           if missing else ("; ".join(EXPLAINED_BY[x] for x in result.get("explained_by") or [])
+                            or "structured residual left"))
     print(f"residual explained: {result['explained']} ({why})")
+    if missing:  # the loop's next step: the named effect added to the model's, one at a time as the search adds them
+        names = [*result["added"], missing[0]["name"]]
+        print(f"next: refit with it, `tensegrity fit {args.data} --effects {','.join(names)} ...` (the fit's other "
+              "options as before), then diagnose the new model")
     for e in result["one_step"].get("effect_rows") or []:
         pct = lambda v: "n/a" if v is None else (f"{v:.1%}" if v >= 1e-3 else f"{v:.2g}")
         print(f"  on the rods {e['effect']} acts on ({e['fraction']:.1%} of rod-instants): force residual "

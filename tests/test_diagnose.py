@@ -419,3 +419,20 @@ def test_candidate_scores_hold_the_total_mass():
     np.testing.assert_array_equal(Z[m_idx].sum(axis=0), np.zeros(6))
     np.testing.assert_array_equal(Z[[0, 1, 3, 6]], np.eye(6)[[0, 1, 3, 5]])
     np.testing.assert_array_equal(Z[:, 2], [0, 0, 1, 0, 0, -1, 0])
+
+
+
+def test_the_command_names_no_next_step_where_nothing_is_missing(plants, tmp_path, capsys):
+    """``tensegrity diagnose`` on the clean plant: explained, no refit proposed (the viscous case,
+    where it names ``--effects ground_contact,linear_drag``, is tests/test_diagnose_recording.py's)."""
+    from identified.dataset import save_dataset
+    from identified.model import save_model
+    from tensegrity_gym.cli import main
+
+    xml, data, _, model = plants["clean"]
+    d, f = str(tmp_path / "D.npz"), str(tmp_path / "F.json")
+    save_dataset(d, data)
+    save_model(f, model)
+    assert main(["diagnose", d, "--identified", f, "--model", xml, "--horizon", str(HORIZON)]) == 0
+    out = capsys.readouterr().out
+    assert "residual explained: True (the one-step residual is at rounding level" in out and "next:" not in out

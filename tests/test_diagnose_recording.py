@@ -219,6 +219,7 @@ def test_the_command_scores_a_recording_as_the_fit_reads_it(recordings, tmp_path
     assert main(["diagnose", path, "--identified", str(GROUND), "--model", recordings["xml"]]) == 0
     out = capsys.readouterr().out
     assert "residual explained: False (linear_drag removes" in out
+    assert f"next: refit with it, `tensegrity fit {path} --effects ground_contact,linear_drag ...`" in out
     assert out.index("candidate linear_drag") < out.index("candidate constant_force")
     assert "on the model's own motion recorded alike)" in out and "(null " in out
 

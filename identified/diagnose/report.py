@@ -84,12 +84,16 @@ def write_report(result: dict[str, Any], out_dir: str | os.PathLike) -> list[str
     return paths
 
 
+#: what each reason of ``explained_by`` says, in words
+EXPLAINED_BY = {"rounding": "the one-step residual is at rounding level", "white": "the residual is white (Ljung-Box)",
+                "improved": "the added effects cut the free-run error at least 5x"}
+
+
 def _report_text(r: dict[str, Any], figs: dict[str, str]) -> str:
     f = lambda v, spec=".3g": "n/a" if v is None else format(v, spec)
     L = ["# Diagnosis of the identified model", ""]
     verdict = {"partial": "partly explained"}.get(r["explained"], "explained" if r["explained"] else "NOT explained")
-    why = {"rounding": "the one-step residual is at rounding level", "white": "the residual is white (Ljung-Box)",
-           "improved": "the added effects cut the free-run error at least 5x"}
+    why = EXPLAINED_BY
     missing = r.get("unexplained_by") or []
     if missing:
         L.append(f"**Verdict: the residual is {verdict}**: "

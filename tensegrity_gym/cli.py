@@ -194,6 +194,7 @@ def _is_recording(path: str) -> bool:
 def _fit_recording(args: argparse.Namespace, scale) -> None:
     """``tensegrity fit R.csv``: rod states reconstructed from the markers, then the fit."""
     from identified.fit.markers import fit_recording
+    from identified.fit.pipeline import parse_effects
     from identified.model import save_model
     from identified.recording import load_recording
 
@@ -201,8 +202,16 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
         raise CommandError("--solver, --refine, --integrator and --scheme are for datasets; a recording is fitted "
                            "by least squares on the engine's Euler step")
     rec = load_recording(args.data)
-    model = fit_recording(rec, args.model, dt=args.dt, weak_window=args.weak_window or None, effects=args.effects,
-                          regressors=args.regressors, scale=scale, progress=not args.quiet, jobs=args.jobs)
+
+    def fit(effects: str | list[str]):
+        return fit_recording(rec, args.model, dt=args.dt, weak_window=args.weak_window or None, effects=effects,
+                             regressors=args.regressors, scale=scale, progress=not args.quiet, jobs=args.jobs)
+
+    model = fit(args.effects)
+    if parse_effects(args.effects) == "auto":  # then what the diagnosis of the recording finds missing (tensegrity_gym.loop)
+        from tensegrity_gym.loop import close_loop
+
+        model = close_loop(model, rec, args.model, fit, progress=not args.quiet)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
@@ -254,7 +263,9 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         _check_readable(mjcf)
     null = None
     if rec is not None:
-        null = _recording_null(model, data, rec, states.marker_noise, mjcf, scoring)
+        from tensegrity_gym.loop import recording_null
+
+        null = recording_null(model, data, rec, states.marker_noise, mjcf, scoring)
     result = diagnose(model, data, horizon_s=args.horizon, mjcf=mjcf, null=null, **scoring)
     paths = write_report(result, args.out) if args.out else []
     if args.json:
@@ -289,39 +300,6 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         print(f"  candidate {c['name']:<16} score {score}{held}  {c.get('note') or ''}".rstrip())
     for p in paths:
         print(f"wrote {p}")
-
-
-#: draws of the markers' noise for the diagnosis's null on a recording (measured: the robot in still air
-#: at 60 Hz / 2 mm, one draw gave a constant force -0.18 held out, another 0.38, the recording 0.28)
-NULL_DRAWS = 2
-
-
-def _recording_null(model, data, rec, noise: float | None, mjcf: str | None,
-                    scoring: dict[str, int]) -> dict[str, float | None] | None:
-    """Each candidate's held-out score on the diagnosis's null: the model's own motion under the
-    recording's inputs, recorded with its rate, gaps and noise (``tensegrity_gym.collect.
-    twin_recording``), reconstructed and scored alike, the largest over :data:`NULL_DRAWS` draws of
-    the noise; ``None`` (and a note) where it cannot be made."""
-    from identified.diagnose import held_out_scores
-    from identified.fit.markers import recording_dataset
-    from tensegrity_gym.collect import twin_recording
-
-    src = mjcf or (model.source_model if model.source_model and os.path.isfile(model.source_model) else None)
-    if src is None:
-        print("tensegrity: note: no null for the candidates (pass the robot's MJCF with --model): their held-out "
-              "shares include what reconstructing the markers makes up", file=sys.stderr)
-        return None
-    out: dict[str, float | None] = {}
-    for draw in range(NULL_DRAWS):  # the largest over draws of the markers' noise: one draw's score scatters
-        try:
-            twin = twin_recording(model, data, src, rec, noise or 0.0, seed=draw)
-        except ValueError as exc:
-            print(f"tensegrity: note: no null for the candidates ({exc})", file=sys.stderr)
-            return None
-        for name, v in held_out_scores(model, recording_dataset(twin, model), mjcf=src, **scoring).items():
-            old = out.get(name)
-            out[name] = v if old is None else (old if v is None else max(old, v))
-    return out
 
 
 def cmd_predict(args: argparse.Namespace) -> None:

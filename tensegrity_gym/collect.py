@@ -19,6 +19,7 @@ Sensor noise (``noise_pos`` etc.) is added to what is recorded, never to the sim
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +30,8 @@ from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers", "twin_recording"]
+__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers", "twin_recording",
+           "twin_recordings"]
 
 
 @dataclass(frozen=True)
@@ -332,6 +334,13 @@ def twin_recording(model, data: Dataset, mjcf: str | os.PathLike, like, noise_po
     rest lengths and pushes, then recorded by :func:`record_markers` at ``like``'s rate, with its
     share of missing samples and markers' noise ``noise_pos``.  It holds no effect the model lacks:
     what a diagnosis finds in it is what reconstructing markers makes up (``diagnose``'s null)."""
+    return twin_recordings(model, data, mjcf, like, noise_pos, (seed,))[0]
+
+
+def twin_recordings(model, data: Dataset, mjcf: str | os.PathLike, like, noise_pos: float,
+                    seeds: Sequence[int]) -> list:
+    """:func:`twin_recording` for several draws of the markers' noise and gaps (one per seed of
+    ``seeds``), the model's free run made once."""
     from dataclasses import replace
 
     from identified.evaluate import rollout
@@ -343,4 +352,4 @@ def twin_recording(model, data: Dataset, mjcf: str | os.PathLike, like, noise_po
         raise ValueError("the identified model's own free run diverged under the recording's inputs")
     cfg = RecordConfig(rate=min(like.rate_hz(), 1.0 / data.dt), noise_pos=noise_pos,
                       dropout=min(like.missing_fraction(), 0.5))
-    return record_markers(twin, mjcf, cfg, seed=seed)
+    return [record_markers(twin, mjcf, cfg, seed=int(s)) for s in seeds]

@@ -1,0 +1,97 @@
+"""The loop closed on a recording (tensegrity_gym.loop): the effect the diagnosis finds missing is
+added by a refit, with its evidence and the free run before and after; nothing is added, and no
+null is made, where nothing is missing.
+
+The recordings of tests/test_diagnose_recording.py's kind (the robot in still air and in MuJoCo's
+viscosity 2, 6 takes of 2 s, end-cap markers at 100 Hz, 1 mm, 2 % missing) against the robot's
+ground-contact fit (tests/data/robot_ground_contact.json: no drag).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from identified.diagnose import SUPPORTED_GAIN
+from identified.fit.identify import ScaleSpec
+from identified.fit.markers import fit_recording
+from identified.model import load_model
+from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
+from tensegrity_gym.loop import close_loop
+from tensegrity_gym.models import write_model
+from tests._data import GROUND
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("loop")
+    xml = str(folder / "robot.xml")
+    text = write_model(xml, "ico", preset="robot")
+    out = {"xml": xml}
+    for name, option in (("still", "<option "), ("viscous", '<option viscosity="2" ')):
+        plant = str(folder / f"{name}.xml")
+        with open(plant, "w", encoding="utf-8") as fh:
+            fh.write(text.replace("<option ", option))
+        data = collect(plant, CollectConfig(episodes=6, steps=2000, seed=11))
+        out[name] = record_markers(data, plant, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=11)
+    return out
+
+
+def _refit(rec, xml, calls):
+    def refit(effects):
+        calls.append(list(effects))
+        return fit_recording(rec, xml, effects=list(effects), scale=ScaleSpec(total_mass=21.0), jobs=1)
+    return refit
+
+
+@pytest.mark.expensive  # ~40 s (a refit and the null); cheap siblings: the two tests below
+def test_a_hidden_drag_is_added_with_its_evidence(recordings):
+    rec, xml, calls = recordings["viscous"], recordings["xml"], []
+    model = close_loop(load_model(str(GROUND)), rec, xml, _refit(rec, xml, calls))
+    assert calls == [["ground_contact", "linear_drag"]]  # the best first; quadratic_drag is its rival after
+    assert sorted(e["name"] for e in model.effects) == ["ground_contact", "linear_drag"]
+    step = model.loop[-1]
+    assert step["added"] == "linear_drag" and step["evidence"] == "held-out share on the recording"
+    # the share is the held-out score beyond a null that holds no drag (a negative null counts as 0)
+    assert step["share"] == pytest.approx(step["held_out"] - max(step["null"], 0.0), abs=1e-12)
+    assert step["share"] >= SUPPORTED_GAIN and step["null"] < SUPPORTED_GAIN
+    assert 0 < step["error_after"] < step["error_before"]
+    rounds = model.metrics["recording_loop"]["rounds"]
+    assert rounds[0]["effects"] == ["ground_contact"] and "null" in rounds[0]
+    assert sorted(rounds[-1]["effects"]) == ["ground_contact", "linear_drag"]
+    assert "null" not in rounds[-1] and max(rounds[-1]["held_out"].values()) < SUPPORTED_GAIN  # then it stops
+
+
+def test_nothing_is_added_where_nothing_is_hidden(recordings):
+    rec, xml, calls = recordings["still"], recordings["xml"], []
+    model = close_loop(load_model(str(GROUND)), rec, xml, _refit(rec, xml, calls))
+    assert calls == [] and model.loop == load_model(str(GROUND)).loop
+    (only,) = model.metrics["recording_loop"]["rounds"]
+    assert "null" not in only  # no candidate reached the threshold on the recording: no null made
+    assert max(only["held_out"].values()) < SUPPORTED_GAIN and np.isfinite(list(only["held_out"].values())).all()
+
+
+def test_fit_auto_on_a_recording_runs_the_loop(recordings, tmp_path, monkeypatch, capsys):
+    """``tensegrity fit R.csv --effects auto`` passes the search's model to the loop and writes what
+    it returns (the search itself stood in for by the robot's ground-contact fit: the wiring, cheaply)."""
+    from identified.fit import markers
+    from identified.recording import save_recording
+    from tensegrity_gym.cli import main
+
+    asked = []
+
+    def search(rec, mjcf, effects, **kwargs):
+        asked.append(effects)
+        model = load_model(str(GROUND))
+        model.metrics["recording"] = {"frames": rec.n_frames, "rate_hz": 100.0, "missing": 0.02}
+        return model
+
+    monkeypatch.setattr(markers, "fit_recording", search)
+    path, out = str(tmp_path / "still.csv"), str(tmp_path / "F.json")
+    save_recording(path, recordings["still"])
+    assert main(["fit", path, "--model", recordings["xml"], "--total-mass", "21", "--effects", "auto",
+                 "--out", out, "--quiet"]) == 0
+    assert asked == ["auto"]
+    written = load_model(out)
+    assert written.metrics["recording_loop"]["rounds"][0]["effects"] == ["ground_contact"]
+    assert "effects: ground_contact" in capsys.readouterr().out

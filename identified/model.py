@@ -144,6 +144,11 @@ class IdentifiedModel:
                 lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
         g = lambda x: "diverged" if x is None else f"{x:.4g}"
         for step in self.loop:
+            if "share" in step:  # added after the search, on a recording's diagnosis (tensegrity_gym.loop)
+                lines.append(f"loop: added {step.get('added')}: it removed {step['share']:.0%} of the held-out "
+                             f"residual beyond the null ({step.get('evidence')}); free-run error "
+                             f"{g(step.get('error_before'))} m -> {g(step.get('error_after'))} m")
+                continue
             line = (f"loop: added {step.get('added')}: held-out free-run error {g(step.get('error_before'))} m -> "
                     f"{g(step.get('error_after'))} m")
             if "one_step_before" in step:

@@ -146,8 +146,8 @@ class IdentifiedModel:
         for step in self.loop:
             if "share" in step:  # added after the search, on a recording's diagnosis (tensegrity_gym.loop)
                 lines.append(f"loop: added {step.get('added')}: it removed {step['share']:.0%} of the held-out "
-                             f"residual beyond the null ({step.get('evidence')}); free-run error "
-                             f"{g(step.get('error_before'))} m -> {g(step.get('error_after'))} m")
+                             f"residual beyond the null ({step.get('evidence')}); free-run error from every take's "
+                             f"start {g(step.get('error_before'))} m -> {g(step.get('error_after'))} m")
                 continue
             line = (f"loop: added {step.get('added')}: held-out free-run error {g(step.get('error_before'))} m -> "
                     f"{g(step.get('error_after'))} m")

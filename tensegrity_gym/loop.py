@@ -87,7 +87,8 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
     ``--effects auto``; ``refit(effects)``: the same fit with these effects named.  Each step is
     appended to the returned model's ``loop`` (``added``, ``evidence``, ``share``, ``null``,
     ``error_before``/``error_after``: the free run's, m); ``metrics["recording_loop"]`` says what
-    was scored and what it cost."""
+    was scored and what it cost.  A refit that fails (the effect not identified by the data) leaves
+    the model as it was, with a warning in ``metrics["warnings"]``."""
     from identified.diagnose import SUPPORTED_GAIN, held_out_scores, held_out_share
     from identified.effects import EFFECTS, rival
     from identified.fit.markers import diagnosis_options, recording_states
@@ -118,7 +119,14 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
         if progress:
             print(f"loop: {best} removes {share[best]:.0%} of the held-out residual beyond the null: refitting "
                   f"with {', '.join([*names, best])}", flush=True)
-        new = refit([*names, best])
+        try:
+            new = refit([*names, best])
+        except ValueError as exc:  # not identified with it (IdentifiabilityError, DatasetError): the model stays
+            entry["refit_failed"] = f"{best}: {exc}"
+            warning = (f"the diagnosis finds {best} missing ({share[best]:.0%} of the held-out residual beyond the "
+                       f"null) but the fit with it failed: {exc}")
+            model.metrics.setdefault("warnings", []).append(warning)
+            break
         before, after = _free_run(model, data), _free_run(new, data)
         loop.append({"added": best, "evidence": "held-out share on the recording",
                      "share": float(share[best]), "held_out": float(open_[best]),

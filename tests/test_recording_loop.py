@@ -103,3 +103,25 @@ def test_the_summary_says_a_loop_steps_evidence():
                    "held_out": 0.7283, "null": -0.006, "error_before": 0.04287, "error_after": 0.02961}]
     assert ("loop: added linear_drag: it removed 73% of the held-out residual beyond the null (held-out share on "
             "the recording); free-run error from every take's start 0.04287 m -> 0.02961 m") in model.summary()
+
+
+def test_a_refit_that_fails_leaves_the_model_and_warns(recordings, monkeypatch):
+    """Every candidate counted as missing (the threshold lowered, no null): the best one's refit is
+    not identified; the search's model stays, the loop says why."""
+    import identified.diagnose
+    import tensegrity_gym.loop
+    from identified.fit.regression import IdentifiabilityError
+
+    monkeypatch.setattr(identified.diagnose, "SUPPORTED_GAIN", -1.0)
+    monkeypatch.setattr(tensegrity_gym.loop, "recording_null", lambda *a, **k: None)
+
+    def refit(effects):
+        raise IdentifiabilityError("the data cannot identify constant_force.f", ["constant_force.f"])
+
+    start = load_model(str(GROUND))
+    model = close_loop(start, recordings["still"], recordings["xml"], refit)
+    (only,) = model.metrics["recording_loop"]["rounds"]
+    best = max(only["held_out"], key=only["held_out"].get)
+    assert only["refit_failed"] == f"{best}: the data cannot identify constant_force.f"
+    assert model.loop == start.loop and [e["name"] for e in model.effects] == ["ground_contact"]
+    assert model.metrics["warnings"][-1].startswith(f"the diagnosis finds {best} missing")

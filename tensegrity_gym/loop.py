@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from identified.model import IdentifiedModel
+from identified.threads import torch_threads
 
 __all__ = ["HORIZON_S", "MAX_ADDED", "NULL_DRAWS", "close_loop", "recording_null"]
 
@@ -43,6 +44,7 @@ HORIZON_S = 1.0
 MAX_ADDED = 3
 
 
+@torch_threads(1)
 def recording_null(model: IdentifiedModel, data: Any, rec: Any, noise: float | None, mjcf: str | None,
                    scoring: dict[str, int]) -> dict[str, float | None] | None:
     """Each candidate's held-out score on the diagnosis's null: the model's own motion under the
@@ -80,6 +82,7 @@ def _free_run(model: IdentifiedModel, data: Any) -> float | None:
     return float(err) if np.isfinite(err) else None
 
 
+@torch_threads(1)
 def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[list[str]], IdentifiedModel],
                progress: bool = False) -> IdentifiedModel:
     """The model with the effects the diagnosis finds missing added one at a time (module
@@ -102,14 +105,18 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
     rounds: list[dict[str, Any]] = []
     for _ in range(MAX_ADDED):
         names = [e["name"] for e in model.effects]
+        t = time.perf_counter()
         raw = held_out_scores(model, data, mjcf=mjcf, **scoring)
         open_ = {n: v for n, v in raw.items() if v is not None and n in EFFECTS and n not in names
                  and rival(n, names) is None}
-        entry: dict[str, Any] = {"effects": names, "held_out": dict(open_)}
+        entry: dict[str, Any] = {"effects": names, "held_out": dict(open_),
+                                 "seconds": {"scores": round(time.perf_counter() - t, 2)}}
         rounds.append(entry)
         if not open_ or max(open_.values()) < SUPPORTED_GAIN:
             break  # nothing the data support, even before the null
+        t = time.perf_counter()
         null = recording_null(model, data, rec, states.marker_noise, mjcf, scoring) or {}
+        entry["seconds"]["null"] = round(time.perf_counter() - t, 2)
         entry["null"] = {k: null.get(k) for k in open_}
         share = {n: held_out_share({"score_held_out": v, **({"score_held_out_null": null[n]} if n in null else {})})
                  for n, v in open_.items()}
@@ -119,6 +126,7 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
         if progress:
             print(f"loop: {best} removes {share[best]:.0%} of the held-out residual beyond the null: refitting "
                   f"with {', '.join([*names, best])}", flush=True)
+        t = time.perf_counter()
         try:
             new = refit([*names, best])
         except ValueError as exc:  # not identified with it (IdentifiabilityError, DatasetError): the model stays
@@ -127,7 +135,10 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
                        f"null) but the fit with it failed: {exc}")
             model.metrics.setdefault("warnings", []).append(warning)
             break
+        entry["seconds"]["refit"] = round(time.perf_counter() - t, 2)
+        t = time.perf_counter()
         before, after = _free_run(model, data), _free_run(new, data)
+        entry["seconds"]["free_runs"] = round(time.perf_counter() - t, 2)
         loop.append({"added": best, "evidence": "held-out share on the recording",
                      "share": float(share[best]), "held_out": float(open_[best]),
                      "null": None if null.get(best) is None else float(null[best]),

@@ -93,6 +93,7 @@ from identified.effects import EFFECTS, RESERVED, Effect, GeometryError, make_ef
 from identified.evaluate import k_step_errors, rollout_errors
 from identified.jsonsafe import json_safe
 from identified.model import IdentifiedModel
+from identified.threads import torch_threads
 from identified.twin import effects_from_model
 
 from .report import write_report
@@ -118,6 +119,7 @@ _KSTEP_STARTS = 256
 
 
 # ---------------------------------------------------------------------- public API
+@torch_threads(1)
 def diagnose(
     model: IdentifiedModel,
     data: Dataset,
@@ -170,6 +172,7 @@ def diagnose(
         return _diagnose(model, data, horizon_s, max_steps, mjcf, chunk_steps, weak_window, contact_margin, null)
 
 
+@torch_threads(1)
 def held_out_scores(model: IdentifiedModel, data: Dataset, mjcf: str | os.PathLike | None = None,
                     max_steps: int = 50_000, chunk_steps: int = 2048, weak_window: int | None = None,
                     contact_margin: int | None = None) -> dict[str, float | None]:

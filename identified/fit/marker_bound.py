@@ -122,20 +122,21 @@ def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Te
 def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                     sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                     state_steps: int = 2, order: int = 2, contact=None, law_free: tuple[str, ...] = (),
-                    progress: bool = False) -> RecordingBound:
+                    substeps: int = 1, progress: bool = False) -> RecordingBound:
     """The Cramér-Rao bound of ``rec`` at ``model``'s parameters (the module docstring); ``data``
     and ``starts`` the rod states aligned with the recording (as :func:`identified.fit.output_error.
     refine_markers` takes them).  ``hold_inertia``'s moments are parameters here too: their bound
     says they are not identifiable.  ``contact``: the windows follow this contact law (at its
     ``values``) instead of a free ground wrench, ``law_free`` its parameters that are unknowns too
     (:func:`identified.fit.output_error.window_problem`): the bound of an estimator that knows the
-    law's form (and, where not free, its values)."""
+    law's form (and, where not free, its values).  ``substeps``: the windows stepped at up to that
+    many of ``data.dt`` (:func:`identified.fit.output_error.coarse_steps`)."""
     if not sigma > 0:
         raise ValueError(f"marker noise {sigma!r}: the bound needs a positive noise (m)")
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(model, rec, data, starts, mjcf, sigma, hold_inertia, frames,
                                                     max_windows, order, axial=True, contact=contact,
-                                                    law_free=law_free)
+                                                    law_free=law_free, substeps=substeps)
     W = win.n_windows
     theta = prob.theta0
     dx = settle(prob, theta, dx, acts, state_steps, progress)

@@ -65,7 +65,8 @@ class MarkerFit:
 def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
-                wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), progress: bool = False) -> MarkerFit:
+                wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
+                progress: bool = False) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -76,11 +77,13 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     with 3 2.1 % at 0.9: a linear wrench does not follow the contacts, and the misfit biases K).
     ``contact``: the windows follow this contact law instead (every rod simulated; its ``values``
     the start, never the plant's), ``law_free`` its parameters estimated with K, c, M (the others
-    held); :func:`identified.fit.output_error.window_problem`."""
+    held); :func:`identified.fit.output_error.window_problem`.  ``substeps``: the windows stepped at
+    up to that many of ``data.dt`` (:func:`identified.fit.output_error.coarse_steps`)."""
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
-        margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free)
+        margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free,
+        substeps=substeps)
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
     theta = prob.theta0.clone()
     P = theta.numel()

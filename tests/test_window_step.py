@@ -19,7 +19,7 @@ from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_
 from tensegrity_gym.models import write_model
 
 from .test_pyramid_contact import TRUTH
-from .test_record_output_error import _truth
+from .test_record_output_error import _robot, _truth
 
 HELD = [(i, 2) for i in range(6)]  # end caps on the rods' axes
 
@@ -99,3 +99,41 @@ def test_two_steps_are_the_windows_of_a_reconstruction_at_2dt(robot):
     dxw[..., 12:15] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # 10 N up
     dxw[..., 18:21] = torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)  # and growing sideways
     torch.testing.assert_close(_residuals(p2, dxw), _residuals(pr, dxw), rtol=0, atol=1e-9)
+
+
+def _gauss_newton_step(jac: _Problem, r: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor) -> torch.Tensor:
+    """The parameters' Gauss-Newton step (total mass held) from ``jac``'s Jacobian and residuals ``r``,
+    the windows' states eliminated."""
+    import scipy.linalg as sla
+
+    from identified.fit.window_solve import window_schur
+
+    _, Jx, Jp = jac.jacobians(jac.theta0, dx)
+    Jx = Jx * acts.unsqueeze(1)
+    U = torch.as_tensor(sla.null_space(jac.total_mass_row(jac.base.mass.numpy())[None]))
+    Ju = Jp @ U
+    A = Jx.transpose(1, 2) @ Jx
+    A = A + torch.diag_embed(1 - acts + 1e-9 * torch.diagonal(A, dim1=-2, dim2=-1).amax(-1, keepdim=True))
+    sc = window_schur(A, Jx.transpose(1, 2) @ Ju, (Ju.transpose(1, 2) @ Ju).sum(0))
+    _, gs = sc.reduce(Jx.transpose(1, 2) @ r.unsqueeze(-1), (Ju.transpose(1, 2) @ r.unsqueeze(-1)).sum(0))
+    return (U @ -torch.linalg.solve(sc.S, gs)).squeeze(-1)
+
+
+def test_coarse_jacobian_with_the_cost_at_dt_leaves_the_truth(tmp_path):
+    """What ``fit_markers(substeps=k)`` does: the Jacobian from the windows at ``k dt``, the residuals
+    at ``dt``.  From the truth on clean markers (the robot without its ground, falling) its step
+    stays at the truth (the residuals at ``dt`` are rounding), where the coarse windows' own
+    residuals move K, c, M (by their step's error)."""
+    torch.set_num_threads(1)
+    path = _robot(tmp_path, floor=False)
+    data = collect(path, CollectConfig(episodes=1, steps=200, seed=3))
+    rec = record_markers(data, path, RecordConfig(rate=50, noise_pos=0.0, dropout=0.0), seed=3)
+    _, _, prob, dx, acts = window_problem(_truth(path), rec, data, [0.0], None, 1e-3, HELD, frames=3, max_windows=2,
+                                          order=0)
+    jac = prob.at_step(2)
+    W = dx.shape[0]
+    fine = _gauss_newton_step(jac, _residuals(prob, dx).reshape(W, -1), dx, acts)
+    coarse = _gauss_newton_step(jac, _residuals(jac, dx).reshape(W, -1), dx, acts)
+    n = jac.n_spring_rod
+    assert float(fine[:n].abs().max()) < 1e-6
+    assert float(coarse[:n].abs().max()) > 1e-3

@@ -72,20 +72,23 @@ def natural_values(prob: _Problem, theta: torch.Tensor) -> np.ndarray:
 
 def nuisance_step(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, cost: float,
                   mu: float, residuals: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                  tries: int = 8) -> tuple[torch.Tensor, torch.Tensor, float, float, bool]:
+                  tries: int = 8, jac: _Problem | None = None) -> tuple[torch.Tensor, torch.Tensor, float, float, bool]:
     """One Levenberg-Marquardt step in the windows' nuisances ``dx`` (W, R, n_x) alone at the
     parameters ``theta``: with ``J`` the windows' Jacobian in their nuisances (the columns of
     ``acts`` (W, R n_x) that act), ``dx - (JᵀJ + μ diag(JᵀJ) + diag(1 - acts) + 1e-12 I)⁻¹ Jᵀ r``,
     ``μ`` raised fourfold (at most ``tries`` times) until the step lowers ``cost`` (``Σ r²``), then
     lowered threefold (not below 1e-7).  ``residuals(theta, dx)`` (W, m): a trial's residuals
     (``None``: :meth:`_Problem.residuals`).  Returns ``(dx, r, cost, mu, moved)``: the nuisances,
-    their residuals (W, m) and cost, the damping, and whether a step was taken."""
+    their residuals (W, m) and cost, the damping, and whether a step was taken.  ``jac``: the problem
+    whose Jacobian steps (a coarser step's, :meth:`_Problem.at_step`), ``prob``'s residuals the cost."""
     W, R, k = dx.shape
     if residuals is None:
         def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
                 return prob.residuals(th, d).reshape(W, -1)
-    r, Jx, _ = prob.jacobians(theta, dx, params=False)
+    r, Jx, _ = (prob if jac is None else jac).jacobians(theta, dx, params=False)
+    if jac is not None and jac is not prob:
+        r = residuals(theta, dx)
     Jx = Jx * acts.unsqueeze(1)
     A0 = Jx.transpose(1, 2) @ Jx
     gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)

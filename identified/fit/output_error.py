@@ -49,6 +49,7 @@ sec. 7.3), multiple shooting after Bock and Plitt (1984).
 from __future__ import annotations
 
 import time
+from copy import copy
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
@@ -341,6 +342,12 @@ class _Problem:
         rot0 = quat_to_matrix(win.x0[..., 3:7])  # (W, R, 3, 3)
         for i, ax in held:
             self.axial[:, i] = rot0[:, i, :, ax]
+
+    def at_step(self, substeps: int) -> _Problem:
+        """The same problem, its windows stepped at up to ``substeps`` of ``dt`` (:func:`coarse_steps`)."""
+        out = copy(self)
+        out.substeps, out.grid = substeps, coarse_steps(self.win.step.numpy(), substeps)
+        return out
 
     def params(self, theta: torch.Tensor) -> SpringRodParams:
         K, c, M, Ig = torch.split(theta[:self.n_spring_rod].exp(), self.sizes)

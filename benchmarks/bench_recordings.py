@@ -141,7 +141,8 @@ def truth_bound(path: str, data, args, seed: int):
     law, free = window_law(path, args, law_truth(path))
     return recording_bound(truth, clean, data, [0.0] * data.n_episodes, path, args.noise, held,
                            frames=args.oe_frames, max_windows=args.bound_windows or args.oe_windows,
-                           state_steps=args.bound_steps, order=args.wrench_order, contact=law, law_free=free)
+                           state_steps=args.bound_steps, order=args.wrench_order, contact=law, law_free=free,
+                           substeps=args.oe_step)
 
 
 def group_line(key: str, est: np.ndarray, se: np.ndarray, tru: np.ndarray, crb: np.ndarray, scale: float) -> str:
@@ -182,7 +183,7 @@ def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
     fit = fit_markers(start, rec, ms.data, ms.starts, path, args.noise, ms.unobservable, frames=args.oe_frames,
                       max_windows=args.oe_windows, state_iters=args.oe_state_iterations, joint_iters=args.oe_iterations,
                       contact_margin=args.contact_margin, wrench_order=args.wrench_order, contact=law, law_free=free,
-                      progress=args.progress)
+                      substeps=args.oe_step, progress=args.progress)
     secs = time.perf_counter() - t0
     b = truth_bound(path, data, args, k)
     scale = np.sqrt(fit.windows / fit.available)
@@ -190,7 +191,7 @@ def marker_fit_row(path: str, data, rec, truth, args, k: int) -> dict:
              f"the contact law {law.name} (estimated: {', '.join(free) or 'none'}; start: its generic START)")
     print(f"dataset {k}: output error from the nominal values, windows through {model}, {fit.windows} of "
           f"{fit.available} windows of "
-          f"{args.oe_frames} frames, marker residual {1e3 * fit.residual_rms:.2f} mm, {secs:.0f} s; bound at the truth "
+          f"{args.oe_frames} frames stepped at up to {args.oe_step} ms, marker residual {1e3 * fit.residual_rms:.2f} mm, {secs:.0f} s; bound at the truth "
           f"from {b.windows} of {b.available} windows ({b.seconds:.0f} s, clean markers left at "
           f"{1e3 * b.residual_rms:.2f} mm)", flush=True)
     out = {}
@@ -269,6 +270,9 @@ def main() -> None:
     ap.add_argument("--law-free", default="all",
                     help="--window-contact law: the law's parameters estimated with K, c, M ('all', 'none' or names)")
     ap.add_argument("--oe-state-iterations", type=int, default=4, help="--marker-fit: steps in the windows' states first")
+    ap.add_argument("--oe-step", type=int, default=1,
+                    help="--marker-fit and the bound: the windows' step, at most this many of the reconstruction's "
+                         "1 ms (output_error.coarse_steps: frames still on steps)")
     ap.add_argument("--progress", action="store_true", help="--marker-fit: print every step")
     ap.add_argument("--bound-windows", type=int, default=None, help="windows of the bound (default --oe-windows)")
     ap.add_argument("--bound-steps", type=int, default=5,

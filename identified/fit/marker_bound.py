@@ -72,20 +72,23 @@ def natural_values(prob: _Problem, theta: torch.Tensor) -> np.ndarray:
 
 def nuisance_step(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Tensor, cost: float,
                   mu: float, residuals: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                  tries: int = 8) -> tuple[torch.Tensor, torch.Tensor, float, float, bool]:
+                  tries: int = 8, jac: _Problem | None = None) -> tuple[torch.Tensor, torch.Tensor, float, float, bool]:
     """One Levenberg-Marquardt step in the windows' nuisances ``dx`` (W, R, n_x) alone at the
     parameters ``theta``: with ``J`` the windows' Jacobian in their nuisances (the columns of
     ``acts`` (W, R n_x) that act), ``dx - (JᵀJ + μ diag(JᵀJ) + diag(1 - acts) + 1e-12 I)⁻¹ Jᵀ r``,
     ``μ`` raised fourfold (at most ``tries`` times) until the step lowers ``cost`` (``Σ r²``), then
     lowered threefold (not below 1e-7).  ``residuals(theta, dx)`` (W, m): a trial's residuals
     (``None``: :meth:`_Problem.residuals`).  Returns ``(dx, r, cost, mu, moved)``: the nuisances,
-    their residuals (W, m) and cost, the damping, and whether a step was taken."""
+    their residuals (W, m) and cost, the damping, and whether a step was taken.  ``jac``: the problem
+    whose Jacobian steps (a coarser step's, :meth:`_Problem.at_step`), ``prob``'s residuals the cost."""
     W, R, k = dx.shape
     if residuals is None:
         def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
                 return prob.residuals(th, d).reshape(W, -1)
-    r, Jx, _ = prob.jacobians(theta, dx, params=False)
+    r, Jx, _ = (prob if jac is None else jac).jacobians(theta, dx, params=False)
+    if jac is not None and jac is not prob:
+        r = residuals(theta, dx)
     Jx = Jx * acts.unsqueeze(1)
     A0 = Jx.transpose(1, 2) @ Jx
     gx = Jx.transpose(1, 2) @ r.unsqueeze(-1)
@@ -122,20 +125,21 @@ def settle(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, acts: torch.Te
 def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                     sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                     state_steps: int = 2, order: int = 2, contact=None, law_free: tuple[str, ...] = (),
-                    progress: bool = False) -> RecordingBound:
+                    substeps: int = 1, progress: bool = False) -> RecordingBound:
     """The Cramér-Rao bound of ``rec`` at ``model``'s parameters (the module docstring); ``data``
     and ``starts`` the rod states aligned with the recording (as :func:`identified.fit.output_error.
     refine_markers` takes them).  ``hold_inertia``'s moments are parameters here too: their bound
     says they are not identifiable.  ``contact``: the windows follow this contact law (at its
     ``values``) instead of a free ground wrench, ``law_free`` its parameters that are unknowns too
     (:func:`identified.fit.output_error.window_problem`): the bound of an estimator that knows the
-    law's form (and, where not free, its values)."""
+    law's form (and, where not free, its values).  ``substeps``: the windows stepped at up to that
+    many of ``data.dt`` (:func:`identified.fit.output_error.coarse_steps`)."""
     if not sigma > 0:
         raise ValueError(f"marker noise {sigma!r}: the bound needs a positive noise (m)")
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(model, rec, data, starts, mjcf, sigma, hold_inertia, frames,
                                                     max_windows, order, axial=True, contact=contact,
-                                                    law_free=law_free)
+                                                    law_free=law_free, substeps=substeps)
     W = win.n_windows
     theta = prob.theta0
     dx = settle(prob, theta, dx, acts, state_steps, progress)

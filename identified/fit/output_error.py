@@ -8,7 +8,8 @@ equations near them are weighed out.  Here the markers themselves are the measur
 
 * the recording is cut into windows of ``frames`` consecutive frames (each frame in one window);
 * in each window the rods are stepped by the identified engine (semi-implicit Euler at the fit's
-  ``dt``, the encoders' rest lengths as the inputs) from a *free* initial state per window and rod
+  ``dt``, or at up to ``substeps`` of it: :func:`coarse_steps`; the encoders' rest lengths as the
+  inputs) from a *free* initial state per window and rod
   (position, rotation, velocity, angular velocity: multiple shooting, so no error accumulates from
   one window into the next), and each site's simulated position is compared with its marker at
   every frame where it is seen;
@@ -48,6 +49,7 @@ sec. 7.3), multiple shooting after Bock and Plitt (1984).
 from __future__ import annotations
 
 import time
+from copy import copy
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
 
@@ -232,13 +234,30 @@ class _Law:
             self.effect.bind(None)
 
 
+def coarse_steps(step: np.ndarray, substeps: int) -> np.ndarray:
+    """The windows' integration grid in the reconstruction's steps: from 0 through every observed
+    frame's step ``step`` (L,) to the last, each step at most ``substeps`` long.  Each frame
+    interval of ``d`` steps is cut into ``ceil(d / substeps)`` steps as equal as whole steps allow
+    (the longer first): all exactly ``substeps`` where it divides every interval; at 30 Hz on a
+    1 ms reconstruction (intervals of 33 and 34 ms) and ``substeps`` 5, steps of 5 and 4 ms.
+    ``substeps`` 1: every step (the reconstruction's own)."""
+    if substeps < 1:
+        raise ValueError(f"substeps {substeps!r}: the windows' step is a whole number (>= 1) of the reconstruction's")
+    step = np.asarray(step, dtype=int)
+    grid = [int(step[0])]
+    for d in np.diff(step):
+        m = -(-int(d) // substeps)  # ceil
+        grid += [grid[-1] + int(d) // m * (j + 1) + min(j + 1, int(d) % m) for j in range(m)]
+    return np.array(grid)
+
+
 class _Problem:
     """The residuals of every window as a function of the parameters' logarithms and the windows'
     initial-state corrections."""
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
                  hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False,
-                 contact=None, law_free: tuple[str, ...] = ()) -> None:
+                 contact=None, law_free: tuple[str, ...] = (), substeps: int = 1) -> None:
         """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group (for
         a bound that shows they carry no information; never for a fit).  The spin about a held
         axis stays as reconstructed, not a free unknown: the axis's motion does not depend on it
@@ -250,8 +269,17 @@ class _Problem:
         every rod is then simulated (the windows of :func:`marker_windows` without ``mjcf``) and the
         windows' nuisances are their initial states alone.  ``law_free``: the law's parameters
         (names of its blocks) that are unknowns too, global like K, c, M (transformed:
-        :func:`_law_transform`); the others are held at ``contact.values``."""
+        :func:`_law_transform`); the others are held at ``contact.values``.
+
+        ``substeps``: the windows are stepped at up to ``substeps`` times ``dt`` (:func:`coarse_steps`;
+        K, c, M are continuous-time, the same at any step); each coarse step holds the encoders'
+        rest lengths at its start, as the engine's semi-implicit Euler holds its inputs over a step
+        (and as the plant held each reading over its own step): ``substeps`` 1 is the windows at
+        ``dt`` exactly, and the windows at ``k dt`` are those of a reconstruction sampled every
+        ``k`` steps."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
+        self.substeps = substeps
+        self.grid = coarse_steps(win.step.numpy(), substeps)  # (n + 1,) the steps' bounds in dt
         self.contact = contact
         self.order = 0 if contact is not None else wrench_order
         self.n_x = 12 + 6 * self.order  # unknowns per window and rod
@@ -315,6 +343,12 @@ class _Problem:
         for i, ax in held:
             self.axial[:, i] = rot0[:, i, :, ax]
 
+    def at_step(self, substeps: int) -> _Problem:
+        """The same problem, its windows stepped at up to ``substeps`` of ``dt`` (:func:`coarse_steps`)."""
+        out = copy(self)
+        out.substeps, out.grid = substeps, coarse_steps(self.win.step.numpy(), substeps)
+        return out
+
     def params(self, theta: torch.Tensor) -> SpringRodParams:
         K, c, M, Ig = torch.split(theta[:self.n_spring_rod].exp(), self.sizes)
         inertia = self.inertia_fixed + (self.gi * Ig).sum(-1)
@@ -359,7 +393,11 @@ class _Problem:
         effects = [] if wrench is None else [wrench]
         if self.contact is not None:  # the contact law: every rod simulated, through its contacts
             effects = [_Law(self.contact, self.law_theta(theta))]
-        eng = SpringRodEngine(self.model.topology, self.params(theta), self.dt, effects=effects)
+        params = self.params(theta)
+        grid = self.grid if win is self.win else coarse_steps(win.step.numpy(), self.substeps)
+        engines = {int(h): SpringRodEngine(self.model.topology, params, int(h) * self.dt, effects=effects)
+                   for h in np.unique(np.diff(grid))}
+        eng = engines[int(grid[1] - grid[0])]
         x0 = win.x0
         axial = self.axial if axial is None else axial
         across = lambda v: v - (v * axial).sum(-1, keepdim=True) * axial
@@ -369,11 +407,12 @@ class _Problem:
         state = eng.state(x0[..., 0:3] + dx[..., 0:3], q0, x0[..., 7:10] + dx[..., 6:9], x0[..., 10:13] + dx[..., 9:12])
         want = set(win.step.tolist())
         out = {}
-        for n in range(H + 1):
-            if n > 0:
+        for j, n in enumerate(grid.tolist()):
+            if j > 0:
+                a = int(grid[j - 1])
                 if wrench is not None:
-                    wrench.n = n - 1
-                state = eng.step(state, win.rest[:, n - 1])
+                    wrench.n = (a + n) / 2 - 0.5  # the coarse step's middle
+                state = engines[n - a].step(state, win.rest[:, a])
                 if self.order == 0 and self.contact is None:  # the rods near the ground move as reconstructed
                     rec = win.states[:, n]
                     state = type(state)(torch.where(free, state.pos, rec[..., 0:3]),
@@ -415,7 +454,8 @@ class _Problem:
 def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
                    order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN, contact=None,
-                   law_free: tuple[str, ...] = ()) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
+                   law_free: tuple[str, ...] = (), substeps: int = 1
+                   ) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
     """The output-error problem of a recording at ``model``'s parameters, as the refinement, the
     bound and the staged fit all set it up: up to ``max_windows`` windows of ``frames`` frames spread
     evenly over the recording (of ``available``), the :class:`_Problem` on them, the windows'
@@ -424,6 +464,7 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     (W, R n_x) float: every simulated rod's state, the wrench of a rod near the ground.
     With a ``contact`` law (:class:`_Problem`; ``law_free`` its unknown parameters) every rod is
     simulated in every window, through the law, and the nuisances are the initial states alone.
+    ``substeps``: the windows stepped at up to that many of ``data.dt`` (:func:`coarse_steps`).
     Returns ``(windows, available, problem, dx, active)``."""
     if contact is not None:
         order = 0
@@ -433,7 +474,7 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
     prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial, contact=contact,
-                    law_free=tuple(law_free))
+                    law_free=tuple(law_free), substeps=substeps)
     W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
     dx = torch.zeros(W, R, k, dtype=torch.float64)
     if order > 0:  # the ground starts out carrying the weight of the rods near it

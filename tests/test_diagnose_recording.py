@@ -23,6 +23,7 @@ from identified.fit.identify import identify
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.models import write_model
 from tests._data import GROUND
+from tests._recordings import drag_recordings
 
 
 # ---------------------------------------------------------------------- the algebra
@@ -168,19 +169,8 @@ def test_the_weak_form_keeps_exact_equations_exact(viscous):
 # ---------------------------------------------------------------------- a recording
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
-    """The robot in still air and in viscous air (MuJoCo's viscosity 2: a linear drag on every rod),
-    6 takes of 2 s each, recorded as a lab would: end-cap markers at 100 Hz, 1 mm noise, 2 % missing."""
-    folder = tmp_path_factory.mktemp("drag")
-    xml = str(folder / "robot.xml")
-    text = write_model(xml, "ico", preset="robot")
-    out = {"xml": xml}
-    for name, option in (("still", "<option "), ("viscous", '<option viscosity="2" ')):
-        plant = str(folder / f"{name}.xml")
-        with open(plant, "w", encoding="utf-8") as fh:
-            fh.write(text.replace("<option ", option))
-        data = collect(plant, CollectConfig(episodes=6, steps=2000, seed=11))
-        out[name] = record_markers(data, plant, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=11)
-    return out
+    """tests/_recordings.py: the robot in still and viscous air, 6 takes of 2 s at 100 Hz, 1 mm."""
+    return drag_recordings(tmp_path_factory.mktemp("drag"))
 
 
 def _diagnose_recording(rec, xml: str) -> dict:

@@ -16,25 +16,14 @@ from identified.diagnose import SUPPORTED_GAIN
 from identified.fit.identify import ScaleSpec
 from identified.fit.markers import fit_recording
 from identified.model import load_model
-from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.loop import close_loop
-from tensegrity_gym.models import write_model
 from tests._data import GROUND
+from tests._recordings import drag_recordings
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("loop")
-    xml = str(folder / "robot.xml")
-    text = write_model(xml, "ico", preset="robot")
-    out = {"xml": xml}
-    for name, option in (("still", "<option "), ("viscous", '<option viscosity="2" ')):
-        plant = str(folder / f"{name}.xml")
-        with open(plant, "w", encoding="utf-8") as fh:
-            fh.write(text.replace("<option ", option))
-        data = collect(plant, CollectConfig(episodes=6, steps=2000, seed=11))
-        out[name] = record_markers(data, plant, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02), seed=11)
-    return out
+    return drag_recordings(tmp_path_factory.mktemp("loop"))
 
 
 def _refit(rec, xml, calls):

@@ -30,8 +30,7 @@ from identified.state import RodState
 from tensegrity_gym.limits import MujocoWarnings, check_memory, collect_bytes
 from tensegrity_gym.plant import MujocoPlant
 
-__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers", "twin_recording",
-           "twin_recordings"]
+__all__ = ["CollectConfig", "RecordConfig", "collect", "perturb_states", "record_markers", "twin_recordings"]
 
 
 @dataclass(frozen=True)
@@ -327,20 +326,15 @@ def _anonymise(rng: np.random.Generator, time: np.ndarray, episode: np.ndarray, 
     return tuple(f"marker{k + 1}" for k in range(n + rec.ghosts)), out
 
 
-def twin_recording(model, data: Dataset, mjcf: str | os.PathLike, like, noise_pos: float, seed: int = 0):
-    """The recording the identified ``model``'s own motion would give, made as ``like`` was made:
-    the model free-run (:func:`identified.evaluate.rollout`, the identified engine) from every
-    take's first state in ``data`` (the rod states reconstructed from ``like``) under its recorded
-    rest lengths and pushes, then recorded by :func:`record_markers` at ``like``'s rate, with its
-    share of missing samples and markers' noise ``noise_pos``.  It holds no effect the model lacks:
-    what a diagnosis finds in it is what reconstructing markers makes up (``diagnose``'s null)."""
-    return twin_recordings(model, data, mjcf, like, noise_pos, (seed,))[0]
-
-
 def twin_recordings(model, data: Dataset, mjcf: str | os.PathLike, like, noise_pos: float,
                     seeds: Sequence[int]) -> list:
-    """:func:`twin_recording` for several draws of the markers' noise and gaps (one per seed of
-    ``seeds``), the model's free run made once."""
+    """The recordings the identified ``model``'s own motion would give, made as ``like`` was made:
+    the model free-run once (:func:`identified.evaluate.rollout`, the identified engine) from every
+    take's first state in ``data`` (the rod states reconstructed from ``like``) under its recorded
+    rest lengths and pushes, then recorded by :func:`record_markers` at ``like``'s rate, with its
+    share of missing samples and markers' noise ``noise_pos``, one draw of the noise and gaps per
+    seed of ``seeds``.  They hold no effect the model lacks: what a diagnosis finds in them is what
+    reconstructing markers makes up (``diagnose``'s null, :func:`tensegrity_gym.loop.recording_null`)."""
     from dataclasses import replace
 
     from identified.evaluate import rollout

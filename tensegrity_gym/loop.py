@@ -103,6 +103,7 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
     loop = list(model.loop)
     search = model.metrics.get("effect_search")
     rounds: list[dict[str, Any]] = []
+    current: float | None = None  # the current model's free run, once made (the last refit's)
     for _ in range(MAX_ADDED):
         names = [e["name"] for e in model.effects]
         t = time.perf_counter()
@@ -137,7 +138,8 @@ def close_loop(model: IdentifiedModel, rec: Any, mjcf: str, refit: Callable[[lis
             break
         entry["seconds"]["refit"] = round(time.perf_counter() - t, 2)
         t = time.perf_counter()
-        before, after = _free_run(model, data), _free_run(new, data)
+        before = current if current is not None else _free_run(model, data)
+        after = current = _free_run(new, data)
         entry["seconds"]["free_runs"] = round(time.perf_counter() - t, 2)
         loop.append({"added": best, "evidence": "held-out share on the recording",
                      "share": float(share[best]), "held_out": float(open_[best]),

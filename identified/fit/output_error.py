@@ -344,7 +344,10 @@ class _Problem:
             self.axial[:, i] = rot0[:, i, :, ax]
 
     def at_step(self, substeps: int) -> _Problem:
-        """The same problem, its windows stepped at up to ``substeps`` of ``dt`` (:func:`coarse_steps`)."""
+        """The same problem, its windows stepped at up to ``substeps`` of ``dt`` (:func:`coarse_steps`);
+        itself at its own step (a caller then reads the cost's residuals off its Jacobian pass)."""
+        if substeps == self.substeps:
+            return self
         out = copy(self)
         out.substeps, out.grid = substeps, coarse_steps(self.win.step.numpy(), substeps)
         return out

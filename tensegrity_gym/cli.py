@@ -157,6 +157,12 @@ def cmd_fit(args: argparse.Namespace) -> None:
     if _is_recording(args.data):
         _fit_recording(args, scale)
         return
+    marker_options = {"--start": args.start is not None, "--windows": args.windows != 64,
+                      "--window-frames": args.window_frames != 10, "--window-step": args.window_step != 0.005,
+                      "--iterations": args.iterations != 8}
+    for name, given in marker_options.items():
+        if given:
+            raise CommandError(f"{name} is for a recording's marker fit (`tensegrity fit R.csv --refine`), not a dataset")
     data = load_dataset(args.data)
     weak = "auto" if args.weak_window is None else args.weak_window
     # --refine is for plants whose integrator may differ from the engine's: without an explicit
@@ -198,20 +204,25 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     from identified.model import save_model
     from identified.recording import load_recording
 
-    if args.solver != "lstsq" or args.refine or args.integrator not in (None, "euler") or args.scheme:
-        raise CommandError("--solver, --refine, --integrator and --scheme are for datasets; a recording is fitted "
-                           "by least squares on the engine's Euler step")
+    if args.solver != "lstsq" or args.integrator not in (None, "euler") or args.scheme:
+        raise CommandError("--solver, --integrator and --scheme are for datasets; a recording is fitted "
+                           "by least squares on the engine's Euler step (--refine: by its markers)")
+    if args.start is not None:
+        _check_readable(args.start)
     rec = load_recording(args.data)
 
     def fit(effects: str | list[str]):
         return fit_recording(rec, args.model, dt=args.dt, weak_window=args.weak_window or None, effects=effects,
                              regressors=args.regressors, scale=scale, progress=not args.quiet, jobs=args.jobs)
 
-    model = fit(args.effects)
-    if parse_effects(args.effects) == "auto":  # then what the diagnosis of the recording finds missing (tensegrity_gym.loop)
-        from tensegrity_gym.loop import close_loop
+    if args.refine:
+        model = _refine_recording(args, rec, fit)
+    else:
+        model = fit(args.effects)
+        if parse_effects(args.effects) == "auto":  # what the diagnosis of the recording finds missing (tensegrity_gym.loop)
+            from tensegrity_gym.loop import close_loop
 
-        model = close_loop(model, rec, args.model, fit, progress=not args.quiet)
+            model = close_loop(model, rec, args.model, fit, progress=not args.quiet)
     save_model(args.out, model)
     if not args.quiet:
         print(model.summary())
@@ -224,6 +235,34 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
           f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")
     _strict(args, model)
+
+
+def _refine_recording(args: argparse.Namespace, rec, fit):
+    """``fit R.csv --refine``: the output-error fit to the markers themselves
+    (:func:`identified.fit.marker_model.refine_recording`) from ``--start`` or, without it, from the
+    regression's estimate of the same recording."""
+    from identified.fit.marker_model import MarkerRefineConfig, refine_recording
+    from identified.fit.regression import IdentifiabilityError
+    from identified.model import load_model
+
+    if args.effects != "none":
+        raise CommandError(f"--effects {args.effects}: not with --refine on a recording; the marker fit models the "
+                           "ground's contact law (pyramid_contact) itself")
+    if args.start is not None:
+        start = load_model(args.start)
+    else:
+        try:
+            start = fit("none")
+        except IdentifiabilityError as exc:
+            raise CommandError(f"'{args.data}': the regression cannot start the marker fit ({exc}); give --start "
+                               "MODEL.json, a model of this robot (an earlier fit, or its design values)") from None
+    if args.total_mass is None and args.start is not None:
+        print("tensegrity: note: no --total-mass: the marker fit keeps the start's total mass "
+              f"({float(start.mass.sum()):.6g} kg), which the markers cannot check", file=sys.stderr)
+    config = MarkerRefineConfig(windows=None if args.windows == 0 else args.windows, frames=args.window_frames,
+                                step=args.window_step, iterations=args.iterations)
+    return refine_recording(rec, args.model, start, total_mass=args.total_mass, config=config,
+                            progress=not args.quiet)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -647,7 +686,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "for rk4)")
     f.add_argument("--refine", action="store_true",
                    help="refine by multi-step simulation error (picks the integrator from the data unless "
-                   "--integrator is given)")
+                   "--integrator is given); on a recording: fit K, c, M, I and the ground's contact law to the "
+                   "markers themselves through the engine (for low rates and coarse markers, e.g. 30 Hz / 1 cm)")
+    f.add_argument("--start", default=None, metavar="MODEL.json",
+                   help="recording with --refine: the model the marker fit starts from (default: the regression's "
+                   "estimate of the same recording)")
+    f.add_argument("--windows", type=count(0), default=64, metavar="N",
+                   help="recording with --refine: windows spread over the recording (default 64; 0: all)")
+    f.add_argument("--window-frames", type=count(2), default=10, metavar="N",
+                   help="recording with --refine: frames per window (default 10)")
+    f.add_argument("--window-step", type=finite_float(0.0, 0.1, "s", True), default=0.005, metavar="SECONDS",
+                   help="recording with --refine: the windows' Jacobians stepped at up to this (default 0.005 s; "
+                   "the cost always at --dt)")
+    f.add_argument("--iterations", type=count(1), default=8, metavar="N",
+                   help="recording with --refine: joint steps at most (default 8)")
     f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
                    help="none: the spring-rod model alone (default); auto: search the effect library for what "
                    "the data show (held-out free-run error, see the README); or effect names: "

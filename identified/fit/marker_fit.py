@@ -47,7 +47,8 @@ __all__ = ["MarkerFit", "fit_markers"]
 class MarkerFit:
     """The estimate: ``cov`` (a :class:`CramerRao` of the estimate's own Gauss-Newton covariance,
     its ``values`` the estimates at the known total mass), ``windows`` used of ``available``,
-    ``residual_rms`` (m), ``history`` (cost per residual after each iteration), ``seconds``."""
+    ``residual_rms`` (m), ``history`` (cost per residual after each iteration), ``seconds``,
+    ``converged`` (a joint step lowered the cost by less than a millionth before the iterations ran out)."""
 
     cov: CramerRao
     windows: int
@@ -55,6 +56,7 @@ class MarkerFit:
     residual_rms: float
     history: list[float]
     seconds: float
+    converged: bool = False
 
     def group(self, prefix: str) -> tuple[np.ndarray, np.ndarray]:
         """Estimates and relative standard errors of the parameters named ``prefix[...]``."""
@@ -111,6 +113,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     cost = float(r.square().sum())
     history = [cost / n]
     mu = 1e-3
+    converged = False
     for it in range(state_iters + joint_iters):
         joint = it >= state_iters
         if not joint:  # the nuisances alone, the parameters held (the bound's settle)
@@ -147,6 +150,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             print(f"marker fit: {'joint' if joint else 'states'} step {it + 1}, cost per residual {history[-1]:.4f} "
                   f"(damping {mu:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)
         if joint and moved and history[-2] - history[-1] < 1e-6 * history[-1]:
+            converged = True
             break
     _, Jx, Jp = jac.jacobians(theta, dx)
     F = window_information((Jx * acts.unsqueeze(1)).numpy(), Jp.numpy())
@@ -159,4 +163,5 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     theta = theta + scale * float(np.log(start.mass.sum()) - torch.logsumexp(theta[msl], 0))  # the exact total mass
     gt = prob.total_mass_row(theta[msl].exp().numpy())
     cov = constrained_bound(F / s2, _names(prob, start), natural_values(prob, theta), constraints=gt[None])
-    return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0)
+    return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0,
+                     converged)

@@ -1,0 +1,183 @@
+"""An identified model from a recording by the output-error marker fit: what ``tensegrity fit
+R.csv --refine`` runs where the regression on splined states cannot go (30 Hz with 1 cm of noise,
+10 Hz) or as its refinement.
+
+From a start (an earlier model of the robot, or the regression's own estimate of the same
+recording), the total mass known, :func:`identified.fit.marker_fit.fit_markers` fits K, c, M, the
+observable moments of inertia and the ground's contact law (``pyramid_contact``, every parameter
+free, from its generic start unless the start model carries the law) to the markers themselves,
+through the engine's windows.  Every number it writes has the fit's own error bar (the
+Gauss-Newton covariance, scaled by the residual's variance); a parameter whose error bar is above
+:data:`identified.fit.bound.NOT_IDENTIFIABLE` (30 %) is written without one and said not
+identifiable, never as a number with an error bar.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from identified.fit.bound import NOT_IDENTIFIABLE
+from identified.fit.marker_fit import MarkerFit, fit_markers
+from identified.model import IdentifiedModel
+from identified.recording import Recording, RecordingError
+
+__all__ = ["CONTACT_EFFECTS", "MarkerRefineConfig", "refine_recording"]
+
+#: effects of a start model the windows replace by their own contact law; any other effect the
+#: windows do not model, and the fit refuses a start that has one
+CONTACT_EFFECTS = ("ground_contact", "pyramid_contact")
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkerRefineConfig:
+    """The windows and iterations of the marker fit (:func:`identified.fit.marker_fit.fit_markers`):
+    up to ``windows`` windows of ``frames`` frames spread over the recording (``None``: all),
+    their Jacobians stepped at up to ``step`` seconds (the cost always at the model's step),
+    ``state_iterations`` steps in the windows' states alone, then up to ``iterations`` joint steps."""
+
+    windows: int | None = 64
+    frames: int = 10
+    step: float = 0.005
+    state_iterations: int = 3
+    iterations: int = 8
+
+
+def _checked_start(start: IdentifiedModel, rec: Recording, topology, total_mass: float | None) -> IdentifiedModel:
+    """The start on the recording's robot, its effects the contact's only, scaled to ``total_mass``
+    (K, c, M and I together: the markers see only their ratios)."""
+    if (start.topology.rod_names != topology.rod_names) or (start.topology.spring_names != topology.spring_names):
+        raise RecordingError(f"'{rec.source}': the start model's rods and cables are not those of the MJCF "
+                             "(give a start fitted on this robot)")
+    other = [e["name"] for e in start.effects if e["name"] not in CONTACT_EFFECTS]
+    if other:
+        raise RecordingError(f"'{rec.source}': the marker fit models the ground's contact only; the start model has "
+                             f"{', '.join(other)}: give a start without it")
+    f = 1.0 if total_mass is None else float(total_mass) / float(np.sum(start.mass))
+    return dataclasses.replace(start, stiffness=start.stiffness * f, damping=start.damping * f, mass=start.mass * f,
+                               inertia=start.inertia * f, stderr={}, effects=list(start.effects), loop=[],
+                               metrics={})
+
+
+def _contact_law(start: IdentifiedModel, topology, mjcf: str):
+    """The windows' contact law: ``pyramid_contact`` with the start's values if it has them, else
+    the law's generic start (a hard floor's order of magnitude, never the plant's); ``None`` for a
+    robot without a ground plane."""
+    from identified.effects.pyramid_contact import START, PyramidContact
+
+    if topology.ground is None:
+        return None, False
+    law = PyramidContact.for_system(topology, mjcf)
+    given = next((e for e in start.effects if e["name"] == "pyramid_contact"), None)
+    law.values = (np.array([float(given["parameters"][n]) for n in START], dtype=float) if given else
+                  np.array(list(START.values()), dtype=float))
+    return law, given is not None
+
+
+def _why(rel: float, logit: bool) -> str:
+    """Why a parameter has no value with an error bar: the fit's own standard error (relative, or
+    of the logit of an impedance), or none at all."""
+    if not np.isfinite(rel):
+        return "not identifiable (no information in the markers)"
+    se = f"standard error of its logit {rel:.3g}" if logit else f"standard error {100 * rel:.3g} %"
+    return f"not identifiable from these markers ({se})"
+
+
+def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, int]]) -> IdentifiedModel:
+    """The start with the fit's estimates and their standard errors (NaN where not identifiable)."""
+    names, values, rel = fit.cov.names, fit.cov.values, fit.cov.rel_se
+    topo = start.topology
+    rod = {n: i for i, n in enumerate(topo.rod_names)}
+    ok = rel <= NOT_IDENTIFIABLE
+    not_identifiable = []
+    R = topo.n_rods
+    inertia = start.inertia.copy()
+    inertia_se = np.full((R, 3), np.nan)
+    K, c, M = fit.group("K")[0], fit.group("c")[0], fit.group("M")[0]
+    se = {k: np.where(fit.group(g)[1] <= NOT_IDENTIFIABLE, v * fit.group(g)[1], np.nan)
+          for k, g, v in (("stiffness", "K", K), ("damping", "c", c), ("mass", "M", M))}
+    for i, n in enumerate(names):
+        if not n.startswith("I["):
+            continue
+        r, axes = n[2:-1].rsplit(":", 1)
+        cols = ["xyz".index(a) for a in axes]
+        inertia[rod[r], cols] = values[i]
+        inertia_se[rod[r], cols] = values[i] * rel[i] if ok[i] else np.nan
+    for i, n in enumerate(names):
+        if not ok[i] and not n.startswith("law["):
+            not_identifiable.append(f"{n}: {_why(rel[i], False)}")
+    for i, a in held:
+        not_identifiable.append(f"{topo.rod_names[i]}: moment of inertia about body axis {'xyz'[a]} "
+                                "(its spin is not observable)")
+    if law is None:
+        return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia,
+                                   stderr={"stiffness": se["stiffness"], "damping": se["damping"], "mass": se["mass"],
+                                           "inertia": inertia_se}, effects=[],
+                                   metrics={"not_identifiable": not_identifiable})
+    law_names = [n[4:-1] for n in names if n.startswith("law[")]
+    idx = [names.index(f"law[{n}]") for n in law_names]
+    block = [b.name for b in law.blocks]
+    law.values = law.values.copy()
+    law.stderr = np.full(law.values.size, np.nan)
+    for n, i in zip(law_names, idx):
+        j = block.index(n)
+        v = float(values[i])
+        law.values[j] = v
+        # the windows' unknowns: logits of the impedances, logarithms of the others
+        if ok[i]:
+            law.stderr[j] = (v * (1 - v) if n.startswith("imp_") else v) * rel[i]
+        else:
+            not_identifiable.append(f"{law.name}.{n}: {_why(rel[i], n.startswith('imp_'))}")
+    stderr = {"stiffness": se["stiffness"], "damping": se["damping"], "mass": se["mass"], "inertia": inertia_se}
+    effects = [law.to_json()]
+    return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia, stderr=stderr, effects=effects,
+                               metrics={"not_identifiable": not_identifiable})
+
+
+def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_mass: float | None = None,
+                     config: MarkerRefineConfig = MarkerRefineConfig(), progress: bool = False) -> IdentifiedModel:
+    """The model the markers of ``rec`` give by the output-error fit from ``start`` (the module
+    docstring); ``total_mass`` (kg) fixes the scale (``None``: the start's).  ``mjcf`` gives the
+    topology, the sites and the capsules' geometry, never a parameter.  The result's
+    ``metrics.output_error``: windows used and available, frames, step, the markers' residual and
+    noise (m), the cost per residual after every iteration and the seconds taken."""
+    from identified.fit.markers import labelled, states_from_recording
+    from identified.topology import Topology
+
+    topo = Topology.from_mjcf(mjcf)
+    rec = labelled(rec, topo, mjcf)
+    start = _checked_start(start, rec, topo, total_mass)
+    if total_mass is not None:
+        start.scale = {"anchor": "total_mass", "total_mass": float(total_mass),
+                       "description": f"the total rod mass given, {float(total_mass):g} kg"}
+    ms = states_from_recording(rec, topo, start.dt, tuple(start.gravity), measure_noise=True)
+    sigma = float(ms.marker_noise or rec.noise_pos or 1e-3)
+    law, law_given = _contact_law(start, topo, mjcf)
+    substeps = max(1, round(config.step / start.dt))
+    windows = 10 ** 9 if config.windows is None else int(config.windows)
+    fit = fit_markers(start, rec, ms.data, ms.starts, mjcf, sigma, ms.unobservable, frames=config.frames,
+                      max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
+                      contact=law, law_free=() if law is None else tuple(b.name for b in law.blocks),
+                      substeps=substeps, progress=progress)
+    model = _model(start, fit, law, ms.unobservable)
+    converged = fit.converged
+    model.metrics["output_error"] = {
+        "windows": fit.windows, "windows_available": fit.available, "frames_per_window": config.frames,
+        "jacobian_step_s": substeps * start.dt, "marker_residual_m": fit.residual_rms, "marker_noise_m": sigma,
+        "cost_per_residual": fit.history, "converged": converged, "seconds": round(fit.seconds, 3),
+        "contact_start": ("no ground plane" if law is None else
+                          "the start model's pyramid_contact" if law_given else "pyramid_contact's generic start"),
+    }
+    model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
+                                  "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
+                                  "labelled_automatically": rec.unlabelled, "notes": ms.notes, "marker_noise": sigma}
+    model.metrics["fit_seconds"] = round(fit.seconds, 3)
+    model.metrics["stderr"] = ("Gauss-Newton covariance of the marker fit, scaled by its residual's variance; "
+                               f"{fit.windows} of {fit.available} windows")
+    if not converged:
+        model.metrics.setdefault("warnings", []).append(
+            f"the marker fit did not converge in {config.iterations} joint steps (cost per residual "
+            f"{fit.history[-2]:.4g} -> {fit.history[-1]:.4g} in the last): its values and error bars are those of "
+            "an unfinished fit; run more --iterations")
+    return model

@@ -159,7 +159,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
         return
     marker_options = {"--start": args.start is not None, "--windows": args.windows != 64,
                       "--window-frames": args.window_frames != 10, "--window-step": args.window_step != 0.005,
-                      "--iterations": args.iterations != 8}
+                      "--iterations": args.iterations != 8, "--checkpoint": args.checkpoint is not None}
     for name, given in marker_options.items():
         if given:
             raise CommandError(f"{name} is for a recording's marker fit (`tensegrity fit R.csv --refine`), not a dataset")
@@ -209,6 +209,11 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
                            "by least squares on the engine's Euler step (--refine: by its markers)")
     if args.start is not None:
         _check_readable(args.start)
+    if args.checkpoint is not None:
+        if not args.refine:
+            raise CommandError("--checkpoint is for the marker fit: add --refine")
+        given = {"the recording": args.data, "--model": args.model, "--out": args.out, "--start": args.start}
+        _check_writable(args.checkpoint, "--checkpoint", inputs={k: v for k, v in given.items() if v})
     rec = load_recording(args.data)
 
     def fit(effects: str | list[str]):
@@ -262,7 +267,7 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
     config = MarkerRefineConfig(windows=None if args.windows == 0 else args.windows, frames=args.window_frames,
                                 step=args.window_step, iterations=args.iterations)
     return refine_recording(rec, args.model, start, total_mass=args.total_mass, config=config,
-                            progress=not args.quiet)
+                            progress=not args.quiet, checkpoint=args.checkpoint)
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
@@ -700,6 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "the cost always at --dt)")
     f.add_argument("--iterations", type=count(1), default=8, metavar="N",
                    help="recording with --refine: joint steps at most (default 8)")
+    f.add_argument("--checkpoint", default=None, metavar="FILE",
+                   help="recording with --refine: save the fit here after every step and resume from it when it "
+                   "holds this fit (an interrupted fit goes on where it stopped)")
     f.add_argument("--effects", default="none", metavar="none|auto|NAME,...",
                    help="none: the spring-rod model alone (default); auto: search the effect library for what "
                    "the data show (held-out free-run error, see the README); or effect names: "

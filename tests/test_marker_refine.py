@@ -14,7 +14,7 @@ import pytest
 
 from identified.effects.pyramid_contact import START, PyramidContact
 from identified.fit.bound import CramerRao
-from identified.fit.marker_fit import MarkerFit
+from identified.fit.marker_fit import MarkerFit, fit_markers
 from identified.fit.marker_model import MarkerRefineConfig, _checked_start, _model, refine_recording
 from identified.recording import RecordingError
 from identified.recording.format import save_recording
@@ -143,3 +143,36 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--windows is for a recording's marker fit" in err and len(err.strip().splitlines()) == 1
     assert not os.path.exists(out)
+
+
+def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path):
+    """1 state + 2 joint steps at once, against 1 + 1 with a checkpoint and then 1 + 2 from it: the
+    same history and estimates bit for bit (the resumed fit does only the last step); a checkpoint
+    of another fit (other noise) or a truncated one is said and not used."""
+    from identified.fit.markers import states_from_recording
+
+    _, rec, truth = floorless
+    ms = states_from_recording(rec, truth.topology, truth.dt)
+    start = dataclasses.replace(truth, stiffness=truth.stiffness * 1.03)
+
+    def run(joint: int, checkpoint: str | None = None, sigma: float = 1e-3):
+        return fit_markers(start, rec, ms.data, ms.starts, None, sigma, ms.unobservable, frames=6, max_windows=2,
+                           state_iters=1, joint_iters=joint, substeps=5, checkpoint=checkpoint)
+
+    whole = run(2)
+    ck = str(tmp_path / "fit.pt")
+    part = run(1, ck)
+    assert part.history == whole.history[:3] and os.path.exists(ck)
+    resumed = run(2, ck)
+    assert resumed.history == whole.history
+    np.testing.assert_array_equal(resumed.cov.values, whole.cov.values)
+    np.testing.assert_array_equal(resumed.cov.cov, whole.cov.cov)
+    assert resumed.seconds < 0.8 * whole.seconds  # one step of three, not all again
+    with pytest.warns(UserWarning, match="not of this fit"):
+        other = run(2, ck, sigma=2e-3)
+    assert len(other.history) == 4
+    with open(ck, "wb") as fh:
+        fh.write(b"trunc")
+    with pytest.warns(UserWarning, match="not of this fit"):
+        again = run(2, ck)
+    assert again.history == whole.history

@@ -25,7 +25,11 @@ says it is (:class:`identified.fit.bound.CramerRao`).
 
 from __future__ import annotations
 
+import hashlib
+import os
+import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,7 +72,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
                 wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
-                progress: bool = False) -> MarkerFit:
+                progress: bool = False, checkpoint: str | None = None) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -85,7 +89,10 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     at ``data.dt`` still: Gauss-Newton with an approximate Jacobian stops where ``J_kᵀ r = 0``, which
     the noise in ``r`` does not bias, while the coarse step's own windows would (measured, 30 Hz /
     1 cm, the clean markers' residual at the truth, linearised: c 10 % off at 4 ms, 1.8 times the
-    recording's bound; K 0.5 %, 1.4 times); the standard errors from the last coarse Jacobian."""
+    recording's bound; K 0.5 %, 1.4 times); the standard errors from the last coarse Jacobian.
+    ``checkpoint``: a file the fit's state is written to (atomically) after every step, and resumed
+    from when it holds a fit of the same windows from the same start (:func:`_resume`): an
+    interrupted fit of hours goes on where it stopped, to the same result."""
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
@@ -114,7 +121,20 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     history = [cost / n]
     mu = 1e-3
     converged = False
-    for it in range(state_iters + joint_iters):
+    first = 0
+    key = _fit_key((theta, dx, win.x0, win.obs, win.seen, win.rest), sigma, substeps, state_iters)
+    saved = _resume(checkpoint, key)
+    if saved is not None:
+        theta, dx, mu, history, first, converged = (saved["theta"], saved["dx"], saved["mu"], saved["history"],
+                                                     saved["steps"], saved["converged"])
+        r = residuals(theta, dx)
+        cost = float(r.square().sum())
+        if progress:
+            print(f"marker fit: resumed from '{checkpoint}' after {first} steps, cost per residual {history[-1]:.4f}",
+                  flush=True)
+    for it in range(first, state_iters + joint_iters):
+        if converged:
+            break
         joint = it >= state_iters
         if not joint:  # the nuisances alone, the parameters held (the bound's settle)
             dx, r, cost, mu, moved = nuisance_step(prob, theta, dx, acts, cost, mu, residuals, jac=jac)
@@ -151,7 +171,9 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                   f"(damping {mu:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)
         if joint and moved and history[-2] - history[-1] < 1e-6 * history[-1]:
             converged = True
-            break
+        if checkpoint is not None:
+            _save(checkpoint, {"key": key, "theta": theta, "dx": dx, "mu": mu, "history": history, "steps": it + 1,
+                               "converged": converged})
     _, Jx, Jp = jac.jacobians(theta, dx)
     F = window_information((Jx * acts.unsqueeze(1)).numpy(), Jp.numpy())
     held_rods = {i for i, _ in hold_inertia}
@@ -165,3 +187,45 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     cov = constrained_bound(F / s2, _names(prob, start), natural_values(prob, theta), constraints=gt[None])
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0,
                      converged)
+
+
+def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, state_iters: int) -> str:
+    """What a checkpoint must match to be resumed: the start (parameters, the windows' nuisances,
+    their reconstructed initial states), the windows' markers and rest lengths, the markers' noise,
+    the Jacobians' step and the state-only steps (a different number would change which steps were
+    joint)."""
+    h = hashlib.sha256()
+    for t in tensors:
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().numpy().tobytes())
+    h.update(f"{float(sigma)!r} {int(substeps)} {int(state_iters)}".encode())
+    return h.hexdigest()
+
+
+def _resume(path: str | None, key: str) -> dict | None:
+    """The checkpoint at ``path`` if it is one of this fit (its key), else ``None`` (none there, or
+    another fit's: then said, and overwritten by this one's first step)."""
+    if path is None or not os.path.exists(path):
+        return None
+    try:
+        saved = torch.load(path, weights_only=True)
+    except Exception:  # noqa: BLE001 -- a truncated or foreign file is not a checkpoint of this fit
+        saved = None
+    if not isinstance(saved, dict) or saved.get("key") != key:
+        warnings.warn(f"checkpoint '{path}' is not of this fit (other windows, start or noise): starting afresh",
+                      stacklevel=3)
+        return None
+    return saved
+
+
+def _save(path: str, state: dict) -> None:
+    """Write ``state`` to ``path`` whole or not at all (a temporary file beside it, then a rename)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".checkpoint-", suffix=".pt")
+    os.close(fd)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

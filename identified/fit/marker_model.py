@@ -136,12 +136,14 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
 
 
 def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_mass: float | None = None,
-                     config: MarkerRefineConfig = MarkerRefineConfig(), progress: bool = False) -> IdentifiedModel:
+                     config: MarkerRefineConfig = MarkerRefineConfig(), progress: bool = False,
+                     checkpoint: str | None = None) -> IdentifiedModel:
     """The model the markers of ``rec`` give by the output-error fit from ``start`` (the module
     docstring); ``total_mass`` (kg) fixes the scale (``None``: the start's).  ``mjcf`` gives the
     topology, the sites and the capsules' geometry, never a parameter.  The result's
     ``metrics.output_error``: windows used and available, frames, step, the markers' residual and
-    noise (m), the cost per residual after every iteration and the seconds taken."""
+    noise (m), the cost per residual after every iteration and the seconds taken.  ``checkpoint``:
+    a file the fit is saved to after every step and resumed from (:func:`~identified.fit.marker_fit.fit_markers`)."""
     from identified.fit.markers import labelled, states_from_recording
     from identified.topology import Topology
 
@@ -159,7 +161,7 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
     fit = fit_markers(start, rec, ms.data, ms.starts, mjcf, sigma, ms.unobservable, frames=config.frames,
                       max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
                       contact=law, law_free=() if law is None else tuple(b.name for b in law.blocks),
-                      substeps=substeps, progress=progress)
+                      substeps=substeps, progress=progress, checkpoint=checkpoint)
     model = _model(start, fit, law, ms.unobservable)
     converged = fit.converged
     model.metrics["output_error"] = {

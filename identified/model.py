@@ -255,8 +255,8 @@ class IdentifiedModel:
                                 ("mass", obj["rods"], "mass_stderr"), ("inertia", obj["rods"], "inertia_stderr"),
                                 ("com", obj["rods"], "com_stderr")):
                 vals = [x.get(n) for x in src]
-                if all(v is not None for v in vals):
-                    stderr[key] = np.array(vals, dtype=float)
+                if any(v is not None for v in vals):  # null: that one's the data cannot tell (NaN)
+                    stderr[key] = np.array([np.nan if v is None else v for v in vals], dtype=float)
             cs = obj.get("control_scale", {"value": 1.0})
             if cs.get("stderr") is not None:
                 stderr["control_scale"] = np.array(cs["stderr"], dtype=float)

@@ -176,3 +176,17 @@ def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path):
     with pytest.warns(UserWarning, match="not of this fit"):
         again = run(2, ck)
     assert again.history == whole.history
+
+
+def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot, tmp_path):
+    """One damping not identifiable (null in the file): the others keep their error bars on reading."""
+    from identified.model import load_model, save_model
+
+    truth = robot[3]
+    se = truth.damping * 0.02
+    se[3] = np.nan
+    path = str(tmp_path / "m.json")
+    save_model(path, dataclasses.replace(truth, stderr={"damping": se}))
+    back = load_model(path).stderr["damping"]
+    assert np.isnan(back[3]) and np.array_equal(np.delete(back, 3), np.delete(se, 3))
+    assert "not estimable" in load_model(path).summary().splitlines()[truth.topology.n_rods + 3]

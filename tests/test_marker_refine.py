@@ -128,7 +128,9 @@ def test_clean_markers_bring_a_start_off_the_truth_back(floorless):
     assert m.mass.sum() == pytest.approx(truth.mass.sum(), rel=1e-12)
     assert np.abs(m.stiffness / truth.stiffness - 1).max() < 0.01
     assert np.abs(m.mass / truth.mass - 1).max() < 0.01
-    assert np.isfinite(m.stderr["stiffness"]).all()
+    # still falling by orders at the last step: no error bars, and a warning that says so
+    assert np.isnan(m.stderr["stiffness"]).all() and np.isnan(m.stderr["mass"]).all()
+    assert "did not converge in 3 joint steps" in m.metrics["warnings"][-1]
 
 
 def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
@@ -190,3 +192,22 @@ def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot,
     back = load_model(path).stderr["damping"]
     assert np.isnan(back[3]) and np.array_equal(np.delete(back, 3), np.delete(se, 3))
     assert "not estimable" in load_model(path).summary().splitlines()[truth.topology.n_rods + 3]
+
+
+@pytest.mark.parametrize(("history", "converged", "kept", "warned"), [
+    ([2.0, 1.0], True, True, False),  # converged: its error bars
+    ([1.0, 0.995], False, True, True),  # stopped while falling 0.5 % a step: kept, said
+    ([1.0, 0.98], False, False, True),  # falling 2 % a step: withheld, said
+])
+def test_an_unfinished_fit_keeps_error_bars_only_where_it_had_stopped(robot, history, converged, kept, warned):
+    from identified.fit.marker_model import _judge_convergence
+
+    _, _, _, truth, _ = robot
+    law = PyramidContact.for_system(truth.topology, robot[0])
+    law.values = np.array(list(START.values()), dtype=float)
+    fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged)
+    m = _model(truth, fit, law, [])
+    _judge_convergence(m, fit, 5)
+    assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
+    assert (m.effects[0]["stderr"]["beta"] is not None) == kept
+    assert bool(m.metrics.get("warnings")) == warned

@@ -157,12 +157,8 @@ def cmd_fit(args: argparse.Namespace) -> None:
     if _is_recording(args.data):
         _fit_recording(args, scale)
         return
-    marker_options = {"--start": args.start is not None, "--windows": args.windows != 64,
-                      "--window-frames": args.window_frames != 10, "--window-step": args.window_step != 0.005,
-                      "--iterations": args.iterations != 8, "--checkpoint": args.checkpoint is not None}
-    for name, given in marker_options.items():
-        if given:
-            raise CommandError(f"{name} is for a recording's marker fit (`tensegrity fit R.csv --refine`), not a dataset")
+    for name in _marker_options(args):
+        raise CommandError(f"{name} is for a recording's marker fit (`tensegrity fit R.csv --refine`), not a dataset")
     data = load_dataset(args.data)
     weak = "auto" if args.weak_window is None else args.weak_window
     # --refine is for plants whose integrator may differ from the engine's: without an explicit
@@ -197,6 +193,14 @@ def _is_recording(path: str) -> bool:
     return os.path.splitext(path)[1].lower() in (".csv", ".c3d")
 
 
+def _marker_options(args: argparse.Namespace) -> list[str]:
+    """The options of ``fit R.csv --refine`` (the marker fit) given on this command line."""
+    given = {"--start": args.start is not None, "--windows": args.windows != 64, "--window-frames": args.window_frames != 10,
+             "--window-step": args.window_step != 0.005, "--iterations": args.iterations != 8,
+             "--checkpoint": args.checkpoint is not None}
+    return [name for name, g in given.items() if g]
+
+
 def _fit_recording(args: argparse.Namespace, scale) -> None:
     """``tensegrity fit R.csv``: rod states reconstructed from the markers, then the fit."""
     from identified.fit.markers import fit_recording
@@ -207,11 +211,11 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     if args.solver != "lstsq" or args.integrator not in (None, "euler") or args.scheme:
         raise CommandError("--solver, --integrator and --scheme are for datasets; a recording is fitted "
                            "by least squares on the engine's Euler step (--refine: by its markers)")
+    for name in ([] if args.refine else _marker_options(args)):
+        raise CommandError(f"{name} is for the marker fit: add --refine")
     if args.start is not None:
         _check_readable(args.start)
     if args.checkpoint is not None:
-        if not args.refine:
-            raise CommandError("--checkpoint is for the marker fit: add --refine")
         given = {"the recording": args.data, "--model": args.model, "--out": args.out, "--start": args.start}
         _check_writable(args.checkpoint, "--checkpoint", inputs={k: v for k, v in given.items() if v})
     rec = load_recording(args.data)
@@ -702,7 +706,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording with --refine: frames per window (default 10)")
     f.add_argument("--window-step", type=finite_float(0.0, 0.1, "s", True), default=0.005, metavar="SECONDS",
                    help="recording with --refine: the windows' Jacobians stepped at up to this (default 0.005 s; "
-                   "the cost always at --dt)")
+                   "the cost always at the model's own step)")
     f.add_argument("--iterations", type=count(1), default=8, metavar="N",
                    help="recording with --refine: joint steps at most (default 8)")
     f.add_argument("--checkpoint", default=None, metavar="FILE",

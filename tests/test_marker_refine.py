@@ -144,6 +144,10 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert main(["fit", npz, "--model", path, "--out", out, "--windows", "3"]) != 0
     err = capsys.readouterr().err
     assert "--windows is for a recording's marker fit" in err and len(err.strip().splitlines()) == 1
+    assert main(["fit", csv, "--model", path, "--out", out, "--checkpoint", str(tmp_path / "c.pt")]) != 0
+    assert "--checkpoint is for the marker fit: add --refine" in capsys.readouterr().err
+    assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--checkpoint", csv]) != 0
+    assert "--checkpoint" in capsys.readouterr().err and os.path.getsize(csv) > 0
     assert not os.path.exists(out)
 
 

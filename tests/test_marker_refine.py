@@ -215,3 +215,37 @@ def test_an_unfinished_fit_keeps_error_bars_only_where_it_had_stopped(robot, his
     assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
     assert (m.effects[0]["stderr"]["beta"] is not None) == kept
     assert bool(m.metrics.get("warnings")) == warned
+
+
+def test_a_stalled_coarse_jacobian_hands_over_to_the_exact_one(floorless, monkeypatch, capsys):
+    """The coarse Jacobians replaced by ones whose parameter columns point the wrong way (a planted
+    stall: no joint step of theirs lowers the cost): the fit switches to the exact step's Jacobians,
+    says so, and goes on towards the truth from the clean markers (measured, one window of 6 frames: K 3 % -> 0.66 % off)."""
+    from identified.fit import output_error
+    from identified.fit.markers import states_from_recording
+
+    _, rec, truth = floorless
+    ms = states_from_recording(rec, truth.topology, truth.dt)
+    start = dataclasses.replace(truth, stiffness=truth.stiffness * 1.03)
+
+    def run(substeps: int, joint: int):
+        return fit_markers(start, rec, ms.data, ms.starts, None, 1e-3, ms.unobservable, frames=6, max_windows=1,
+                           state_iters=1, joint_iters=joint, substeps=substeps, progress=True)
+
+    real = output_error._Problem.at_step
+
+    class Wrong:
+        def __init__(self, prob):
+            self.prob = prob
+
+        def jacobians(self, theta, dx, params=True):
+            r, Jx, Jp = self.prob.jacobians(theta, dx, params=params)
+            return r, Jx, (None if Jp is None else -Jp)
+
+    monkeypatch.setattr(output_error._Problem, "at_step", lambda self, k: self if k == 1 else Wrong(real(self, k)))
+    capsys.readouterr()
+    switched = run(2, 4)
+    assert "the 2-step Jacobians stalled; the exact step's from step 3" in capsys.readouterr().out
+    h = switched.history  # the wrong Jacobians' joint step takes nothing; the exact ones bring it down by orders
+    assert h[2] == h[1] and h[-1] < 1e-3 * h[1]
+    assert np.abs(switched.group("K")[0] / truth.stiffness - 1).max() < 0.01  # from 3 % off; stalled: 3 %

@@ -198,20 +198,21 @@ def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot,
     assert "not estimable" in load_model(path).summary().splitlines()[truth.topology.n_rods + 3]
 
 
-@pytest.mark.parametrize(("history", "converged", "kept", "warned"), [
-    ([2.0, 1.0], True, True, False),  # converged: its error bars
-    ([1.0, 0.995], False, True, True),  # stopped while falling 0.5 % a step: kept, said
-    ([1.0, 0.98], False, False, True),  # falling 2 % a step: withheld, said
+@pytest.mark.parametrize(("history", "converged", "off", "kept", "warned"), [
+    ([2.0, 1.0], True, 1.1, True, False),  # converged: its error bars
+    ([1.0, 0.995], False, 1.1, True, True),  # stopped while falling 0.5 % a step: kept, said
+    ([1.0, 0.98], False, 1.1, False, True),  # falling 2 % a step: withheld, said
+    ([2.0, 1.0], True, 1.3, False, True),  # converged, but the markers 1.3 times their noise off: withheld
 ])
-def test_an_unfinished_fit_keeps_error_bars_only_where_it_had_stopped(robot, history, converged, kept, warned):
-    from identified.fit.marker_model import _judge_convergence
+def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, kept, warned):
+    from identified.fit.marker_model import _judge_fit
 
     _, _, _, truth, _ = robot
     law = PyramidContact.for_system(truth.topology, robot[0])
     law.values = np.array(list(START.values()), dtype=float)
-    fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged)
+    fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged, residual_rms=off * 0.01)
     m = _model(truth, fit, law, [])
-    _judge_convergence(m, fit, 5)
+    _judge_fit(m, fit, 5, 0.01)
     assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
     assert (m.effects[0]["stderr"]["beta"] is not None) == kept
     assert bool(m.metrics.get("warnings")) == warned

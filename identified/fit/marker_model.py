@@ -23,11 +23,16 @@ from identified.fit.marker_fit import MarkerFit, fit_markers
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
 
-__all__ = ["CONTACT_EFFECTS", "STILL_MOVING", "MarkerRefineConfig", "refine_recording"]
+__all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "MarkerRefineConfig", "refine_recording"]
 
 #: a joint step that lowered the cost by more than this share leaves a fit still moving: its error
 #: bars are withheld
 STILL_MOVING = 0.01
+
+#: the markers' residual, in units of their noise, above which the fit is said not to follow the
+#: recording and its error bars are withheld (at the truth, clean markers are left at 1e-10 m; the
+#: 30 Hz / 1 cm bench fits that covered the truth left 1.1 times the noise)
+MISFIT = 1.2
 
 #: effects of a start model the windows replace by their own contact law; any other effect the
 #: windows do not model, and the fit refuses a start that has one
@@ -147,11 +152,24 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
                                metrics={"not_identifiable": not_identifiable})
 
 
-def _judge_convergence(model: IdentifiedModel, fit: MarkerFit, iterations: int) -> None:
-    """An unconverged fit: its error bars withheld where its last joint step still lowered the cost
-    by more than :data:`STILL_MOVING`, kept (and said) where it had nearly stopped."""
+def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: float) -> None:
+    """The fit's error bars withheld where they would not mean what they say: a fit that leaves the
+    markers more than :data:`MISFIT` times their noise ``sigma`` off (the windows do not follow the
+    recording: a local minimum, or an effect the model lacks), or an unconverged one whose last joint
+    step still lowered the cost by more than :data:`STILL_MOVING`; one that had nearly stopped keeps
+    them, and says so."""
     last = (fit.history[-2] - fit.history[-1]) / fit.history[-1] if len(fit.history) > 1 else 0.0
-    if not fit.converged and last > STILL_MOVING:
+    if fit.residual_rms > MISFIT * sigma:
+        # measured: 30 Hz / 1 cm, 16 windows from values 15 % off, stalled with the markers 13.4 mm
+        # off against 10 mm of noise: K up to 10 % off at |z| 4.7 under the Gauss-Newton error bars
+        _withhold_error_bars(model)
+        model.metrics["stderr"] = "withheld: the marker fit leaves the markers off by more than their noise"
+        model.metrics.setdefault("warnings", []).append(
+            f"the marker fit leaves the markers {1e3 * fit.residual_rms:.3g} mm off against their noise of "
+            f"{1e3 * sigma:.3g} mm ({fit.residual_rms / sigma:.2f} times, more than {MISFIT:g}): its windows do not "
+            "follow the recording (a local minimum from this start, or an effect the model lacks), so its values have "
+            "no error bars; try more --windows, a start nearer the robot, or `tensegrity diagnose`")
+    elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling
         # 7 % a step: a K 10 % off at |z| 3.7)
@@ -210,5 +228,5 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
     model.metrics["fit_seconds"] = round(fit.seconds, 3)
     model.metrics["stderr"] = ("Gauss-Newton covariance of the marker fit, scaled by its residual's variance; "
                                f"{fit.windows} of {fit.available} windows")
-    _judge_convergence(model, fit, config.iterations)
+    _judge_fit(model, fit, config.iterations, sigma)
     return model

@@ -34,8 +34,8 @@ DATA_PATH = (
     ("samples", "accelerations from the recorded states", "identified.samples", None),
     ("regression", "the equations linear in the parameters, solved by streamed QR", "identified.fit.features",
      "identified.fit.regression"),
-    ("marker fit", "where the frames are too sparse for the regression: K, c, M and the contact law fitted to the "
-     "markers through the engine's windows (`fit R.csv --refine`)", "identified.fit.marker_fit",
+    ("marker fit", ("where the frames are too sparse for the regression: K, c, M and the contact law fitted to "
+                    "the markers through the engine's windows (`fit R.csv --refine`)"), "identified.fit.marker_fit",
      "identified.fit.marker_model"),
     ("identified JSON", "the identified model as a person reads it", "identified.model", None),
     ("engine", "the spring-rod engine with the model's effects", "identified.twin", "identified.engine"),

@@ -20,22 +20,20 @@ from identified.recording import RecordingError
 from identified.recording.format import save_recording
 from tensegrity_gym.cli import main
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
-from tensegrity_gym.models import write_model
 
 from .test_record_output_error import _robot, _truth
+from .test_window_contact import resting  # noqa: F401 -- a fixture, shared
 
 
 @pytest.fixture(scope="module")
-def robot(tmp_path_factory):
-    """The robot on its ground, 0.8 s of random commands; clean 100 Hz markers written as a recording."""
+def robot(resting, tmp_path_factory):  # noqa: F811 -- the imported fixture
+    """The robot on its ground, 0.8 s of random commands (test_window_contact's): its clean 100 Hz
+    markers written as a recording."""
+    path, _, _, truth, fast = resting
     d = tmp_path_factory.mktemp("mr")
-    path = str(d / "robot.xml")
-    write_model(path, "ico", preset="robot")
-    data = collect(path, CollectConfig(episodes=1, steps=800, seed=3))
-    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.0, dropout=0.0), seed=3)
     csv = str(d / "r.csv")
-    save_recording(csv, rec)
-    return path, rec, csv, _truth(path), d
+    save_recording(csv, fast)
+    return path, fast, csv, truth, d
 
 
 def _fake_fit(truth, rel: dict[str, float]) -> MarkerFit:

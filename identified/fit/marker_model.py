@@ -159,31 +159,33 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
     step still lowered the cost by more than :data:`STILL_MOVING`; one that had nearly stopped keeps
     them, and says so."""
     last = (fit.history[-2] - fit.history[-1]) / fit.history[-1] if len(fit.history) > 1 else 0.0
+    withheld = None
     if fit.residual_rms > MISFIT * sigma:
         # measured: 30 Hz / 1 cm, 16 windows from values 15 % off, stalled with the markers 13.4 mm
         # off against 10 mm of noise: K up to 10 % off at |z| 4.7 under the Gauss-Newton error bars
-        _withhold_error_bars(model)
-        model.metrics["stderr"] = "withheld: the marker fit leaves the markers off by more than their noise"
-        model.metrics.setdefault("warnings", []).append(
-            f"the marker fit leaves the markers {1e3 * fit.residual_rms:.3g} mm off against their noise of "
-            f"{1e3 * sigma:.3g} mm ({fit.residual_rms / sigma:.2f} times, more than {MISFIT:g}): its windows do not "
-            "follow the recording (a local minimum from this start, or an effect the model lacks), so its values have "
-            "no error bars; try more --windows, a start nearer the robot, or `tensegrity diagnose`")
+        withheld = ("the marker fit leaves the markers off by more than their noise",
+                    (f"the marker fit leaves the markers {1e3 * fit.residual_rms:.3g} mm off against their noise of "
+                    f"{1e3 * sigma:.3g} mm ({fit.residual_rms / sigma:.2f} times, more than {MISFIT:g}): its windows "
+                    "do not follow the recording (a local minimum from this start, or an effect the model lacks), so "
+                    "its values have no error bars; try more --windows, a start nearer the robot, or `tensegrity "
+                    "diagnose`"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling
         # 7 % a step: a K 10 % off at |z| 3.7)
-        _withhold_error_bars(model)
-        model.metrics["stderr"] = "withheld: the marker fit had not converged"
-        model.metrics.setdefault("warnings", []).append(
-            f"the marker fit did not converge in {iterations} joint steps (its cost per residual fell "
-            f"{100 * last:.2g} % in the last, {fit.history[-2]:.4g} -> {fit.history[-1]:.4g}): the values are those "
-            "of an unfinished fit and have no error bars; run more --iterations (with --checkpoint it goes on where "
-            "it stopped)")
+        withheld = ("the marker fit had not converged",
+                    (f"the marker fit did not converge in {iterations} joint steps (its cost per residual fell "
+                    f"{100 * last:.2g} % in the last, {fit.history[-2]:.4g} -> {fit.history[-1]:.4g}): the values "
+                    "are those of an unfinished fit and have no error bars; run more --iterations (with --checkpoint "
+                    "it goes on where it stopped)"))
     elif not fit.converged:
         model.metrics.setdefault("warnings", []).append(
             f"the marker fit stopped after {iterations} joint steps with its cost per residual still falling "
             f"{100 * last:.2g} % a step: error bars from its last step")
+    if withheld is not None:
+        _withhold_error_bars(model)
+        model.metrics["stderr"] = f"withheld: {withheld[0]}"
+        model.metrics.setdefault("warnings", []).append(withheld[1])
 
 
 def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_mass: float | None = None,

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -36,7 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 import torch
 
-from identified.dataset import Dataset
+from identified.dataset import Dataset, atomic_write
 from identified.fit.bound import CramerRao, constrained_bound, window_information
 from identified.fit.marker_bound import _names, natural_values, nuisance_step
 from identified.fit.output_error import CONTACT_MARGIN, window_problem
@@ -236,16 +235,5 @@ def _resume(path: str | None, key: str) -> dict | None:
 
 
 def _save(path: str, state: dict) -> None:
-    """Write ``state`` to ``path`` whole or not at all (a temporary file beside it, then a rename)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".checkpoint-", suffix=".pt")
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # as a file written plainly would be, not mkstemp's 0600
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write ``state`` to ``path`` whole or not at all (:func:`identified.dataset.atomic_write`)."""
+    atomic_write(path, lambda fh: torch.save(state, fh), binary=True)

@@ -111,9 +111,10 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
     R = topo.n_rods
     inertia = start.inertia.copy()
     inertia_se = np.full((R, 3), np.nan)
-    K, c, M = fit.group("K")[0], fit.group("c")[0], fit.group("M")[0]
-    se = {k: np.where(fit.group(g)[1] <= NOT_IDENTIFIABLE, v * fit.group(g)[1], np.nan)
-          for k, g, v in (("stiffness", "K", K), ("damping", "c", c), ("mass", "M", M))}
+    (K, rK), (c, rc), (M, rM) = fit.group("K"), fit.group("c"), fit.group("M")
+    stderr = {k: np.where(r <= NOT_IDENTIFIABLE, v * r, np.nan)
+              for k, v, r in (("stiffness", K, rK), ("damping", c, rc), ("mass", M, rM))}
+    stderr["inertia"] = inertia_se
     for i, n in enumerate(names):
         if not n.startswith("I["):
             continue
@@ -127,11 +128,17 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
     for i, a in held:
         not_identifiable.append(f"{topo.rod_names[i]}: moment of inertia about body axis {'xyz'[a]} "
                                 "(its spin is not observable)")
-    if law is None:
-        return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia,
-                                   stderr={"stiffness": se["stiffness"], "damping": se["damping"], "mass": se["mass"],
-                                           "inertia": inertia_se}, effects=[],
-                                   metrics={"not_identifiable": not_identifiable})
+    if law is not None:
+        _law_estimates(law, names, values, rel, ok, not_identifiable)
+    return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia, stderr=stderr,
+                               effects=[] if law is None else [law.to_json()],
+                               metrics={"not_identifiable": not_identifiable})
+
+
+def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, ok: np.ndarray,
+                   not_identifiable: list[str]) -> None:
+    """The contact law's fitted parameters and standard errors into ``law`` (the others held at
+    their start, without one); its not identifiable ones appended to ``not_identifiable``."""
     law_names = [n[4:-1] for n in names if n.startswith("law[")]
     idx = [names.index(f"law[{n}]") for n in law_names]
     block = [b.name for b in law.blocks]
@@ -146,10 +153,6 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
             law.stderr[j] = (v * (1 - v) if n.startswith("imp_") else v) * rel[i]
         else:
             not_identifiable.append(f"{law.name}.{n}: {_why(rel[i], n.startswith('imp_'))}")
-    stderr = {"stiffness": se["stiffness"], "damping": se["damping"], "mass": se["mass"], "inertia": inertia_se}
-    effects = [law.to_json()]
-    return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia, stderr=stderr, effects=effects,
-                               metrics={"not_identifiable": not_identifiable})
 
 
 def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: float) -> None:

@@ -15,7 +15,13 @@ import pytest
 from identified.effects.pyramid_contact import START, PyramidContact
 from identified.fit.bound import CramerRao
 from identified.fit.marker_fit import MarkerFit, fit_markers
-from identified.fit.marker_model import MarkerRefineConfig, _checked_start, _model, refine_recording
+from identified.fit.marker_model import (
+    MarkerRefineConfig,
+    _checked_start,
+    _contact_law,
+    _model,
+    refine_recording,
+)
 from identified.recording import RecordingError
 from identified.recording.format import save_recording
 from tensegrity_gym.cli import main
@@ -98,6 +104,25 @@ def test_start_scaled_to_the_total_mass_and_checked(robot):
     other = dataclasses.replace(truth, topology=dataclasses.replace(truth.topology, rods=truth.topology.rods[:5]))
     with pytest.raises(RecordingError, match="not those of the MJCF"):
         _checked_start(other, rec, truth.topology, None)
+
+
+def test_a_start_law_at_its_bounds_starts_those_from_the_generic_values(robot):
+    """An earlier fit's law as the start (its not identifiable parameters at their bounds: an
+    impedance at 1, a width of 1e-9 m, a rolling friction of 1e-65 m): those three from the generic
+    start, the others exactly as given, each replacement said."""
+    path, _, _, truth, _ = robot
+    given = {**START, "beta": 242.5, "imp_min": 1.0, "imp_max": 0.85, "imp_width": 7.6e-9, "mu": 0.94,
+             "mu_rolling": 6.5e-65}
+    start = dataclasses.replace(truth, effects=[{"name": "pyramid_contact", "parameters": given}])
+    law, from_start, notes = _contact_law(start, truth.topology, path)
+    expected = dict(given, imp_min=START["imp_min"], imp_width=START["imp_width"], mu_rolling=START["mu_rolling"])
+    np.testing.assert_array_equal(law.values, [expected[n] for n in START])
+    assert from_start and [n.split()[0] for n in notes] == [
+        "pyramid_contact.imp_min", "pyramid_contact.imp_width", "pyramid_contact.mu_rolling"]
+    assert "at its bound (1): started from 0.8" in notes[0]
+    law, from_start, notes = _contact_law(dataclasses.replace(truth, effects=[]), truth.topology, path)
+    np.testing.assert_array_equal(law.values, list(START.values()))
+    assert not from_start and notes == []
 
 
 @pytest.fixture(scope="module")

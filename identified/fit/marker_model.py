@@ -38,6 +38,11 @@ MISFIT = 1.2
 #: windows do not model, and the fit refuses a start that has one
 CONTACT_EFFECTS = ("ground_contact", "pyramid_contact")
 
+#: a start's contact parameter within this of its bound (an impedance within it of 0 or 1, another
+#: below this share of the law's generic start) is taken from the generic start: the windows fit
+#: logarithms and logits, which could not move it from there
+AT_BOUND = 1e-6
+
 
 @dataclasses.dataclass(frozen=True)
 class MarkerRefineConfig:
@@ -70,18 +75,30 @@ def _checked_start(start: IdentifiedModel, rec: Recording, topology, total_mass:
 
 
 def _contact_law(start: IdentifiedModel, topology, mjcf: str):
-    """The windows' contact law: ``pyramid_contact`` with the start's values if it has them, else
-    the law's generic start (a hard floor's order of magnitude, never the plant's); ``None`` for a
-    robot without a ground plane."""
+    """The windows' contact law: ``pyramid_contact`` with the start's values if it has them (those
+    at their bound, :data:`AT_BOUND`, from the generic start), else the law's generic start (a hard
+    floor's order of magnitude, never the plant's); ``None`` for a robot without a ground plane.
+    Also whether the start gave the law, and a line for each value taken from the generic start."""
     from identified.effects.pyramid_contact import START, PyramidContact
+    from identified.fit.output_error import _impedances
 
     if topology.ground is None:
-        return None, False
+        return None, False, []
     law = PyramidContact.for_system(topology, mjcf)
     given = next((e for e in start.effects if e["name"] == "pyramid_contact"), None)
-    law.values = (np.array([float(given["parameters"][n]) for n in START], dtype=float) if given else
-                  np.array(list(START.values()), dtype=float))
-    return law, given is not None
+    generic = np.array(list(START.values()), dtype=float)
+    if given is None:
+        law.values = generic
+        return law, False, []
+    values = np.array([float(given["parameters"][n]) for n in START], dtype=float)
+    # an earlier fit leaves a parameter the data could not tell at its bound (an impedance at 1, a
+    # rolling friction at 1e-65): in the windows' logarithms and logits it could not move from there
+    imp = _impedances(list(START))  # the windows' logits (in (0, 1)); the others' logarithms
+    at_bound = np.where(imp, (values < AT_BOUND) | (values > 1 - AT_BOUND), ~(values > AT_BOUND * generic))
+    notes = [f"pyramid_contact.{n} of the start model is at its bound ({v:.3g}): started from {g:g}"
+             for n, v, g, b in zip(START, values, generic, at_bound) if b]
+    law.values = np.where(at_bound, generic, values)
+    return law, True, notes
 
 
 def _withhold_error_bars(model: IdentifiedModel) -> None:
@@ -211,7 +228,10 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
                        "description": f"the total rod mass given, {float(total_mass):g} kg"}
     ms = states_from_recording(rec, topo, start.dt, tuple(start.gravity), measure_noise=True)
     sigma = float(ms.marker_noise or rec.noise_pos or 1e-3)
-    law, law_given = _contact_law(start, topo, mjcf)
+    law, law_given, law_notes = _contact_law(start, topo, mjcf)
+    if progress:
+        for note in law_notes:
+            print(f"marker fit: {note}", flush=True)
     substeps = max(1, round(config.step / start.dt))
     windows = 10 ** 9 if config.windows is None else int(config.windows)
     fit = fit_markers(start, rec, ms.data, ms.starts, mjcf, sigma, ms.unobservable, frames=config.frames,
@@ -233,5 +253,7 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
     model.metrics["fit_seconds"] = round(fit.seconds, 3)
     model.metrics["stderr"] = ("Gauss-Newton covariance of the marker fit, scaled by its residual's variance; "
                                f"{fit.windows} of {fit.available} windows")
+    if law_notes:
+        model.metrics.setdefault("warnings", []).extend(law_notes)
     _judge_fit(model, fit, config.iterations, sigma)
     return model

@@ -151,9 +151,12 @@ def test_clean_markers_bring_a_start_off_the_truth_back(floorless):
     assert m.mass.sum() == pytest.approx(truth.mass.sum(), rel=1e-12)
     assert np.abs(m.stiffness / truth.stiffness - 1).max() < 0.01
     assert np.abs(m.mass / truth.mass - 1).max() < 0.01
-    # still falling by orders at the last step: no error bars, and a warning that says so
+    # still falling by orders at the last step: the step left would move an estimate by more than its
+    # error bar (measured: 2.05 of them); none written, and a warning that says so
+    left = oe["step_left_se"]
+    assert left["standard_errors"] > 1 and left["parameter"][:2] in ("K[", "c[", "M[", "I[")
     assert np.isnan(m.stderr["stiffness"]).all() and np.isnan(m.stderr["mass"]).all()
-    assert "did not converge in 3 joint steps" in m.metrics["warnings"][-1]
+    assert f"would move {left['parameter']} by" in m.metrics["warnings"][-1]
 
 
 def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
@@ -221,24 +224,34 @@ def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot,
     assert "not estimable" in load_model(path).summary().splitlines()[truth.topology.n_rods + 3]
 
 
-@pytest.mark.parametrize(("history", "converged", "off", "kept", "warned"), [
-    ([2.0, 1.0], True, 1.1, True, False),  # converged: its error bars
-    ([1.0, 0.995], False, 1.1, True, True),  # stopped while falling 0.5 % a step: kept, said
-    ([1.0, 0.98], False, 1.1, False, True),  # falling 2 % a step: withheld, said
-    ([2.0, 1.0], True, 1.3, False, True),  # converged, but the markers 1.3 times their noise off: withheld
+@pytest.mark.parametrize(("history", "converged", "off", "step", "kept", "warned"), [
+    ([2.0, 1.0], True, 1.1, None, True, False),  # converged: its error bars
+    ([1.0, 0.995], False, 1.1, None, True, True),  # stopped while falling 0.5 % a step: kept, said
+    ([1.0, 0.98], False, 1.1, None, False, True),  # falling 2 % a step: withheld, said
+    ([2.0, 1.0], True, 1.3, None, False, True),  # converged, but the markers 1.3 times their noise off: withheld
+    ([2.0, 1.0], True, 1.1, ("M[rod2]", 0.45), True, False),  # the step left moves an estimate 0.45 se: kept
+    ([2.0, 1.0], True, 1.1, ("M[rod2]", -0.55), False, True),  # 0.55 se: unfinished, withheld
+    ([2.0, 1.0], True, 1.1, ("I[rod1:xy]", 9.0), True, False),  # 9 se, but of one with no error bar (40 %)
 ])
-def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, kept, warned):
+def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, step, kept, warned):
     from identified.fit.marker_model import _judge_fit
 
     _, _, _, truth, _ = robot
     law = PyramidContact.for_system(truth.topology, robot[0])
     law.values = np.array(list(START.values()), dtype=float)
-    fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged, residual_rms=off * 0.01)
+    fit = _fake_fit(truth, {"I[rod1:xy]": 0.4})
+    to_minimum = np.zeros(len(fit.cov.names))
+    if step is not None:
+        to_minimum[fit.cov.names.index(step[0])] = step[1]
+    fit = dataclasses.replace(fit, history=history, converged=converged, residual_rms=off * 0.01,
+                              to_minimum=to_minimum)
     m = _model(truth, fit, law, [])
     _judge_fit(m, fit, 5, 0.01)
     assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
     assert (m.effects[0]["stderr"]["beta"] is not None) == kept
     assert bool(m.metrics.get("warnings")) == warned
+    if step is not None and not kept:
+        assert "would move M[rod2] by 0.55 of its standard errors" in m.metrics["warnings"][0]
 
 
 def test_a_stalled_coarse_jacobian_hands_over_to_the_exact_one(floorless, monkeypatch, capsys):

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["CramerRao", "constrained_bound", "window_information"]
+__all__ = ["CramerRao", "constrained_bound", "window_gradient", "window_information"]
 
 #: singular values of a window's nuisance Jacobian below this fraction of its largest are no
 #: direction the data sees (they project nothing out)
@@ -40,21 +40,40 @@ NULL_TOL = 1e-12
 NOT_IDENTIFIABLE = 0.3
 
 
-def window_information(Jx: np.ndarray, Jp: np.ndarray, rank_tol: float = RANK_TOL) -> np.ndarray:
-    """(P, P) Fisher information of the parameters from whitened residuals with Jacobians ``Jx``
-    (W, m, nx) in each window's own nuisances and ``Jp`` (W, m, P) in the shared parameters:
-    ``Σ_w Jpᵀ (I - P_w) Jp`` (the module docstring).  Rank-deficient ``Jx`` is fine."""
+def _nuisance_free(Jx: np.ndarray, Jp: np.ndarray, rank_tol: float):
+    """Each window's ``(I - P_w) J_θw``: its parameter Jacobian with what the window's own
+    nuisances can do projected out (rank-deficient ``Jx`` is fine)."""
     Jx, Jp = np.asarray(Jx, dtype=float), np.asarray(Jp, dtype=float)
     if Jx.ndim != 3 or Jp.ndim != 3 or Jx.shape[:2] != Jp.shape[:2]:
         raise ValueError(f"Jacobians of shapes {Jx.shape} and {Jp.shape}: want (W, m, nx) and (W, m, P)")
-    F = np.zeros((Jp.shape[2], Jp.shape[2]))
     for jx, jp in zip(Jx, Jp):
         if jx.shape[1]:
             u, s, _ = np.linalg.svd(jx, full_matrices=False)
             u = u[:, s > rank_tol * max(float(s[0]) if s.size else 0.0, 1e-300)]
             jp = jp - u @ (u.T @ jp)
+        yield jp
+
+
+def window_information(Jx: np.ndarray, Jp: np.ndarray, rank_tol: float = RANK_TOL) -> np.ndarray:
+    """(P, P) Fisher information of the parameters from whitened residuals with Jacobians ``Jx``
+    (W, m, nx) in each window's own nuisances and ``Jp`` (W, m, P) in the shared parameters:
+    ``Σ_w Jpᵀ (I - P_w) Jp`` (the module docstring).  Rank-deficient ``Jx`` is fine."""
+    F = np.zeros((np.shape(Jp)[-1],) * 2)
+    for jp in _nuisance_free(Jx, Jp, rank_tol):
         F += jp.T @ jp
     return 0.5 * (F + F.T)
+
+
+def window_gradient(Jx: np.ndarray, Jp: np.ndarray, r: np.ndarray, rank_tol: float = RANK_TOL) -> np.ndarray:
+    """(P,) half the gradient of the cost ``Σ r²`` in the parameters with every window's nuisances
+    re-fitted to first order: ``Σ_w Jpᵀ (I - P_w) r_w`` (``r`` (W, m), whitened).  With
+    :func:`window_information` ``F`` it gives the Gauss-Newton step of the parameters to the minimum
+    of the cost's quadratic model, ``-F⁻¹ g`` (nuisances and parameters stepped together)."""
+    r = np.asarray(r, dtype=float)
+    g = np.zeros(np.shape(Jp)[-1])
+    for jp, rw in zip(_nuisance_free(Jx, Jp, rank_tol), r):
+        g += jp.T @ rw
+    return g
 
 
 @dataclass

@@ -36,7 +36,7 @@ import scipy.linalg as sla
 import torch
 
 from identified.dataset import Dataset, atomic_write
-from identified.fit.bound import CramerRao, constrained_bound, window_information
+from identified.fit.bound import CramerRao, constrained_bound, window_gradient, window_information
 from identified.fit.marker_bound import _names, natural_values, nuisance_step
 from identified.fit.output_error import CONTACT_MARGIN, window_problem
 from identified.fit.window_solve import window_schur
@@ -51,7 +51,10 @@ class MarkerFit:
     """The estimate: ``cov`` (a :class:`CramerRao` of the estimate's own Gauss-Newton covariance,
     its ``values`` the estimates at the known total mass), ``windows`` used of ``available``,
     ``residual_rms`` (m), ``history`` (cost per residual after each iteration), ``seconds``,
-    ``converged`` (a joint step lowered the cost by less than a millionth before the iterations ran out)."""
+    ``converged`` (a joint step lowered the cost by less than a millionth before the iterations ran out),
+    ``to_minimum`` (P,): the Gauss-Newton step left from the estimate to the minimum of the cost's
+    quadratic model there, in each parameter's standard errors (NaN where it has none): an estimate
+    whose error bar means what it says is within a fraction of one of the minimum."""
 
     cov: CramerRao
     windows: int
@@ -60,6 +63,7 @@ class MarkerFit:
     history: list[float]
     seconds: float
     converged: bool = False
+    to_minimum: np.ndarray | None = None
 
     def group(self, prefix: str) -> tuple[np.ndarray, np.ndarray]:
         """Estimates and relative standard errors of the parameters named ``prefix[...]``."""
@@ -186,7 +190,8 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             _save(checkpoint, {"key": key, "theta": theta, "dx": dx, "mu": mu, "history": history, "steps": it + 1,
                                "converged": converged, "exact": jac is prob})
     _, Jx, Jp = jac.jacobians(theta, dx)
-    F = window_information((Jx * acts.unsqueeze(1)).numpy(), Jp.numpy())
+    Jx, Jp = (Jx * acts.unsqueeze(1)).numpy(), Jp.numpy()
+    F = window_information(Jx, Jp)
     held_rods = {i for i, _ in hold_inertia}
     n_x = float(acts.sum()) - sum(2.0 for i in range(R) if i in held_rods) * W  # no spin along the held axes
     dof = float(win.seen.sum()) * 3 - n_x - (P - 1)
@@ -196,8 +201,13 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     theta = theta + scale * float(np.log(start.mass.sum()) - torch.logsumexp(theta[msl], 0))  # the exact total mass
     gt = prob.total_mass_row(theta[msl].exp().numpy())
     cov = constrained_bound(F / s2, _names(prob, start), natural_values(prob, theta), constraints=gt[None])
+    # the Gauss-Newton step that remains to the minimum of the cost's quadratic model (nuisances
+    # re-fitted; within the known total mass), in each parameter's standard errors: -C g / s²
+    step = -(cov.cov @ window_gradient(Jx, Jp, r.numpy())) / s2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_minimum = np.where(cov.finite, step / cov.rel_se, np.nan)
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0,
-                     converged)
+                     converged, to_minimum)
 
 
 #: Levenberg-Marquardt's damping (relative to the normal matrix's diagonal) above which a joint step

@@ -23,11 +23,15 @@ from identified.fit.marker_fit import MarkerFit, fit_markers
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
 
-__all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "MarkerRefineConfig", "refine_recording"]
+__all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "STILL_MOVING_SE", "MarkerRefineConfig", "refine_recording"]
 
 #: a joint step that lowered the cost by more than this share leaves a fit still moving: its error
 #: bars are withheld
 STILL_MOVING = 0.01
+
+#: an estimate that the Gauss-Newton step left at the end would still move by more than this many of
+#: its standard errors is unfinished: its error bars are withheld
+STILL_MOVING_SE = 0.5
 
 #: the markers' residual, in units of their noise, above which the fit is said not to follow the
 #: recording and its error bars are withheld (at the truth, clean markers are left at 1e-10 m; the
@@ -172,13 +176,28 @@ def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, o
             not_identifiable.append(f"{law.name}.{n}: {_why(rel[i], n.startswith('imp_'))}")
 
 
+def _farthest(fit: MarkerFit) -> tuple[str, float]:
+    """The parameter with an error bar that the Gauss-Newton step left at the end would move the
+    most, and by how many of its standard errors (``("", 0.0)`` where the fit has no such step)."""
+    if fit.to_minimum is None:
+        return "", 0.0
+    z = np.where(fit.cov.rel_se <= NOT_IDENTIFIABLE, np.abs(fit.to_minimum), np.nan)
+    if not np.isfinite(z).any():
+        return "", 0.0
+    i = int(np.nanargmax(z))
+    return fit.cov.names[i], float(z[i])
+
+
 def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: float) -> None:
     """The fit's error bars withheld where they would not mean what they say: a fit that leaves the
     markers more than :data:`MISFIT` times their noise ``sigma`` off (the windows do not follow the
-    recording: a local minimum, or an effect the model lacks), or an unconverged one whose last joint
-    step still lowered the cost by more than :data:`STILL_MOVING`; one that had nearly stopped keeps
-    them, and says so."""
+    recording: a local minimum, or an effect the model lacks), or an unfinished one: the step left to
+    the minimum of the cost's quadratic model would move an estimate by more than
+    :data:`STILL_MOVING_SE` of its standard errors, or an unconverged fit's last joint step still
+    lowered the cost by more than :data:`STILL_MOVING`; one that had nearly stopped keeps them, and
+    says so."""
     last = (fit.history[-2] - fit.history[-1]) / fit.history[-1] if len(fit.history) > 1 else 0.0
+    name, far = _farthest(fit)
     withheld = None
     if fit.residual_rms > MISFIT * sigma:
         # measured: 30 Hz / 1 cm, 16 windows from values 15 % off, stalled with the markers 13.4 mm
@@ -189,6 +208,14 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     "do not follow the recording (a local minimum from this start, or an effect the model lacks), so "
                     "its values have no error bars; try more --windows, a start nearer the robot, or `tensegrity "
                     "diagnose`"))
+    elif far > STILL_MOVING_SE:
+        # the Gauss-Newton error bars describe the scatter about the minimum, not about a point the
+        # fit has yet to leave (measured: 30 Hz / 1 cm, 128 windows, 18 joint steps, the cost still
+        # falling 0.85 % a step: M 11 % off at |z| 4.9, c 49 % at 6.3)
+        withheld = ("the marker fit had not converged",
+                    (f"the marker fit is not at its minimum: one more Gauss-Newton step would move {name} by "
+                     f"{far:.2g} of its standard errors (more than {STILL_MOVING_SE:g}), so its values have no error "
+                     "bars; run more --iterations (with --checkpoint it goes on where it stopped)"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling
@@ -201,7 +228,8 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
     elif not fit.converged:
         model.metrics.setdefault("warnings", []).append(
             f"the marker fit stopped after {iterations} joint steps with its cost per residual still falling "
-            f"{100 * last:.2g} % a step: error bars from its last step")
+            f"{100 * last:.2g} % a step: error bars from its last step (the step left to its minimum would move "
+            f"{name or 'no estimate'} by {far:.2g} of its standard errors)")
     if withheld is not None:
         _withhold_error_bars(model)
         model.metrics["stderr"] = f"withheld: {withheld[0]}"
@@ -244,6 +272,7 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
         "windows": fit.windows, "windows_available": fit.available, "frames_per_window": config.frames,
         "jacobian_step_s": substeps * start.dt, "marker_residual_m": fit.residual_rms, "marker_noise_m": sigma,
         "cost_per_residual": fit.history, "converged": converged, "seconds": round(fit.seconds, 3),
+        "step_left_se": dict(zip(("parameter", "standard_errors"), _farthest(fit))),
         "contact_start": ("no ground plane" if law is None else
                           "the start model's pyramid_contact" if law_given else "pyramid_contact's generic start"),
     }

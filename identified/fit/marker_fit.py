@@ -65,10 +65,22 @@ class MarkerFit:
     converged: bool = False
     to_minimum: np.ndarray | None = None
 
+    @property
+    def rel_se(self) -> np.ndarray:
+        """(P,) the relative standard errors to report: the Gauss-Newton ones widened by half the step
+        left to the minimum of the cost's quadratic model, ``se (1 + |step| / 2)`` (the step in
+        standard errors): the estimate lies between here and there, the truth within two error bars
+        of there (measured: 30 Hz / 1 cm, 64 windows, the contacts' windows keep every Gauss-Newton
+        step from lowering the cost, exact Jacobians' too, and the fit stops with the step left
+        moving K by 0.4-0.7 of their standard errors, towards the truth: RMS z 1.04 here, 0.68 there)."""
+        if self.to_minimum is None:
+            return self.cov.rel_se
+        return self.cov.rel_se * (1.0 + 0.5 * np.nan_to_num(np.abs(self.to_minimum)))
+
     def group(self, prefix: str) -> tuple[np.ndarray, np.ndarray]:
-        """Estimates and relative standard errors of the parameters named ``prefix[...]``."""
+        """Estimates and relative standard errors (:attr:`rel_se`) of the parameters named ``prefix[...]``."""
         idx = [i for i, n in enumerate(self.cov.names) if n.startswith(prefix + "[")]
-        return self.cov.values[idx], self.cov.rel_se[idx]
+        return self.cov.values[idx], self.rel_se[idx]
 
 
 def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,

@@ -30,8 +30,9 @@ __all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "STILL_MOVING_SE", "Mark
 STILL_MOVING = 0.01
 
 #: an estimate that the Gauss-Newton step left at the end would still move by more than this many of
-#: its standard errors is unfinished: its error bars are withheld
-STILL_MOVING_SE = 0.5
+#: its standard errors is unfinished: its error bars are withheld (below it they are widened by half
+#: the step, :attr:`identified.fit.marker_fit.MarkerFit.rel_se`)
+STILL_MOVING_SE = 2.0
 
 #: the markers' residual, in units of their noise, above which the fit is said not to follow the
 #: recording and its error bars are withheld (at the truth, clean markers are left at 1e-10 m; the
@@ -123,8 +124,9 @@ def _why(rel: float, logit: bool) -> str:
 
 
 def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, int]]) -> IdentifiedModel:
-    """The start with the fit's estimates and their standard errors (NaN where not identifiable)."""
-    names, values, rel = fit.cov.names, fit.cov.values, fit.cov.rel_se
+    """The start with the fit's estimates and their standard errors (:attr:`MarkerFit.rel_se`; NaN
+    where not identifiable)."""
+    names, values, rel = fit.cov.names, fit.cov.values, fit.rel_se
     topo = start.topology
     rod = {n: i for i, n in enumerate(topo.rod_names)}
     ok = rel <= NOT_IDENTIFIABLE
@@ -181,7 +183,7 @@ def _farthest(fit: MarkerFit) -> tuple[str, float]:
     most, and by how many of its standard errors (``("", 0.0)`` where the fit has no such step)."""
     if fit.to_minimum is None:
         return "", 0.0
-    z = np.where(fit.cov.rel_se <= NOT_IDENTIFIABLE, np.abs(fit.to_minimum), np.nan)
+    z = np.where(fit.rel_se <= NOT_IDENTIFIABLE, np.abs(fit.to_minimum), np.nan)
     if not np.isfinite(z).any():
         return "", 0.0
     i = int(np.nanargmax(z))
@@ -280,7 +282,8 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes, "marker_noise": sigma}
     model.metrics["fit_seconds"] = round(fit.seconds, 3)
-    model.metrics["stderr"] = ("Gauss-Newton covariance of the marker fit, scaled by its residual's variance; "
+    model.metrics["stderr"] = ("Gauss-Newton covariance of the marker fit, scaled by its residual's variance, "
+                               "each widened by half the step left to the minimum of the cost's quadratic model; "
                                f"{fit.windows} of {fit.available} windows")
     if law_notes:
         model.metrics.setdefault("warnings", []).extend(law_notes)

@@ -211,9 +211,9 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     "its values have no error bars; try more --windows, a start nearer the robot, or `tensegrity "
                     "diagnose`"))
     elif far > STILL_MOVING_SE:
-        # the Gauss-Newton error bars describe the scatter about the minimum, not about a point the
-        # fit has yet to leave (measured: 30 Hz / 1 cm, 128 windows, 18 joint steps, the cost still
-        # falling 0.85 % a step: M 11 % off at |z| 4.9, c 49 % at 6.3)
+        # the Gauss-Newton error bars describe the scatter about the minimum, not about a point this
+        # far from it (widening by half the step stands for a fit that crept to a stop near it: at 30
+        # Hz / 1 cm, 64 windows, the step left was 0.4-0.7 se for K and 1.2 for the law's kappa)
         withheld = ("the marker fit had not converged",
                     (f"the marker fit is not at its minimum: one more Gauss-Newton step would move {name} by "
                      f"{far:.2g} of its standard errors (more than {STILL_MOVING_SE:g}), so its values have no error "

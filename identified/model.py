@@ -104,10 +104,20 @@ class IdentifiedModel:
     def summary(self) -> str:
         """The model in words: one line per rod and spring, with standard errors."""
         se = self.stderr
+        # a fit that withheld its error bars (e.g. a marker fit short of its minimum) has values
+        # without them; only the moments it names as not identifiable have none to print
+        withheld = str(self.metrics.get("stderr", "")).startswith("withheld")
+        missing = "withheld" if withheld else "not estimable"
+        unseen = " ".join(self.metrics.get("not_identifiable", []))
+        if withheld:  # read back from a file, a group of nulls is no group
+            se = {k: np.full(np.shape(getattr(self, k)), np.nan) for k in ("mass", "stiffness", "damping")} | se
         lines = []
         for i, r in enumerate(self.topology.rods):
-            m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i)
-            held = np.isnan(np.asarray(se["inertia"], dtype=float)[i]) if "inertia" in se else np.zeros(3, bool)
+            m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i, missing)
+            if withheld:
+                held = np.array([f"{r.name}: moment of inertia about body axis {a} " in unseen for a in "xyz"])
+            else:
+                held = np.isnan(np.asarray(se["inertia"], dtype=float)[i]) if "inertia" in se else np.zeros(3, bool)
             # a moment the data cannot see (its spin unobservable: no standard error) has no value to print
             inert = ", ".join("not identifiable" if h else f"{x:.4g}" for x, h in zip(self.inertia[i], held))
             line = f"{r.name}: M = {m}; I = ({inert}) kg m^2"
@@ -119,8 +129,8 @@ class IdentifiedModel:
                          f"centre of mass ({', '.join(f'{1e3 * x:.2f}' for x in c)}) mm in the rod frame")
             lines.append(line)
         for j, s in enumerate(self.topology.springs):
-            k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j)
-            c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j)
+            k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j, missing)
+            c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j, missing)
             kind = "cable" if s.pull_only else "spring"
             rest = (f"rest {self.rest_length[j]:.6g} m (its command, mean)" if s.actuated else
                     f"rest {self.rest_length[j]:.6g} m" + _pm(se.get("rest_length"), j))
@@ -139,7 +149,8 @@ class IdentifiedModel:
 
         for e in self.effects:
             try:
-                lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe())
+                lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe(
+                    "withheld" if withheld else "not identifiable"))
             except ValueError:
                 lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
         g = lambda x: "diverged" if x is None else f"{x:.4g}"
@@ -324,11 +335,12 @@ class IdentifiedModel:
                 raise ModelFileError(f"effect '{e.get('name')}': {exc}") from None
 
 
-def _pm(se: np.ndarray | None, idx) -> str:
+def _pm(se: np.ndarray | None, idx, missing: str = "not estimable") -> str:
+    """`` ± se`` of entry ``idx`` (``None``: the scalar), or what it is without one (``missing``)."""
     if se is None:
         return ""
     v = np.asarray(se)[idx] if idx is not None else np.asarray(se)
-    return f" ± {float(v):.2g}" if np.all(np.isfinite(v)) else " ± not estimable"
+    return f" ± {float(v):.2g}" if np.all(np.isfinite(v)) else f" ± {missing}"
 
 
 def save_model(path: str | os.PathLike, model: IdentifiedModel) -> None:

@@ -263,6 +263,28 @@ def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, co
         assert "would move M[rod2] by 2 of its standard errors (more than 2)" in m.metrics["warnings"][0]
 
 
+def test_a_model_whose_error_bars_were_withheld_says_so_in_words(robot, tmp_path):
+    """Withheld error bars are "± withheld" in the summary, in the fit and read back from its file
+    (where the groups are all null), the transverse moments printed, the unseen axial ones not."""
+    from identified.fit.marker_model import _judge_fit
+    from identified.model import load_model, save_model
+
+    _, _, _, truth, _ = robot
+    law = PyramidContact.for_system(truth.topology, robot[0])
+    law.values = np.array(list(START.values()), dtype=float)
+    fit = dataclasses.replace(_fake_fit(truth, {}), history=[1.0, 0.9], converged=False, residual_rms=0.011)
+    m = _model(truth, fit, law, [(i, 2) for i in range(truth.topology.n_rods)])
+    _judge_fit(m, fit, 5, 0.01)
+    path = str(tmp_path / "w.json")
+    save_model(path, m)
+    for text in (m.summary(), load_model(path).summary()):
+        rod0, cable0 = text.splitlines()[0], text.splitlines()[truth.topology.n_rods]
+        assert rod0 == f"rod0: M = {m.mass[0]:.6g} kg ± withheld; I = ({m.inertia[0, 0]:.4g}, {m.inertia[0, 1]:.4g}, " \
+                       "not identifiable) kg m^2"
+        assert cable0.count("± withheld") == 2 and "not estimable" not in text
+        assert "beta = [101.] ± withheld 1/s" in text
+
+
 def test_a_stalled_coarse_jacobian_hands_over_to_the_exact_one(floorless, monkeypatch, capsys):
     """The coarse Jacobians replaced by ones whose parameter columns point the wrong way (a planted
     stall: no joint step of theirs lowers the cost): the fit switches to the exact step's Jacobians,

@@ -316,8 +316,9 @@ class Effect(ABC):
         return {"name": self.name, "parameters": self.structured(self.values),
                 "stderr": self.structured(self.stderr), "options": self.options}
 
-    def describe(self) -> str:
-        """One line in words (for the fit report)."""
+    def describe(self, missing: str = "not identifiable") -> str:
+        """One line in words (for the fit report); ``missing``: what a parameter without a standard
+        error is said to be (``"withheld"`` where the fit withheld them all)."""
         if self.values is None:
             return f"effect {self.name}: not fitted"
         se = self.stderr
@@ -325,7 +326,7 @@ class Effect(ABC):
         for b in self.blocks:
             idx = self._block_index(b)
             v = self.values[idx]
-            s = "" if se is None else _pm(se[idx])
+            s = "" if se is None else _pm(se[idx], missing)
             if v.size <= 3:
                 parts.append(f"{b.name} = {np.array2string(v, precision=4)}{s} {b.unit}".rstrip())
             else:
@@ -347,9 +348,9 @@ class Effect(ABC):
         """An unfitted instance for this system (reads the geometry it needs from the MJCF)."""
 
 
-def _pm(se: np.ndarray) -> str:
-    """`` ± worst`` of a block's standard errors; says which the data cannot tell (NaN)."""
+def _pm(se: np.ndarray, missing: str = "not identifiable") -> str:
+    """`` ± worst`` of a block's standard errors; says which have none (NaN) and why (``missing``)."""
     if np.all(np.isnan(se)):
-        return " ± not identifiable"
+        return f" ± {missing}"
     worst = f" ± {np.nanmax(se):.2g}"
-    return worst + f" ({int(np.isnan(se).sum())} not identifiable)" if np.isnan(se).any() else worst
+    return worst + f" ({int(np.isnan(se).sum())} {missing})" if np.isnan(se).any() else worst

@@ -108,14 +108,14 @@ class IdentifiedModel:
         # without them; only the moments it names as not identifiable have none to print
         withheld = str(self.metrics.get("stderr", "")).startswith("withheld")
         missing = "withheld" if withheld else "not estimable"
-        unseen = " ".join(self.metrics.get("not_identifiable", []))
+        unseen = set(self.metrics.get("not_identifiable", []))
         if withheld:  # read back from a file, a group of nulls is no group
             se = {k: np.full(np.shape(getattr(self, k)), np.nan) for k in ("mass", "stiffness", "damping")} | se
         lines = []
         for i, r in enumerate(self.topology.rods):
             m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i, missing)
             if withheld:
-                held = np.array([f"{r.name}: moment of inertia about body axis {a} " in unseen for a in "xyz"])
+                held = np.array([unseen_moment(r.name, a) in unseen for a in range(3)])
             else:
                 held = np.isnan(np.asarray(se["inertia"], dtype=float)[i]) if "inertia" in se else np.zeros(3, bool)
             # a moment the data cannot see (its spin unobservable: no standard error) has no value to print
@@ -333,6 +333,12 @@ class IdentifiedModel:
                 effect_from_json(e, R, S)
             except (ValueError, KeyError, TypeError) as exc:
                 raise ModelFileError(f"effect '{e.get('name')}': {exc}") from None
+
+
+def unseen_moment(rod: str, axis: int) -> str:
+    """The ``metrics.not_identifiable`` line of a rod's moment of inertia about body ``axis`` (0-2)
+    whose spin the data do not show (its value is a placeholder, never an estimate)."""
+    return f"{rod}: moment of inertia about body axis {'xyz'[axis]} (its spin is not observable)"
 
 
 def _pm(se: np.ndarray | None, idx, missing: str = "not estimable") -> str:

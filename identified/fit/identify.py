@@ -48,7 +48,7 @@ from identified.fit.regression import (
 )
 from identified.fit.uncertainty import MIN_BLOCK_SECONDS, MIN_BLOCK_WINDOWS, MIN_RUNS, blocks_per_run
 from identified.jsonsafe import finite_or_none
-from identified.model import IdentifiedModel, rigid_body_from_regression
+from identified.model import IdentifiedModel, rigid_body_from_regression, unseen_moment
 from identified.samples import iter_chunks, run_steps
 from identified.topology import Topology
 from identified.twin import engine_from_model
@@ -748,8 +748,7 @@ def _mark_unobservable(model: IdentifiedModel, held: Sequence[tuple[int, int]]) 
         model.inertia[i, a] = max(1e-3 * max(max(others, default=1.0), 1e-12), 1.001 * spread)
         if "inertia" in model.stderr:
             model.stderr["inertia"][i, a] = np.nan
-        names.append(f"{model.topology.rods[i].name}: moment of inertia about body axis {'xyz'[a]} "
-                     "(its spin is not observable)")
+        names.append(unseen_moment(model.topology.rods[i].name, a))
 
 
 def _mark_unseen(model: IdentifiedModel, layout: ParameterLayout, unseen: Sequence[int]) -> None:

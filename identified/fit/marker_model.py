@@ -20,7 +20,7 @@ import numpy as np
 
 from identified.fit.bound import NOT_IDENTIFIABLE
 from identified.fit.marker_fit import MarkerFit, fit_markers
-from identified.model import IdentifiedModel
+from identified.model import IdentifiedModel, unseen_moment
 from identified.recording import Recording, RecordingError
 
 __all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "STILL_MOVING_SE", "MarkerRefineConfig", "refine_recording"]
@@ -149,8 +149,7 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
         if not ok[i] and not n.startswith("law["):
             not_identifiable.append(f"{n}: {_why(rel[i], False)}")
     for i, a in held:
-        not_identifiable.append(f"{topo.rod_names[i]}: moment of inertia about body axis {'xyz'[a]} "
-                                "(its spin is not observable)")
+        not_identifiable.append(unseen_moment(topo.rod_names[i], a))
     if law is not None:
         _law_estimates(law, names, values, rel, ok, not_identifiable)
     return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia, stderr=stderr,

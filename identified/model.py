@@ -105,19 +105,26 @@ class IdentifiedModel:
         """The model in words: one line per rod and spring, with standard errors."""
         se = self.stderr
         # a fit that withheld its error bars (e.g. a marker fit short of its minimum) has values
-        # without them; only the moments it names as not identifiable have none to print
-        withheld = str(self.metrics.get("stderr", "")).startswith("withheld")
-        missing = "withheld" if withheld else "not estimable"
+        # without them, all of them (``metrics.stderr``) or those it names (``metrics.withheld``);
+        # only the moments it names as not identifiable have none to print
+        every = str(self.metrics.get("stderr", "")).startswith("withheld")
+        named = set(self.metrics.get("withheld", {}))  # a fit parameter's name: K[cable3], I[rod2:xy]
+
+        def missing(name: str) -> str:
+            return "withheld" if every or name in named else "not estimable"
+
         unseen = set(self.metrics.get("not_identifiable", []))
-        if withheld:  # read back from a file, a group of nulls is no group
+        if every:  # read back from a file, a group of nulls is no group
             se = {k: np.full(np.shape(getattr(self, k)), np.nan) for k in ("mass", "stiffness", "damping")} | se
+        moments = {a for n in named if n.startswith("I[") for a in _moments(n)}
         lines = []
         for i, r in enumerate(self.topology.rods):
-            m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i, missing)
-            if withheld:
+            m = f"{self.mass[i]:.6g} kg" + _pm(se.get("mass"), i, missing(f"M[{r.name}]"))
+            if every:
                 held = np.array([unseen_moment(r.name, a) in unseen for a in range(3)])
             else:
                 held = np.isnan(np.asarray(se["inertia"], dtype=float)[i]) if "inertia" in se else np.zeros(3, bool)
+                held &= np.array([(r.name, a) not in moments for a in range(3)])
             # a moment the data cannot see (its spin unobservable: no standard error) has no value to print
             inert = ", ".join("not identifiable" if h else f"{x:.4g}" for x, h in zip(self.inertia[i], held))
             line = f"{r.name}: M = {m}; I = ({inert}) kg m^2"
@@ -129,8 +136,8 @@ class IdentifiedModel:
                          f"centre of mass ({', '.join(f'{1e3 * x:.2f}' for x in c)}) mm in the rod frame")
             lines.append(line)
         for j, s in enumerate(self.topology.springs):
-            k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j, missing)
-            c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j, missing)
+            k = f"{self.stiffness[j]:.6g} N/m" + _pm(se.get("stiffness"), j, missing(f"K[{s.name}]"))
+            c = f"{self.damping[j]:.6g} N s/m" + _pm(se.get("damping"), j, missing(f"c[{s.name}]"))
             kind = "cable" if s.pull_only else "spring"
             rest = (f"rest {self.rest_length[j]:.6g} m (its command, mean)" if s.actuated else
                     f"rest {self.rest_length[j]:.6g} m" + _pm(se.get("rest_length"), j))
@@ -149,8 +156,9 @@ class IdentifiedModel:
 
         for e in self.effects:
             try:
-                lines.append(effect_from_json(e, self.topology.n_rods, self.topology.n_springs).describe(
-                    "withheld" if withheld else "not identifiable"))
+                effect = effect_from_json(e, self.topology.n_rods, self.topology.n_springs)
+                lines.append(effect.describe("withheld" if every else "not identifiable",
+                                             withheld={b.name for b in effect.blocks if f"{e['name']}.{b.name}" in named}))
             except ValueError:
                 lines.append(f"effect {e.get('name')}: {e.get('parameters')}")
         g = lambda x: "diverged" if x is None else f"{x:.4g}"
@@ -339,6 +347,12 @@ def unseen_moment(rod: str, axis: int) -> str:
     """The ``metrics.not_identifiable`` line of a rod's moment of inertia about body ``axis`` (0-2)
     whose spin the data do not show (its value is a placeholder, never an estimate)."""
     return f"{rod}: moment of inertia about body axis {'xyz'[axis]} (its spin is not observable)"
+
+
+def _moments(name: str) -> list[tuple[str, int]]:
+    """The (rod, body axis) pairs of a fit's moment-of-inertia parameter ``I[rod2:xy]``."""
+    rod, axes = name[2:-1].rsplit(":", 1)
+    return [(rod, "xyz".index(a)) for a in axes]
 
 
 def _pm(se: np.ndarray | None, idx, missing: str = "not estimable") -> str:

@@ -316,9 +316,10 @@ class Effect(ABC):
         return {"name": self.name, "parameters": self.structured(self.values),
                 "stderr": self.structured(self.stderr), "options": self.options}
 
-    def describe(self, missing: str = "not identifiable") -> str:
+    def describe(self, missing: str = "not identifiable", withheld: set[str] = frozenset()) -> str:
         """One line in words (for the fit report); ``missing``: what a parameter without a standard
-        error is said to be (``"withheld"`` where the fit withheld them all)."""
+        error is said to be (``"withheld"`` where the fit withheld them all); the blocks named in
+        ``withheld`` say "withheld" for theirs."""
         if self.values is None:
             return f"effect {self.name}: not fitted"
         se = self.stderr
@@ -326,7 +327,7 @@ class Effect(ABC):
         for b in self.blocks:
             idx = self._block_index(b)
             v = self.values[idx]
-            s = "" if se is None else _pm(se[idx], missing)
+            s = "" if se is None else _pm(se[idx], "withheld" if b.name in withheld else missing)
             if v.size <= 3:
                 parts.append(f"{b.name} = {np.array2string(v, precision=4)}{s} {b.unit}".rstrip())
             else:

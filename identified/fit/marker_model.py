@@ -30,8 +30,8 @@ __all__ = ["CONTACT_EFFECTS", "MISFIT", "STILL_MOVING", "STILL_MOVING_SE", "Mark
 STILL_MOVING = 0.01
 
 #: an estimate that the Gauss-Newton step left at the end would still move by more than this many of
-#: its standard errors is unfinished: its error bars are withheld (below it they are widened by half
-#: the step, :attr:`identified.fit.marker_fit.MarkerFit.rel_se`)
+#: its standard errors is unfinished: its error bar is withheld (below it, it is widened by half the
+#: step, :attr:`identified.fit.marker_fit.MarkerFit.rel_se`)
 STILL_MOVING_SE = 2.0
 
 #: the markers' residual, in units of their noise, above which the fit is said not to follow the
@@ -177,25 +177,63 @@ def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, o
             not_identifiable.append(f"{law.name}.{n}: {_why(rel[i], n.startswith('imp_'))}")
 
 
+def _said(name: str) -> str:
+    """A parameter of the fit by the name the model file gives it: ``K[cable3]``, ``M[rod0]``,
+    ``I[rod2:xy]`` as they are, the contact law's ``law[beta]`` as ``pyramid_contact.beta``."""
+    from identified.effects.pyramid_contact import PyramidContact
+
+    return f"{PyramidContact.name}.{name[4:-1]}" if name.startswith("law[") else name
+
+
+def _steps_left(fit: MarkerFit) -> dict[str, float]:
+    """``{name: |step|}``: how many of its standard errors the Gauss-Newton step left at the end
+    would move each parameter that has an error bar (:func:`_said`'s names; empty where the fit has
+    no such step)."""
+    if fit.to_minimum is None:
+        return {}
+    z = np.where(fit.rel_se <= NOT_IDENTIFIABLE, np.abs(fit.to_minimum), np.nan)
+    return {_said(n): float(v) for n, v in zip(fit.cov.names, z) if np.isfinite(v)}
+
+
 def _farthest(fit: MarkerFit) -> tuple[str, float]:
     """The parameter with an error bar that the Gauss-Newton step left at the end would move the
     most, and by how many of its standard errors (``("", 0.0)`` where the fit has no such step)."""
-    if fit.to_minimum is None:
+    steps = _steps_left(fit)
+    if not steps:
         return "", 0.0
-    z = np.where(fit.rel_se <= NOT_IDENTIFIABLE, np.abs(fit.to_minimum), np.nan)
-    if not np.isfinite(z).any():
-        return "", 0.0
-    i = int(np.nanargmax(z))
-    return fit.cov.names[i], float(z[i])
+    name = max(steps, key=steps.get)
+    return name, steps[name]
+
+
+def _withhold_some(model: IdentifiedModel, names: list[str]) -> None:
+    """The standard errors of the parameters ``names`` (:func:`_said`'s) NaN (``null`` in the file),
+    the others kept."""
+    rods, springs = model.topology.rod_names, model.topology.spring_names
+    for n in names:
+        if "." in n and not n.startswith(("K[", "c[", "M[", "I[")):
+            law, p = n.split(".", 1)
+            for e in model.effects:
+                if e["name"] == law and p in e.get("stderr", {}):
+                    e["stderr"][p] = None
+            continue
+        kind, who = n[0], n[2:-1]
+        if kind in "Kc":
+            model.stderr["stiffness" if kind == "K" else "damping"][springs.index(who)] = np.nan
+        elif kind == "M":
+            model.stderr["mass"][rods.index(who)] = np.nan
+        else:
+            rod, axes = who.rsplit(":", 1)
+            model.stderr["inertia"][rods.index(rod), ["xyz".index(a) for a in axes]] = np.nan
 
 
 def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: float) -> None:
-    """The fit's error bars withheld where they would not mean what they say: a fit that leaves the
-    markers more than :data:`MISFIT` times their noise ``sigma`` off (the windows do not follow the
-    recording: a local minimum, or an effect the model lacks), or an unfinished one: the step left to
-    the minimum of the cost's quadratic model would move an estimate by more than
-    :data:`STILL_MOVING_SE` of its standard errors, or an unconverged fit's last joint step still
-    lowered the cost by more than :data:`STILL_MOVING`; one that had nearly stopped keeps them, and
+    """The fit's error bars withheld where they would not mean what they say: all of them where the
+    fit leaves the markers more than :data:`MISFIT` times their noise ``sigma`` off (the windows do
+    not follow the recording: a local minimum, or an effect the model lacks) or an unconverged fit's
+    last joint step still lowered the cost by more than :data:`STILL_MOVING`; those of the estimates
+    that the step left to the minimum of the cost's quadratic model would move by more than
+    :data:`STILL_MOVING_SE` of their standard errors (the others kept, widened by half their step;
+    their names and steps in ``metrics.withheld``); a fit that had nearly stopped keeps them, and
     says so."""
     last = (fit.history[-2] - fit.history[-1]) / fit.history[-1] if len(fit.history) > 1 else 0.0
     name, far = _farthest(fit)
@@ -209,14 +247,6 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     "do not follow the recording (a local minimum from this start, or an effect the model lacks), so "
                     "its values have no error bars; try more --windows, a start nearer the robot, or `tensegrity "
                     "diagnose`"))
-    elif far > STILL_MOVING_SE:
-        # the Gauss-Newton error bars describe the scatter about the minimum, not about a point this
-        # far from it (widening by half the step stands for a fit that crept to a stop near it: at 30
-        # Hz / 1 cm, 64 windows, the step left was 0.4-0.7 se for K and 1.2 for the law's kappa)
-        withheld = ("the marker fit had not converged",
-                    (f"the marker fit is not at its minimum: one more Gauss-Newton step would move {name} by "
-                     f"{far:.2g} of its standard errors (more than {STILL_MOVING_SE:g}), so its values have no error "
-                     "bars; run more --iterations (with --checkpoint it goes on where it stopped)"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling
@@ -226,15 +256,31 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     f"{100 * last:.2g} % in the last, {fit.history[-2]:.4g} -> {fit.history[-1]:.4g}): the values "
                     "are those of an unfinished fit and have no error bars; run more --iterations (with --checkpoint "
                     "it goes on where it stopped)"))
-    elif not fit.converged:
-        model.metrics.setdefault("warnings", []).append(
-            f"the marker fit stopped after {iterations} joint steps with its cost per residual still falling "
-            f"{100 * last:.2g} % a step: error bars from its last step (the step left to its minimum would move "
-            f"{name or 'no estimate'} by {far:.2g} of its standard errors)")
     if withheld is not None:
         _withhold_error_bars(model)
         model.metrics["stderr"] = f"withheld: {withheld[0]}"
         model.metrics.setdefault("warnings", []).append(withheld[1])
+        return
+    # the Gauss-Newton error bar describes the scatter about the minimum, not about a point this far
+    # from it (widening by half the step stands for an estimate that crept to a stop near it: at 30
+    # Hz / 1 cm, 64 windows, the step left was 0.4-0.7 se for K and 1.2 for the law's kappa; at 128
+    # windows 5.4 for the law's beta and 2.1-2.4 for three moments, at most 1.3 for every K, c and M,
+    # whose widened bars covered the truth)
+    moving = {n: round(v, 3) for n, v in _steps_left(fit).items() if v > STILL_MOVING_SE}
+    if moving:
+        _withhold_some(model, list(moving))
+        model.metrics["withheld"] = moving
+        said = ", ".join(f"{n} by {v:.3g}" for n, v in sorted(moving.items(), key=lambda kv: -kv[1]))
+        model.metrics.setdefault("warnings", []).append(
+            f"the marker fit is not at its minimum in {len(moving)} of its estimates: one more Gauss-Newton step "
+            f"would move {said} of their standard errors (more than {STILL_MOVING_SE:g}), so these have no error "
+            "bars (the others' are widened by half their step); run more --iterations (with --checkpoint it goes "
+            "on where it stopped)")
+    if not fit.converged:
+        model.metrics.setdefault("warnings", []).append(
+            f"the marker fit stopped after {iterations} joint steps with its cost per residual still falling "
+            f"{100 * last:.2g} % a step: error bars from its last step (the step left to its minimum would move "
+            f"{name or 'no estimate'} by {far:.2g} of its standard errors)")
 
 
 def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_mass: float | None = None,

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 
 import numpy as np
 import pytest
+import torch
 
 from identified.effects.pyramid_contact import START, PyramidContact
 from identified.fit.bound import CramerRao
@@ -185,7 +187,8 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
 
 def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, capsys):
     """1 state + 2 joint steps at once, against 1 + 1 with a checkpoint and then 1 + 2 from it: the
-    same history and estimates bit for bit (the resumed fit does only the last step); a checkpoint
+    same history and estimates bit for bit (the resumed fit does only the last step, and counts the
+    seconds before the interruption); a checkpoint
     of another fit (other noise) or a truncated one is said and not used."""
     from identified.fit.markers import states_from_recording
 
@@ -202,7 +205,13 @@ def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, caps
     part = run(1, ck)
     assert part.history == whole.history[:3] and os.path.exists(ck)
     capsys.readouterr()
+    saved = torch.load(ck, weights_only=True)
+    assert 0 < saved["seconds"] < part.seconds
+    saved["seconds"] = 1000.0  # an interrupted fit of 1000 s: the resumed one counts them
+    torch.save(saved, ck)
+    t = time.perf_counter()
     resumed = run(2, ck)
+    assert 1000.0 < resumed.seconds < 1000.0 + time.perf_counter() - t
     steps = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("marker fit:")]
     assert steps[0].startswith(f"marker fit: resumed from '{ck}' after 2 steps") and len(steps) == 2  # the last only
     assert resumed.history == whole.history

@@ -50,7 +50,8 @@ __all__ = ["MarkerFit", "fit_markers"]
 class MarkerFit:
     """The estimate: ``cov`` (a :class:`CramerRao` of the estimate's own Gauss-Newton covariance,
     its ``values`` the estimates at the known total mass), ``windows`` used of ``available``,
-    ``residual_rms`` (m), ``history`` (cost per residual after each iteration), ``seconds``,
+    ``residual_rms`` (m), ``history`` (cost per residual after each iteration), ``seconds`` (those of
+    the runs before a resume too),
     ``converged`` (a joint step lowered the cost by less than a millionth before the iterations ran out),
     ``to_minimum`` (P,): the Gauss-Newton step left from the estimate to the minimum of the cost's
     quadratic model there, in each parameter's standard errors (NaN where it has none): an estimate
@@ -144,6 +145,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     if saved is not None:
         theta, dx, mu, history, first, converged = (saved["theta"], saved["dx"], saved["mu"], saved["history"],
                                                      saved["steps"], saved["converged"])
+        t0 -= float(saved.get("seconds", 0.0))  # the fit's seconds count those before the interruption
         if saved.get("exact"):
             jac = prob
         r = residuals(theta, dx)
@@ -200,7 +202,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             converged = True  # no step lowers the cost any more, or by a millionth
         if checkpoint is not None:
             _save(checkpoint, {"key": key, "theta": theta, "dx": dx, "mu": mu, "history": history, "steps": it + 1,
-                               "converged": converged, "exact": jac is prob})
+                               "converged": converged, "exact": jac is prob, "seconds": time.perf_counter() - t0})
     _, Jx, Jp = jac.jacobians(theta, dx)
     Jx, Jp = (Jx * acts.unsqueeze(1)).numpy(), Jp.numpy()
     F = window_information(Jx, Jp)

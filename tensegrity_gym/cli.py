@@ -460,7 +460,7 @@ def cmd_improve(args: argparse.Namespace) -> None:
         raise CommandError(f"--out '{args.out}' exists and is not a folder")
     cfg = ImproveConfig(rounds=args.rounds, episodes=args.episodes, timesteps=args.timesteps,
                         randomize=args.randomize, effects=args.effects, seed=args.seed,
-                        episode_steps=args.episode_steps)
+                        episode_steps=args.episode_steps, actions=args.actions)
     rows = improve(args.identified, args.data, args.policy, args.out, cfg, mjcf=args.model, progress=not args.quiet)
     for r in rows:
         e = r["twin_error_on_policy_states"]
@@ -526,12 +526,13 @@ def cmd_gap(args: argparse.Namespace) -> None:
         return
     r = measure_gap(policies[0], args.identified, args.episodes, seed=args.seed,
                     episode_steps=args.episode_steps, video_dir=args.video, progress=not args.quiet,
-                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"), video_every=args.video_every)
+                    threads=args.threads, backend_kwargs=own.get("backend_kwargs"), video_every=args.video_every,
+                    actions=args.actions)
     if args.json:
         print(json.dumps(r, indent=2))
         return
     print(f"{r['twin']['episodes']} episodes of up to {r['episode_steps']} steps, reset seeds "
-          f"{r['seeds'][0]}..{r['seeds'][-1]}")
+          f"{r['seeds'][0]}..{r['seeds'][-1]}, {_ACTIONS_SAID[args.actions]}")
     print(f"  {'':14s}{'return':>10s}{'progress (m)':>14s}{'steps':>8s}")
     for key, label in (("twin", "twin"), ("plant", "plant"), ("random_plant", "random, plant")):
         b = r[key]
@@ -556,6 +557,11 @@ def cmd_gap(args: argparse.Namespace) -> None:
         print(f"  video {name}: {path}")
 
 
+#: how ``gap`` says the way its policies acted (``--actions``)
+_ACTIONS_SAID = {"sampled": "actions sampled from each policy (the same draws on twin and plant)",
+                 "mean": "each policy's mean action"}
+
+
 def _gap_over_policies(args: argparse.Namespace, policies: list[str],
                        backend_kwargs: dict[str, Any] | None = None) -> None:
     """``gap`` of several policies: one line each, then mean and spread over them."""
@@ -563,12 +569,12 @@ def _gap_over_policies(args: argparse.Namespace, policies: list[str],
 
     r = measure_gaps(policies, args.identified, args.episodes, seed=args.seed, episode_steps=args.episode_steps,
                      video_dir=args.video, progress=not args.quiet, threads=args.threads,
-                     backend_kwargs=backend_kwargs, video_every=args.video_every)
+                     backend_kwargs=backend_kwargs, video_every=args.video_every, actions=args.actions)
     if args.json:
         print(json.dumps(json_safe(r), indent=2))
         return
-    print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}; "
-          "forward progress per episode (m), mean over the episodes")
+    print(f"{len(policies)} policies, {args.episodes} episodes each, reset seeds {r['seeds'][0]}..{r['seeds'][-1]}, "
+          f"{_ACTIONS_SAID[args.actions]}; forward progress per episode (m), mean over the episodes")
     print(f"  {'policy':40s}{'twin':>9s}{'plant':>9s}{'plant/twin ± s.e.':>19s}  {'at 90 %'}")
     for path, rep in zip(policies, r["reports"], strict=True):
         ratio, se = rep["transfer"]["plant_over_twin"], rep["transfer"].get("plant_over_twin_stderr")
@@ -846,6 +852,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "'fit --effects'")
     im.add_argument("--seed", type=int, default=0, help="seed of the plant episodes and the training (default 0)")
     im.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    im.add_argument("--actions", choices=("sampled", "mean"), default="sampled",
+                    help="how the policy acts on the plant and the twin, as for gap (default sampled)")
     im.add_argument("--quiet", action="store_true", help="no progress lines")
     im.set_defaults(func=cmd_improve)
 
@@ -871,6 +879,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--video-every", type=int, default=2, metavar="K",
                    help="one video frame every K control steps, played at 25 fps (default 2: real time; "
                    "K > 2: a time-lapse, fewer frames to render)")
+    g.add_argument("--actions", choices=("sampled", "mean"), default="sampled",
+                   help="sampled: each action drawn from the policy's distribution, as PPO trained it (the "
+                        "same draws on twin and plant; default); mean: the distribution's mean")
     g.add_argument("--threads", type=int, default=1, help="torch threads for the twin (default 1)")
     g.add_argument("--xml-file", default=None, metavar="PATH",
                    help="your robot's MJCF (any tensegrity: rods are free bodies, cables spatial tendons, "

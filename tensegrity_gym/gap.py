@@ -32,10 +32,14 @@ import numpy as np
 from tensegrity_gym.randomize import Randomization
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence",
-           "run_episodes", "transfer_ratios", "twin_layout", "write_mp4"]
+__all__ = ["ACTIONS", "CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence",
+           "policy_act", "reset_seeds", "run_episodes", "transfer_ratios", "twin_layout", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
+#: How a policy acts in evaluation (:func:`policy_act`); the first is the default: PPO trains and
+#: judges the policy that samples, and the mean action alone can stick on an edge where a draw does
+#: not (README, "Sampled or mean actions")
+ACTIONS = ("sampled", "mean")
 #: Videos: frame size (pixels) and by default one frame every this many control steps (25 fps at
 #: 50 Hz: real time); MuJoCo's offscreen renderer on a CPU-only machine takes ~0.1-0.6 s per frame.
 VIDEO_SIZE = 320
@@ -91,7 +95,7 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
     K, N = len(seeds), venv.num_envs
     if not 1 <= K <= N:
         raise ValueError(f"{K} seeds for {N} envs")
-    obs, info = venv.reset(seed=list(seeds) + [int(seeds[-1]) + 1 + i for i in range(N - K)])
+    obs, info = venv.reset(seed=reset_seeds(seeds, N))
     x0 = np.asarray(info["x_position"], dtype=float).copy()
     coms: list[list[np.ndarray]] = [[np.asarray(info["com"][k], dtype=float).copy()] for k in range(K)]
     taken: list[list[np.ndarray]] = [[] for _ in range(K)]
@@ -135,6 +139,21 @@ def run_episodes(venv: gym.vector.VectorEnv, act: Act, seeds: list[int],
     return EpisodeSet(seeds=list(seeds), returns=ret, progress=progress, lengths=lengths,
                       actions=[np.array(x).reshape(-1, A) for x in taken],
                       com=[np.array(c) for c in coms], diverged=diverged, frames=frames)
+
+
+def reset_seeds(seeds: list[int], n_envs: int) -> list[int]:
+    """The reset seed of each of ``n_envs`` sub-envs when the first ``len(seeds)`` run ``seeds``
+    (:func:`run_episodes`): the others the seeds after ``seeds[-1]``."""
+    return [int(s) for s in seeds] + [int(seeds[-1]) + 1 + i for i in range(n_envs - len(seeds))]
+
+
+def policy_act(policy: LoadedPolicy, actions: str, seeds: list[int], n_envs: int) -> Act:
+    """How ``policy`` acts in ``n_envs`` sub-envs whose first ones run ``seeds``: ``"sampled"``, a
+    draw from its action distribution, each sub-env's noise seeded by its reset seed (the same on
+    the twin and the plant, :meth:`LoadedPolicy.sampling`); ``"mean"``, the distribution's mean."""
+    if actions not in ACTIONS:
+        raise ValueError(f"--actions must be one of {', '.join(ACTIONS)}, got {actions!r}")
+    return policy.act if actions == "mean" else policy.sampling(reset_seeds(seeds, n_envs))
 
 
 def twin_layout(policy: LoadedPolicy, episodes: int) -> tuple[int, bool]:
@@ -298,7 +317,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
                 seed: int = 0, episode_steps: int | None = None, video_dir: str | None = None,
                 progress: bool = True, threads: int = 1,
                 backend_kwargs: dict[str, Any] | None = None,
-                random_plant: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY) -> dict[str, Any]:
+                random_plant: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY,
+                actions: str = ACTIONS[0]) -> dict[str, Any]:
     """The gap report (see the module docstring) as a JSON-ready dict.
 
     Args:
@@ -314,6 +334,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         random_plant: the ``random_plant`` block of an earlier report with the same plant, seeds,
             ``seed`` and episode length, reused instead of running the random policy again (with
             ``video_dir`` it runs again: its video is drawn as it runs).
+        actions: ``"sampled"`` (the policy's own action noise, the same draws on twin and plant) or
+            ``"mean"`` (:func:`policy_act`).
     """
     import tensegrity_gym  # noqa: F401  (registers the env)
 
@@ -325,6 +347,8 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         raise ValueError(f"episode steps must be an integer >= 1, got {episode_steps}")
     if identified is not None and not os.path.isfile(identified):
         raise ValueError(f"'{identified}' does not exist or is not a file")
+    if actions not in ACTIONS:
+        raise ValueError(f"--actions must be one of {', '.join(ACTIONS)}, got {actions!r}")
     pol = policy if isinstance(policy, LoadedPolicy) else load_policy(policy)
     steps = int(episode_steps or pol.episode_steps)
     env_kwargs = pol.env_kwargs
@@ -353,8 +377,10 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
                     pol.check_env(v.single_observation_space, v.single_action_space)
                 dt = float(twin.dt)  # type: ignore[attr-defined]
                 A = int(twin.single_action_space.shape[0])  # type: ignore[index]
-                on_twin = run_episodes(twin, pol.act, seeds, bar=bar, **draw.get("twin", {}))
-                on_plant = run_episodes(plant, pol.act, seeds, bar=bar, **draw.get("plant", {}))
+                on_twin = run_episodes(twin, policy_act(pol, actions, seeds, twin.num_envs), seeds, bar=bar,
+                                       **draw.get("twin", {}))
+                on_plant = run_episodes(plant, policy_act(pol, actions, seeds, plant.num_envs), seeds, bar=bar,
+                                        **draw.get("plant", {}))
                 on_random = (None if random_plant is not None and not video else
                              run_episodes(plant, _random_act(A, seed), seeds, bar=bar, **draw.get("plant", {})))
             finally:
@@ -395,6 +421,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         "identified": None if identified is None else os.path.abspath(identified),
         "seeds": seeds,
         "episode_steps": steps,
+        "actions": actions,
     }
     if videos:
         out["videos"] = videos
@@ -429,7 +456,8 @@ def side_by_side(left: list[np.ndarray], right: list[np.ndarray], gap: int = 4) 
 def measure_gaps(policies: list[str], identified: str | None, episodes: int, seed: int = 0,
                  episode_steps: int | None = None, video_dir: str | None = None, progress: bool = True,
                  threads: int = 1, log: Callable[[str], None] | None = None,
-                 backend_kwargs: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY) -> dict[str, Any]:
+                 backend_kwargs: dict[str, Any] | None = None, video_every: int = VIDEO_EVERY,
+                 actions: str = ACTIONS[0]) -> dict[str, Any]:
     """:func:`measure_gap` of several policies (e.g. the seeds of ``tensegrity train --seeds``) from
     the same reset seeds, and their mean and spread over policies.
 
@@ -456,7 +484,7 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
         vd = None if video_dir is None else (video_dir if len(policies) == 1 else os.path.join(video_dir, str(i)))
         rep = measure_gap(pol, identified, episodes, seed=seed, episode_steps=episode_steps, video_dir=vd,
                           progress=progress, threads=threads, random_plant=randoms.get(key),
-                          backend_kwargs=backend_kwargs, video_every=video_every)
+                          backend_kwargs=backend_kwargs, video_every=video_every, actions=actions)
         randoms[key] = rep["random_plant"]
         reports.append(rep)
         if log is not None:
@@ -482,4 +510,4 @@ def measure_gaps(policies: list[str], identified: str | None, episodes: int, see
     ratio = _ratio(pooled["plant"]["progress_m"], pooled["twin"]["progress_m"])
     over["plant_over_twin_pooled"] = {"ratio": ratio, "stderr": _ratio_stderr(ratio, pooled["plant"], pooled["twin"])}
     return {"policies": [os.fspath(p) for p in policies], "reports": reports, "over_policies": over,
-            "episodes": int(episodes), "seeds": reports[0]["seeds"]}
+            "episodes": int(episodes), "seeds": reports[0]["seeds"], "actions": actions}

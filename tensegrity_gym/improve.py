@@ -55,6 +55,8 @@ class ImproveConfig:
         effects: effects of the refit: ``"same"`` (the current model's, fast) or as ``fit --effects``.
         seed: reset seeds of the plant episodes and the training seed.
         envs: twins trained in parallel (``None``: the training default).
+        actions: how the policy acts on the plant and the twin, ``"sampled"`` or ``"mean"``
+            (:func:`tensegrity_gym.gap.policy_act`).
     """
 
     rounds: int = 2
@@ -65,6 +67,7 @@ class ImproveConfig:
     effects: str = "same"
     seed: int = 0
     envs: int | None = None
+    actions: str = "sampled"
 
     def validate(self) -> None:
         for name in ("rounds", "episodes", "timesteps"):
@@ -73,17 +76,21 @@ class ImproveConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {v}")
         if self.episode_steps is not None and (int(self.episode_steps) != self.episode_steps or self.episode_steps < 1):
             raise ValueError(f"episode_steps must be an integer >= 1, got {self.episode_steps}")
+        if self.actions not in ("sampled", "mean"):
+            raise ValueError(f"actions must be 'sampled' or 'mean', got {self.actions!r}")
 
 
 # ---------------------------------------------------------------------- recording
 def record_policy(policy: LoadedPolicy, mjcf: str, seeds: list[int], episode_steps: int,
-                  chunk_steps: int | None = None) -> tuple[Dataset, np.ndarray]:
+                  chunk_steps: int | None = None, actions: str = "sampled") -> tuple[Dataset, np.ndarray]:
     """The policy on the plant, one episode per seed (reset as the env resets with that seed),
     recorded at the physics rate, and the forward progress of each episode (m, over its whole
     length). The :class:`~identified.dataset.Dataset` holds every episode cut into consecutive
     pieces of ``chunk_steps`` physics steps (a shorter remainder left out; ``None``: every
-    episode cut to the shortest, a dataset's episodes having one length)."""
+    episode cut to the shortest, a dataset's episodes having one length). ``actions``: as
+    :func:`tensegrity_gym.gap.policy_act` (sampled: the draws of each seed's episode on the twin)."""
     import tensegrity_gym  # noqa: F401  (registers the env)
+    from tensegrity_gym.gap import policy_act
 
     env = gym.make(ENV_ID, model=mjcf, max_episode_steps=episode_steps, **policy.env_kwargs)
     policy.check_env(env.observation_space, env.action_space)
@@ -103,10 +110,11 @@ def record_policy(policy: LoadedPolicy, mjcf: str, seeds: list[int], episode_ste
         for seed in seeds:
             rows.clear()
             obs, info = env.reset(seed=int(seed))
+            act = policy_act(policy, actions, [int(seed)], 1)
             x0 = float(info["x_position"])
             done = False
             while not done:
-                obs, _, terminated, truncated, info = env.step(policy.act(obs))
+                obs, _, terminated, truncated, info = env.step(act(obs))
                 done = terminated or truncated
             progress.append(float(info["x_position"]) - x0)
             last = plant.states()
@@ -164,14 +172,15 @@ def twin_errors(model: Any, data: Dataset, horizon_steps: int = 1000) -> dict[st
     return out
 
 
-def _twin_progress(policy: LoadedPolicy, identified: str, seeds: list[int], episode_steps: int) -> np.ndarray:
+def _twin_progress(policy: LoadedPolicy, identified: str, seeds: list[int], episode_steps: int,
+                   actions: str = "sampled") -> np.ndarray:
     """The policy's forward progress on the twin of ``identified`` from the given reset seeds."""
-    from tensegrity_gym.gap import run_episodes
+    from tensegrity_gym.gap import policy_act, run_episodes
 
     venv = gym.make_vec(ENV_ID, num_envs=len(seeds), vectorization_mode="vector_entry_point", backend="identified",
                         model=identified, max_episode_steps=episode_steps, **policy.env_kwargs)
     try:
-        return run_episodes(venv, policy.act, seeds).progress
+        return run_episodes(venv, policy_act(policy, actions, seeds, venv.num_envs), seeds).progress
     finally:
         venv.close()
 
@@ -204,8 +213,8 @@ def improve(identified: str, data: str, policy: str, out_dir: str, cfg: ImproveC
     for r in range(cfg.rounds + 1):
         t0 = time.perf_counter()
         seeds = [int(cfg.seed) + 1000 * r + k for k in range(cfg.episodes)]
-        rec, plant_prog = record_policy(pol, mjcf, seeds, steps, chunk_steps=fit_data.n_steps)
-        twin_prog = _twin_progress(pol, model_path, seeds, steps)
+        rec, plant_prog = record_policy(pol, mjcf, seeds, steps, chunk_steps=fit_data.n_steps, actions=cfg.actions)
+        twin_prog = _twin_progress(pol, model_path, seeds, steps, cfg.actions)
         row: dict[str, Any] = {"round": r, "policy": os.path.abspath(pol_path), "model": os.path.abspath(model_path),
                                "seeds": seeds, "plant_progress_m": float(np.mean(plant_prog)),
                                "twin_progress_m": float(np.mean(twin_prog)),

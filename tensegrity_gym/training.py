@@ -67,7 +67,7 @@ import sys
 import time
 import zipfile
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -118,6 +118,9 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
 #: ``tensegrity train``'s default budget and randomization (README, "Training on the twin")
 DEFAULT_TIMESTEPS = 300_000
 DEFAULT_RANDOMIZE = "auto"
+#: the second word of the seed of a policy's action noise in evaluation (:meth:`LoadedPolicy.sampling`):
+#: its draws apart from any other stream seeded with the same reset seed
+ACTION_NOISE_STREAM = 0x5A3D
 #: the twin's integration step when training: the coarsest stable one (:func:`resolve_physics_dt`)
 DEFAULT_PHYSICS_DT = "auto"
 #: ``VecNormalize`` settings (SB3's defaults); rewards are normalised for PPO only.
@@ -425,10 +428,47 @@ class LoadedPolicy:
         o = (np.asarray(obs, dtype=np.float64) - self.obs_mean) / np.sqrt(self.obs_var + self.epsilon)
         return np.clip(o, -self.clip_obs, self.clip_obs).astype(np.float32)
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        """(N, A) actions in [-1, 1] for (N, n_obs) raw observations ((A,) for (n_obs,))."""
-        action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+    def act(self, obs: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
+        """(N, A) actions in [-1, 1] for (N, n_obs) raw observations ((A,) for (n_obs,)): the mean of
+        the policy's action distribution, or with ``noise`` (standard normal draws, the actions'
+        shape) a draw from it, as the algorithm drew its actions while it trained (:meth:`_draw`)."""
+        if noise is None:
+            action, _ = self.model.predict(self.normalize(obs), deterministic=True)
+        else:
+            action = self._draw(obs, noise)
         return np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
+
+    def _draw(self, obs: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """The actions ``noise`` draws from the policy's distribution at raw observations ``obs``:
+        PPO's Gaussian ``mean + std * noise``, SAC's squashed one ``tanh(mean + std * noise)``."""
+        import torch
+
+        obs_t, vectorized = self.model.policy.obs_to_tensor(self.normalize(obs))
+        eps = torch.as_tensor(np.asarray(noise, dtype=np.float32).reshape(obs_t.shape[0], -1))
+        with torch.no_grad():
+            if hasattr(self.model, "actor"):
+                mean, log_std, _ = self.model.actor.get_action_dist_params(obs_t)
+                action = torch.tanh(mean + log_std.exp() * eps)
+            else:
+                dist = self.model.policy.get_distribution(obs_t).distribution
+                action = dist.mean + dist.stddev * eps
+        out = action.cpu().numpy()
+        return out if vectorized else out[0]
+
+    def sampling(self, seeds: Sequence[int]) -> Callable[[np.ndarray], np.ndarray]:
+        """:meth:`act` with the policy's own action noise, for envs reset with ``seeds``: env ``k``'s
+        draws come from a generator of its own seeded with ``seeds[k]``, so the same reset seed gives
+        the same draws on the twin and on the plant, whatever the number of envs beside it."""
+        rngs = [np.random.default_rng([int(s), ACTION_NOISE_STREAM]) for s in seeds]
+        A = int(self.meta["action_shape"][0])
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            n = int(np.prod(np.shape(obs)[:-1]))
+            if n > len(rngs):
+                raise ValueError(f"{n} observations for {len(rngs)} seeded envs")
+            return self.act(obs, np.stack([r.standard_normal(A) for r in rngs[:n]]))
+
+        return act
 
     def check_env(self, observation_space: gym.Space, action_space: gym.Space) -> None:
         """PolicyFileError unless the env's spaces are those the policy was trained on."""

@@ -130,16 +130,45 @@ def test_saved_and_loaded_policy_gives_the_same_actions(trained, robot):
     assert not np.allclose(pol.act(obs)[0], pol.act(obs)[1])  # the actions depend on the observation
 
 
+def test_sampled_actions_are_the_policys_gaussian_drawn_per_env_by_its_seed(trained, robot):
+    """``act(obs, noise)`` is ``mean + exp(log_std) * noise`` clipped, exactly (noise 0: the mean
+    action); ``sampling(seeds)`` draws env k's noise from its own seed, so the same seed acts alike
+    alone or beside others, and another seed differently."""
+    pol = load_policy(trained.path)
+    env = gym.make("TensegrityIco-v0", backend="identified", model=str(robot["twin"]))
+    obs = np.stack([env.reset(seed=s)[0] for s in range(3)])
+    env.close()
+    np.testing.assert_array_equal(pol.act(obs, np.zeros((3, 24))), pol.act(obs))
+    noise = np.random.default_rng(0).standard_normal((3, 24))
+    std = trained.model.policy.log_std.detach().exp().numpy()
+    want = np.clip(pol.act(obs) + std * noise, -1, 1)  # the mean is inside [-1, 1] here
+    assert np.abs(trained.model.predict(pol.normalize(obs), deterministic=True)[0]).max() < 1
+    np.testing.assert_allclose(pol.act(obs, noise), want, rtol=0, atol=2e-7)
+    assert np.abs(pol.act(obs, noise) - pol.act(obs)).max() > 0.1
+    alone = [pol.sampling([s])(obs[[k]]) for k, s in enumerate((7, 8, 9))]
+    together = pol.sampling([7, 8, 9, 10])(obs)
+    # (the network rounds a batch of one and of four differently, ~1e-7 in float32)
+    np.testing.assert_allclose(np.concatenate(alone), together, rtol=0, atol=1e-6)
+    again = pol.sampling([7, 8, 9])
+    first, second = again(obs), again(obs)  # a fresh draw every step
+    np.testing.assert_array_equal(first, together)
+    assert not np.allclose(first, second) and not np.allclose(pol.sampling([1, 8, 9])(obs)[0], first[0])
+    with pytest.raises(ValueError, match="4 observations for 3 seeded envs"):
+        pol.sampling([1, 2, 3])(np.concatenate([obs, obs[:1]]))
+
+
 # ---------------------------------------------------------------------- gap
-def _evaluate_by_hand(pol, make_env, seeds, steps):
-    """Return and forward progress of one episode per seed, stepping single envs in a plain loop."""
+def _evaluate_by_hand(pol, make_env, seeds, steps, actions="sampled"):
+    """Return and forward progress of one episode per seed, stepping single envs in a plain loop
+    (``actions``: the mean action, or drawn with the noise of that seed alone)."""
     out = []
     for s in seeds:
         env = make_env(steps)
         obs, info = env.reset(seed=s)
+        act = pol.act if actions == "mean" else pol.sampling([s])
         x0, ret, done = info["x_position"], 0.0, False
         while not done:
-            obs, r, term, trunc, info = env.step(pol.act(obs))
+            obs, r, term, trunc, info = env.step(act(obs))
             ret += r
             done = term or trunc
         out.append((ret, info["x_position"] - x0))
@@ -147,11 +176,16 @@ def _evaluate_by_hand(pol, make_env, seeds, steps):
     return np.array(out)
 
 
-def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
+@pytest.mark.parametrize("actions", ["sampled", "mean"])
+def test_gap_numbers_match_separate_evaluations(trained, robot, capsys, actions):
+    """Twin and plant episodes of ``gap`` against single envs stepped by hand from the same seeds,
+    the actions drawn per env from its own seed (``sampled``, the default) or the mean."""
     args = ["gap", "--identified", str(robot["twin"]), "--policy", trained.path, "--episodes", "2",
-            "--seed", "5", "--episode-steps", "30", "--json", "--quiet"]
+            "--seed", "5", "--episode-steps", "30", "--json", "--quiet"] + ([] if actions == "sampled" else
+                                                                              ["--actions", "mean"])
     assert main(args) == 0
     r = json.loads(capsys.readouterr().out)
+    assert r["actions"] == actions
     for key in ("twin", "plant", "random_plant"):
         assert {"return", "progress_m"} <= set(r[key])
         assert len(r[key]["returns"]) == 2
@@ -163,9 +197,10 @@ def test_gap_numbers_match_separate_evaluations(trained, robot, capsys):
     assert twin_layout(pol, 2) == (4, True) and twin_layout(pol, 6) == (6, True)
     seeds = [5, 6]
     plant = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", model=str(robot["xml"]),
-                                                     max_episode_steps=n), seeds, 30)
+                                                     max_episode_steps=n), seeds, 30, actions)
     twin = _evaluate_by_hand(pol, lambda n: gym.make("TensegrityIco-v0", backend="identified",
-                                                    model=str(robot["twin"]), max_episode_steps=n), seeds, 30)
+                                                    model=str(robot["twin"]), max_episode_steps=n), seeds, 30,
+                             actions)
     # the network on a batch of rows and on one row rounds differently in float32 (~1e-7 in the
     # actions), which the dynamics carry on; a wrong seed, start or sum would be off by far more
     tol = {"rtol": 1e-4, "atol": 1e-6}

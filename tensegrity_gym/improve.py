@@ -76,8 +76,10 @@ class ImproveConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {v}")
         if self.episode_steps is not None and (int(self.episode_steps) != self.episode_steps or self.episode_steps < 1):
             raise ValueError(f"episode_steps must be an integer >= 1, got {self.episode_steps}")
-        if self.actions not in ("sampled", "mean"):
-            raise ValueError(f"actions must be 'sampled' or 'mean', got {self.actions!r}")
+        from tensegrity_gym.gap import ACTIONS
+
+        if self.actions not in ACTIONS:
+            raise ValueError(f"actions must be one of {', '.join(ACTIONS)}, got {self.actions!r}")
 
 
 # ---------------------------------------------------------------------- recording

@@ -163,6 +163,26 @@ def test_sampled_actions_are_the_policys_gaussian_drawn_per_env_by_its_seed(trai
         pol.sampling([1, 2, 3])(np.concatenate([obs, obs[:1]]))
 
 
+def test_a_sac_policy_draws_from_its_squashed_gaussian():
+    """SAC's draw is ``tanh(mean + std * noise)``: at zero noise exactly SAC's own deterministic
+    action (a draw without the squash would differ), inside (-1, 1) for any noise and increasing
+    in it (a policy built untrained on a [-1, 1] action space)."""
+    from stable_baselines3 import SAC
+
+    from tensegrity_gym.training import LoadedPolicy
+
+    env = gym.make("MountainCarContinuous-v0")
+    sac = SAC("MlpPolicy", env, seed=0, policy_kwargs={"log_std_init": 0.5})
+    pol = LoadedPolicy(sac, {"action_shape": [1]}, np.zeros(2), np.ones(2), 10.0, 0.0)
+    obs = np.array([[-0.5, 0.01], [0.3, -0.02]], dtype=np.float32)
+    own, _ = sac.predict(obs, deterministic=True)
+    np.testing.assert_allclose(pol.act(obs, np.zeros((2, 1))), own, rtol=0, atol=1e-7)
+    noise = np.array([[-9.0], [-1.0], [0.0], [1.0], [9.0]])
+    drawn = np.concatenate([pol.act(obs[:1], n[None]) for n in noise])[:, 0]
+    assert np.all(np.abs(drawn) <= 1) and np.all(np.diff(drawn) > 0) and drawn[0] < -0.99 < 0.99 < drawn[-1]
+    env.close()
+
+
 # ---------------------------------------------------------------------- gap
 def _evaluate_by_hand(pol, make_env, seeds, steps, actions="sampled"):
     """Return and forward progress of one episode per seed, stepping single envs in a plain loop

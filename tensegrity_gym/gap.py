@@ -32,7 +32,7 @@ import numpy as np
 from tensegrity_gym.randomize import Randomization
 from tensegrity_gym.training import ENV_ID, LoadedPolicy, load_policy, plant_mjcf, torch_threads
 
-__all__ = ["ACTIONS", "CLEAR_Z", "EpisodeSet", "against_line", "measure_gap", "measure_gaps", "open_loop_divergence",
+__all__ = ["ACTIONS", "CLEAR_Z", "EpisodeSet", "against_line", "check_actions", "measure_gap", "measure_gaps", "open_loop_divergence",
            "policy_act", "reset_seeds", "run_episodes", "transfer_ratios", "twin_layout", "write_mp4"]
 
 Act = Callable[[np.ndarray], np.ndarray]
@@ -147,12 +147,17 @@ def reset_seeds(seeds: list[int], n_envs: int) -> list[int]:
     return [int(s) for s in seeds] + [int(seeds[-1]) + 1 + i for i in range(n_envs - len(seeds))]
 
 
+def check_actions(actions: str) -> None:
+    """ValueError unless ``actions`` is one of :data:`ACTIONS`."""
+    if actions not in ACTIONS:
+        raise ValueError(f"--actions must be one of {', '.join(ACTIONS)}, got {actions!r}")
+
+
 def policy_act(policy: LoadedPolicy, actions: str, seeds: list[int], n_envs: int) -> Act:
     """How ``policy`` acts in ``n_envs`` sub-envs whose first ones run ``seeds``: ``"sampled"``, a
     draw from its action distribution, each sub-env's noise seeded by its reset seed (the same on
     the twin and the plant, :meth:`LoadedPolicy.sampling`); ``"mean"``, the distribution's mean."""
-    if actions not in ACTIONS:
-        raise ValueError(f"--actions must be one of {', '.join(ACTIONS)}, got {actions!r}")
+    check_actions(actions)
     return policy.act if actions == "mean" else policy.sampling(reset_seeds(seeds, n_envs))
 
 
@@ -347,8 +352,7 @@ def measure_gap(policy: LoadedPolicy | str | os.PathLike, identified: str | None
         raise ValueError(f"episode steps must be an integer >= 1, got {episode_steps}")
     if identified is not None and not os.path.isfile(identified):
         raise ValueError(f"'{identified}' does not exist or is not a file")
-    if actions not in ACTIONS:
-        raise ValueError(f"--actions must be one of {', '.join(ACTIONS)}, got {actions!r}")
+    check_actions(actions)
     pol = policy if isinstance(policy, LoadedPolicy) else load_policy(policy)
     steps = int(episode_steps or pol.episode_steps)
     env_kwargs = pol.env_kwargs

@@ -76,10 +76,9 @@ class ImproveConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {v}")
         if self.episode_steps is not None and (int(self.episode_steps) != self.episode_steps or self.episode_steps < 1):
             raise ValueError(f"episode_steps must be an integer >= 1, got {self.episode_steps}")
-        from tensegrity_gym.gap import ACTIONS
+        from tensegrity_gym.gap import check_actions
 
-        if self.actions not in ACTIONS:
-            raise ValueError(f"actions must be one of {', '.join(ACTIONS)}, got {self.actions!r}")
+        check_actions(self.actions)
 
 
 # ---------------------------------------------------------------------- recording

@@ -249,14 +249,14 @@ def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot,
     ([2.0, 1.0], True, 1.3, False, True),  # converged, but the markers 1.3 times their noise off: withheld
 ])
 def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, kept, warned):
-    from identified.fit.marker_model import _judge_fit
+    from identified.fit.marker_model import _judge_fit, _still_moving
 
     _, _, _, truth, _ = robot
     law = PyramidContact.for_system(truth.topology, robot[0])
     law.values = np.array(list(START.values()), dtype=float)
     fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged, residual_rms=off * 0.01,
                               to_minimum=np.zeros(len(_fake_fit(truth, {}).cov.names)))
-    m = _model(truth, fit, law, [])
+    m = _model(truth, fit, law, [], withheld=_still_moving(fit))
     _judge_fit(m, fit, 5, 0.01)
     assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
     assert (m.effects[0]["stderr"]["beta"] is not None) == kept
@@ -275,7 +275,7 @@ def test_only_the_estimates_the_fit_would_still_move_lose_their_error_bars(robot
     """A converged fit on the markers whose step left would move some estimates by more than
     ``STILL_MOVING_SE`` (2) of their standard errors: exactly those have none (null), named with
     their steps in ``metrics.withheld`` and a warning; every other keeps its widened bar exactly."""
-    from identified.fit.marker_model import _judge_fit
+    from identified.fit.marker_model import _judge_fit, _still_moving
 
     _, _, _, truth, _ = robot
     topo = truth.topology
@@ -289,7 +289,7 @@ def test_only_the_estimates_the_fit_would_still_move_lose_their_error_bars(robot
     for n, v in steps.items():
         to_minimum[fit.cov.names.index(n)] = v
     fit = dataclasses.replace(fit, to_minimum=to_minimum)
-    m = _model(truth, fit, law, [])
+    m = _model(truth, fit, law, [], withheld=_still_moving(fit))
     _judge_fit(m, fit, 5, 0.01)
     assert m.metrics.get("withheld", {}) == withheld and "stderr" not in m.metrics
     assert bool(m.metrics.get("warnings")) == bool(withheld)
@@ -315,14 +315,14 @@ def test_only_the_estimates_the_fit_would_still_move_lose_their_error_bars(robot
 def test_a_model_whose_error_bars_were_withheld_says_so_in_words(robot, tmp_path):
     """Withheld error bars are "± withheld" in the summary, in the fit and read back from its file
     (where the groups are all null), the transverse moments printed, the unseen axial ones not."""
-    from identified.fit.marker_model import _judge_fit
+    from identified.fit.marker_model import _judge_fit, _still_moving
     from identified.model import load_model, save_model
 
     _, _, _, truth, _ = robot
     law = PyramidContact.for_system(truth.topology, robot[0])
     law.values = np.array(list(START.values()), dtype=float)
     fit = dataclasses.replace(_fake_fit(truth, {}), history=[1.0, 0.9], converged=False, residual_rms=0.011)
-    m = _model(truth, fit, law, [(i, 2) for i in range(truth.topology.n_rods)])
+    m = _model(truth, fit, law, [(i, 2) for i in range(truth.topology.n_rods)], withheld=_still_moving(fit))
     _judge_fit(m, fit, 5, 0.01)
     path = str(tmp_path / "w.json")
     save_model(path, m)
@@ -339,7 +339,7 @@ def test_a_model_with_some_error_bars_withheld_names_them_in_its_summary(robot, 
     (their steps left over 2 se): those say "± withheld" (the moments printed), in the fit and read
     back from its file; every other keeps its error bar, and a moment the markers cannot see stays
     "not identifiable"."""
-    from identified.fit.marker_model import _judge_fit
+    from identified.fit.marker_model import _judge_fit, _still_moving
     from identified.model import load_model, save_model
 
     _, _, _, truth, _ = robot
@@ -352,7 +352,7 @@ def test_a_model_with_some_error_bars_withheld_names_them_in_its_summary(robot, 
     for n, v in (("M[rod2]", 3.0), (f"c[{s0}]", -2.5), ("I[rod0:xy]", 2.2), ("law[beta]", 5.0)):
         to_minimum[fit.cov.names.index(n)] = v
     fit = dataclasses.replace(fit, to_minimum=to_minimum)
-    m = _model(truth, fit, law, [(i, 2) for i in range(topo.n_rods)])
+    m = _model(truth, fit, law, [(i, 2) for i in range(topo.n_rods)], withheld=_still_moving(fit))
     _judge_fit(m, fit, 5, 0.01)
     path = str(tmp_path / "some.json")
     save_model(path, m)

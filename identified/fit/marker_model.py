@@ -15,6 +15,7 @@ identifiable, never as a number with an error bar.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Collection
 
 import numpy as np
 
@@ -123,20 +124,25 @@ def _why(rel: float, logit: bool) -> str:
     return f"not identifiable from these markers ({se})"
 
 
-def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, int]]) -> IdentifiedModel:
+def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, int]],
+           withheld: Collection[str] = ()) -> IdentifiedModel:
     """The start with the fit's estimates and their standard errors (:attr:`MarkerFit.rel_se`; NaN
-    where not identifiable)."""
+    where not identifiable, and for the estimates named in ``withheld`` by :func:`_said`'s names,
+    whose values are kept: :func:`_still_moving`)."""
     names, values, rel = fit.cov.names, fit.cov.values, fit.rel_se
     topo = start.topology
     rod = {n: i for i, n in enumerate(topo.rod_names)}
     ok = rel <= NOT_IDENTIFIABLE
+    bar = ok & ~np.isin([_said(n) for n in names], list(withheld))  # an error bar given
     not_identifiable = []
     R = topo.n_rods
     inertia = start.inertia.copy()
     inertia_se = np.full((R, 3), np.nan)
-    (K, rK), (c, rc), (M, rM) = fit.group("K"), fit.group("c"), fit.group("M")
-    stderr = {k: np.where(r <= NOT_IDENTIFIABLE, v * r, np.nan)
-              for k, v, r in (("stiffness", K, rK), ("damping", c, rc), ("mass", M, rM))}
+    est, stderr = {}, {}
+    for field, kind in (("stiffness", "K"), ("damping", "c"), ("mass", "M")):
+        idx = [i for i, n in enumerate(names) if n.startswith(f"{kind}[")]
+        est[field] = values[idx]
+        stderr[field] = np.where(bar[idx], values[idx] * rel[idx], np.nan)
     stderr["inertia"] = inertia_se
     for i, n in enumerate(names):
         if not n.startswith("I["):
@@ -144,23 +150,25 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
         r, axes = n[2:-1].rsplit(":", 1)
         cols = ["xyz".index(a) for a in axes]
         inertia[rod[r], cols] = values[i]
-        inertia_se[rod[r], cols] = values[i] * rel[i] if ok[i] else np.nan
+        inertia_se[rod[r], cols] = values[i] * rel[i] if bar[i] else np.nan
     for i, n in enumerate(names):
         if not ok[i] and not n.startswith("law["):
             not_identifiable.append(f"{n}: {_why(rel[i], False)}")
     for i, a in held:
         not_identifiable.append(unseen_moment(topo.rod_names[i], a))
     if law is not None:
-        _law_estimates(law, names, values, rel, ok, not_identifiable)
-    return dataclasses.replace(start, stiffness=K, damping=c, mass=M, inertia=inertia, stderr=stderr,
+        _law_estimates(law, names, values, rel, ok, bar, not_identifiable)
+    return dataclasses.replace(start, stiffness=est["stiffness"], damping=est["damping"], mass=est["mass"],
+                               inertia=inertia, stderr=stderr,
                                effects=[] if law is None else [law.to_json()],
                                metrics={"not_identifiable": not_identifiable})
 
 
-def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, ok: np.ndarray,
+def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, ok: np.ndarray, bar: np.ndarray,
                    not_identifiable: list[str]) -> None:
-    """The contact law's fitted parameters and standard errors into ``law`` (the others held at
-    their start, without one); its not identifiable ones appended to ``not_identifiable``."""
+    """The contact law's fitted parameters and standard errors (where ``bar``) into ``law`` (the
+    others held at their start, without one); its not identifiable ones (not ``ok``) appended to
+    ``not_identifiable``."""
     law_names = [n[4:-1] for n in names if n.startswith("law[")]
     idx = [names.index(f"law[{n}]") for n in law_names]
     block = [b.name for b in law.blocks]
@@ -171,9 +179,9 @@ def _law_estimates(law, names: list[str], values: np.ndarray, rel: np.ndarray, o
         v = float(values[i])
         law.values[j] = v
         # the windows' unknowns: logits of the impedances, logarithms of the others
-        if ok[i]:
+        if bar[i]:
             law.stderr[j] = (v * (1 - v) if n.startswith("imp_") else v) * rel[i]
-        else:
+        if not ok[i]:
             not_identifiable.append(f"{law.name}.{n}: {_why(rel[i], n.startswith('imp_'))}")
 
 
@@ -205,36 +213,22 @@ def _farthest(fit: MarkerFit) -> tuple[str, float]:
     return name, steps[name]
 
 
-def _withhold_some(model: IdentifiedModel, names: list[str]) -> None:
-    """The standard errors of the parameters ``names`` (:func:`_said`'s) NaN (``null`` in the file),
-    the others kept."""
-    rods, springs = model.topology.rod_names, model.topology.spring_names
-    for n in names:
-        if "." in n and not n.startswith(("K[", "c[", "M[", "I[")):
-            law, p = n.split(".", 1)
-            for e in model.effects:
-                if e["name"] == law and p in e.get("stderr", {}):
-                    e["stderr"][p] = None
-            continue
-        kind, who = n[0], n[2:-1]
-        if kind in "Kc":
-            model.stderr["stiffness" if kind == "K" else "damping"][springs.index(who)] = np.nan
-        elif kind == "M":
-            model.stderr["mass"][rods.index(who)] = np.nan
-        else:
-            rod, axes = who.rsplit(":", 1)
-            model.stderr["inertia"][rods.index(rod), ["xyz".index(a) for a in axes]] = np.nan
+def _still_moving(fit: MarkerFit) -> dict[str, float]:
+    """``{name: |step|}`` of the estimates that the step left to the minimum of the cost's quadratic
+    model would move by more than :data:`STILL_MOVING_SE` of their standard errors: their error
+    bars describe the scatter about the minimum, not about a point this far from it, and are
+    withheld (:func:`_model`'s ``withheld``; the others are widened by half their step)."""
+    return {n: round(v, 3) for n, v in _steps_left(fit).items() if v > STILL_MOVING_SE}
 
 
 def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: float) -> None:
     """The fit's error bars withheld where they would not mean what they say: all of them where the
     fit leaves the markers more than :data:`MISFIT` times their noise ``sigma`` off (the windows do
     not follow the recording: a local minimum, or an effect the model lacks) or an unconverged fit's
-    last joint step still lowered the cost by more than :data:`STILL_MOVING`; those of the estimates
-    that the step left to the minimum of the cost's quadratic model would move by more than
-    :data:`STILL_MOVING_SE` of their standard errors (the others kept, widened by half their step;
-    their names and steps in ``metrics.withheld``); a fit that had nearly stopped keeps them, and
-    says so."""
+    last joint step still lowered the cost by more than :data:`STILL_MOVING`; else those of
+    :func:`_still_moving` (``model`` built by :func:`_model` with them withheld), named with their
+    steps in ``metrics.withheld`` and a warning; a fit that had nearly stopped keeps them, and says
+    so."""
     last = (fit.history[-2] - fit.history[-1]) / fit.history[-1] if len(fit.history) > 1 else 0.0
     name, far = _farthest(fit)
     withheld = None
@@ -261,14 +255,12 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
         model.metrics["stderr"] = f"withheld: {withheld[0]}"
         model.metrics.setdefault("warnings", []).append(withheld[1])
         return
-    # the Gauss-Newton error bar describes the scatter about the minimum, not about a point this far
-    # from it (widening by half the step stands for an estimate that crept to a stop near it: at 30
+    # widening by half the step stands for an estimate that crept to a stop near its minimum: at 30
     # Hz / 1 cm, 64 windows, the step left was 0.4-0.7 se for K and 1.2 for the law's kappa; at 128
     # windows 5.4 for the law's beta and 2.1-2.4 for three moments, at most 1.3 for every K, c and M,
-    # whose widened bars covered the truth)
-    moving = {n: round(v, 3) for n, v in _steps_left(fit).items() if v > STILL_MOVING_SE}
+    # whose widened bars covered the truth
+    moving = _still_moving(fit)
     if moving:
-        _withhold_some(model, list(moving))
         model.metrics["withheld"] = moving
         said = ", ".join(f"{n} by {v:.3g}" for n, v in sorted(moving.items(), key=lambda kv: -kv[1]))
         model.metrics.setdefault("warnings", []).append(
@@ -313,7 +305,7 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
                       max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
                       contact=law, law_free=() if law is None else tuple(b.name for b in law.blocks),
                       substeps=substeps, progress=progress, checkpoint=checkpoint)
-    model = _model(start, fit, law, ms.unobservable)
+    model = _model(start, fit, law, ms.unobservable, withheld=_still_moving(fit))
     converged = fit.converged
     model.metrics["output_error"] = {
         "windows": fit.windows, "windows_available": fit.available, "frames_per_window": config.frames,

@@ -23,7 +23,6 @@ the identified twin where ``--gap`` reports are given.
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import os
 import sys
@@ -37,6 +36,7 @@ import tensegrity_gym  # noqa: F401  (registers the env)
 from identified.state import RodState
 from tensegrity_gym.backends.mujoco_backend import MujocoBackend
 from tensegrity_gym.gap import against_line, policy_act, run_episodes, transfer_ratios
+from tensegrity_gym.sweep import policies_in
 from tensegrity_gym.training import ENV_ID, load_policy, plant_mjcf
 
 
@@ -90,15 +90,6 @@ def block(policy_file: str, seeds: list[int], nudge: float, identified: str | No
             "plant_per_episode_m": p["progress_per_episode_m"], "nudged_per_episode_m": q["progress_per_episode_m"]}
 
 
-def _policies(paths: list[str]) -> list[str]:
-    out: list[str] = []
-    for p in paths:
-        out += sorted(glob.glob(os.path.join(p, "seed_*", "policy.zip"))) if os.path.isdir(p) else [p]
-    if not out:
-        sys.exit(f"bench_exact_twin: no policy under {paths}")
-    return out
-
-
 def _gap_blocks(files: list[str]) -> list[tuple[int, int]]:
     """(seeds at >= 0.9, seeds) of each ``tensegrity gap --json`` report over several policies."""
     res = []
@@ -122,7 +113,10 @@ def main() -> None:
     ap.add_argument("--gap", nargs="*", default=[], help="gap --json reports of the same policies, for the side-by-side count")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
-    pols = _policies(a.policies)
+    try:
+        pols = policies_in(a.policies)
+    except ValueError as e:
+        sys.exit(f"bench_exact_twin: {e}")
     rows = []
     t0 = time.perf_counter()
     for b in range(a.blocks):
@@ -132,7 +126,7 @@ def main() -> None:
             r["block"] = b
             rows.append(r)
             print(f"block {b} {os.path.basename(os.path.dirname(f)) or f}: plant {r['plant_m']:.3f} m, "
-                  f"nudged {r['nudged_m']:.3f} m, ratio {r['ratio']:.3f} ± {r['stderr']:.3f} "
+                  f"nudged {r['nudged_m']:.3f} m, ratio {r['ratio']:.3f} ± {r['stderr'] or float('nan'):.3f} "
                   f"({r['against_0.9']}), COM apart at the end: median {np.median(r['com_apart_at_end_m']):.3f} m",
                   flush=True)
     ratios = np.array([r["ratio"] for r in rows], dtype=float)
@@ -144,7 +138,7 @@ def main() -> None:
         "ratio_mean": float(ratios.mean()), "ratio_sd": float(ratios.std(ddof=1)) if len(ratios) > 1 else None,
         "seeds_under_0.9": int((ratios < 0.9).sum()), "seeds": len(ratios),
         "blocks_every_seed_at_0.9": int(sum(passed)),
-        "stderr_median": float(np.median([r["stderr"] for r in rows])),
+        "stderr_median": float(np.median([np.nan if r["stderr"] is None else r["stderr"] for r in rows])),
         "com_apart_at_end_median_m": float(np.median(apart)),
         "com_apart_at_end_under_1cm": int((apart < 0.01).sum()), "episodes_in_all": int(apart.size),
     }

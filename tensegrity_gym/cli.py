@@ -144,6 +144,13 @@ def cmd_summary(args: argparse.Namespace) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> None:
+    from identified.threads import torch_threads
+
+    with torch_threads(args.threads):
+        _fit(args)
+
+
+def _fit(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
     from identified.fit.identify import ScaleSpec
     from identified.fit.pipeline import fit_model, parse_effects
@@ -730,6 +737,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(clean) data: the model cannot describe the plant")
     f.add_argument("--dt", type=finite_float(0.0, 1.0, "s", True), default=0.001, metavar="SECONDS",
                    help="for a recording: the step of the identified engine (default 0.001 s)")
+    f.add_argument("--threads", type=count(1), default=None, metavar="N",
+                   help="torch threads for the fit (default: torch's own, one per core); fewer beside other jobs, "
+                   "whose cores torch's spinning threads would fight for")
     f.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     f.set_defaults(func=cmd_fit)
 

@@ -177,6 +177,33 @@ def test_fit_effects_bad_names_are_refused_before_anything_runs(tmp_path, monkey
         assert not (tmp_path / "F.json").exists()
 
 
+def test_fit_threads_runs_the_fit_on_that_many_and_gives_the_callers_back(files, tmp_path, monkeypatch, capsys):
+    import torch
+
+    from identified.fit import pipeline
+
+    seen = []
+    real = pipeline.fit_model
+
+    def spy(*a, **k):
+        seen.append(torch.get_num_threads())
+        return real(*a, **k)
+
+    monkeypatch.setattr(pipeline, "fit_model", spy)
+    monkeypatch.chdir(tmp_path)
+    before = torch.get_num_threads()
+    want = 1 if before != 1 else 2
+    assert main(["fit", str(files["data"]), "--model", str(files["ico"]), "--out", "F.json", "--quiet",
+                 "--threads", str(want)]) == 0
+    assert main(["fit", str(files["data"]), "--model", str(files["ico"]), "--out", "G.json", "--quiet"]) == 0
+    assert seen == [want, before] and torch.get_num_threads() == before
+    capsys.readouterr()
+    assert main(["fit", str(files["data"]), "--model", str(files["ico"]), "--out", "H.json", "--threads", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tensegrity: error: ") and "--threads" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "H.json").exists()
+
+
 # ---------------------------------------------------------------------- --help
 @pytest.mark.parametrize("command", [None, *SUBCOMMANDS])
 def test_help_exits_0_and_lists_options(command, capsys):

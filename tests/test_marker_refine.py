@@ -213,7 +213,8 @@ def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, caps
     resumed = run(2, ck)
     assert 1000.0 < resumed.seconds < 1000.0 + time.perf_counter() - t
     steps = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("marker fit:")]
-    assert steps[0].startswith(f"marker fit: resumed from '{ck}' after 2 steps") and len(steps) == 2  # the last only
+    assert steps[0].startswith(f"marker fit: resumed from '{ck}' after 1 state + 1 joint steps") and len(steps) == 2
+    assert steps[1].startswith("marker fit: joint step 2, ")  # the last only, numbered among the joint steps
     assert resumed.history == whole.history
     np.testing.assert_array_equal(resumed.cov.values, whole.cov.values)
     np.testing.assert_array_equal(resumed.cov.cov, whole.cov.cov)

@@ -151,7 +151,8 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
         r = residuals(theta, dx)
         cost = float(r.square().sum())
         if progress:
-            print(f"marker fit: resumed from '{checkpoint}' after {first} steps, cost per residual {history[-1]:.4f}",
+            done = f"{min(first, state_iters)} state + {max(first - state_iters, 0)} joint steps"
+            print(f"marker fit: resumed from '{checkpoint}' after {done}, cost per residual {history[-1]:.4f}",
                   flush=True)
     for it in range(first, state_iters + joint_iters):
         if converged:
@@ -188,7 +189,8 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 mu *= 4
         history.append(cost / n)
         if progress:
-            print(f"marker fit: {'joint' if joint else 'states'} step {it + 1}, cost per residual {history[-1]:.4f} "
+            step = f"joint step {it + 1 - state_iters}" if joint else f"states step {it + 1}"
+            print(f"marker fit: {step}, cost per residual {history[-1]:.4f} "
                   f"(damping {mu:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)
         small = moved and history[-2] - history[-1] < 1e-6 * history[-1]
         if joint and jac is not prob and (not moved or (small and mu > STALL_DAMPING)):
@@ -196,7 +198,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             # 1 cm, 16 windows at 5 ms, stalled at 1.40 sigma^2 with the damping at 1e4): exact from here
             jac, mu = prob, 1e-3
             if progress:
-                print(f"marker fit: the {substeps}-step Jacobians stalled; the exact step's from step {it + 2}",
+                print(f"marker fit: the {substeps}-step Jacobians stalled; the exact step's from joint step {it + 2 - state_iters}",
                       flush=True)
         elif joint and (small or not moved):
             converged = True  # no step lowers the cost any more, or by a millionth

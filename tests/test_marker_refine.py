@@ -243,22 +243,31 @@ def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot,
     assert "not estimable" in load_model(path).summary().splitlines()[truth.topology.n_rods + 3]
 
 
-@pytest.mark.parametrize(("history", "converged", "off", "kept", "warned"), [
-    ([2.0, 1.0], True, 1.1, True, False),  # converged: its error bars
-    ([1.0, 0.995], False, 1.1, True, True),  # stopped while falling 0.5 % a step: kept, said
-    ([1.0, 0.98], False, 1.1, False, True),  # falling 2 % a step: withheld, said
-    ([2.0, 1.0], True, 1.3, False, True),  # converged, but the markers 1.3 times their noise off: withheld
+@pytest.mark.parametrize(("history", "converged", "off", "kept", "warned", "dof", "stated"), [
+    ([2.0, 1.0], True, 1.1, True, False, 0, True),  # converged: its error bars
+    ([1.0, 0.995], False, 1.1, True, True, 0, True),  # stopped while falling 0.5 % a step: kept, said
+    ([1.0, 0.98], False, 1.1, False, True, 0, True),  # falling 2 % a step: withheld, said
+    ([2.0, 1.0], True, 1.3, False, True, 0, True),  # converged, but the markers 1.3 times their noise off: withheld
+    # the stated noise's variance times 1.049 over 20000 degrees of freedom: 4.9 chi-square standard
+    # deviations (sqrt(2 / dof) = 0.01) above it, kept; 1.051: 5.1, withheld
+    ([2.0, 1.0], True, 1.049 ** 0.5, True, False, 20000, True),
+    ([2.0, 1.0], True, 1.051 ** 0.5, False, True, 20000, True),
+    ([2.0, 1.0], True, 1.051 ** 0.5, True, False, 20000, False),  # the noise not stated (measured): kept
+    ([2.0, 1.0], True, 1.043, False, True, 84000, True),  # the all-window 30 Hz fit's: 18 standard deviations
 ])
-def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, kept, warned):
+def test_error_bars_only_where_the_fit_stopped_on_the_markers(robot, history, converged, off, kept, warned, dof,
+                                                              stated):
     from identified.fit.marker_model import _judge_fit, _still_moving
 
     _, _, _, truth, _ = robot
     law = PyramidContact.for_system(truth.topology, robot[0])
     law.values = np.array(list(START.values()), dtype=float)
     fit = dataclasses.replace(_fake_fit(truth, {}), history=history, converged=converged, residual_rms=off * 0.01,
-                              to_minimum=np.zeros(len(_fake_fit(truth, {}).cov.names)))
+                              to_minimum=np.zeros(len(_fake_fit(truth, {}).cov.names)), dof=dof)
     m = _model(truth, fit, law, [], withheld=_still_moving(fit))
-    _judge_fit(m, fit, 5, 0.01)
+    _judge_fit(m, fit, 5, 0.01, stated=stated)
+    if dof and not kept:
+        assert "stated noise" in m.metrics["warnings"][-1] and f"over {dof} degrees of freedom" in m.metrics["warnings"][-1]
     assert np.isfinite(m.stderr["stiffness"]).all() == kept and np.isnan(m.stderr["mass"]).all() != kept
     assert (m.effects[0]["stderr"]["beta"] is not None) == kept
     assert bool(m.metrics.get("warnings")) == warned and "withheld" not in m.metrics
@@ -398,7 +407,7 @@ def test_a_stalled_coarse_jacobian_hands_over_to_the_exact_one(floorless, monkey
     monkeypatch.setattr(output_error._Problem, "at_step", lambda self, k: self if k == 1 else Wrong(real(self, k)))
     capsys.readouterr()
     switched = run(2, 4)
-    assert "the 2-step Jacobians stalled; the exact step's from step 3" in capsys.readouterr().out
+    assert "the 2-step Jacobians stalled; the exact step's from joint step 2" in capsys.readouterr().out
     h = switched.history  # the wrong Jacobians' joint step takes nothing; the exact ones bring it down by orders
     assert h[2] == h[1] and h[-1] < 1e-3 * h[1]
     assert np.abs(switched.group("K")[0] / truth.stiffness - 1).max() < 0.01  # from 3 % off; stalled: 3 %

@@ -55,7 +55,8 @@ class MarkerFit:
     ``converged`` (a joint step lowered the cost by less than a millionth before the iterations ran out),
     ``to_minimum`` (P,): the Gauss-Newton step left from the estimate to the minimum of the cost's
     quadratic model there, in each parameter's standard errors (NaN where it has none): an estimate
-    whose error bar means what it says is within a fraction of one of the minimum."""
+    whose error bar means what it says is within a fraction of one of the minimum; ``dof`` the
+    residual's degrees of freedom (marker coordinates seen less the unknowns fitted; 0: not known)."""
 
     cov: CramerRao
     windows: int
@@ -65,6 +66,7 @@ class MarkerFit:
     seconds: float
     converged: bool = False
     to_minimum: np.ndarray | None = None
+    dof: float = 0.0
 
     @property
     def rel_se(self) -> np.ndarray:
@@ -223,7 +225,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     with np.errstate(divide="ignore", invalid="ignore"):
         to_minimum = np.where(cov.finite, step / cov.rel_se, np.nan)
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0,
-                     converged, to_minimum)
+                     converged, to_minimum, dof)
 
 
 #: Levenberg-Marquardt's damping (relative to the normal matrix's diagonal) above which a joint step

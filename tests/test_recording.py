@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -149,7 +150,10 @@ def test_cli_collect_record_and_bad_input(tmp_path):
             "--rate", "50", "--noise-pos", "0.001", "--dropout", "0.1", "--out", str(out), "--quiet")
     assert r.returncode == 0, r.stderr
     rec = read_recording(out)
-    assert rec.n_frames == 30 and rec.noise_pos == 0.001
+    assert rec.n_frames == 30 and rec.noise_pos == 0.001 and rec.stated_noise == 0.001
+    # a noise stated clean (0) or not stated is none the fit can weigh its residual against
+    assert dataclasses.replace(rec, noise_pos=0.0).stated_noise is None
+    assert dataclasses.replace(rec, noise_pos=None).stated_noise is None
     # noise of the asked size: markers of one rod keep their distance within ~sqrt(2) sigma
     d = np.linalg.norm(rec.markers[:, 0] - rec.markers[:, 1], axis=-1)
     assert 0.0005 < np.nanstd(d) < 0.003

@@ -261,8 +261,7 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     "do not follow the recording (a local minimum from this start, or an effect the model lacks), so "
                     "its values have no error bars; try more --windows, a start nearer the robot, or `tensegrity "
                     "diagnose`"))
-    elif stated and _excess_sd(fit, sigma) > MISFIT_SD:
-        excess = _excess_sd(fit, sigma)
+    elif stated and (excess := _excess_sd(fit, sigma)) > MISFIT_SD:
         withheld = ("the marker fit leaves the markers off by more than their stated noise allows",
                     (f"the marker fit leaves the markers {1e3 * fit.residual_rms:.3g} mm off against their stated noise "
                      f"of {1e3 * sigma:.3g} mm: a variance {(fit.residual_rms / sigma) ** 2:.3g} times the noise's over "
@@ -354,5 +353,5 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
                                f"{fit.windows} of {fit.available} windows")
     if law_notes:
         model.metrics.setdefault("warnings", []).extend(law_notes)
-    _judge_fit(model, fit, config.iterations, sigma, stated=bool(rec.noise_pos and rec.noise_pos > 0))
+    _judge_fit(model, fit, config.iterations, sigma, stated=rec.stated_noise is not None)
     return model

@@ -180,8 +180,8 @@ def marker_noise(rec: Recording, spans: list, geos: list[RodGeometry], col: dict
     """The markers' noise std (m): the recording's own statement (``# noise_pos=``), else the RMS of
     what the splines leave of the visible samples (the fit's errors in variables take only the
     shape of the noise from it: each equation's noise level is fitted)."""
-    if rec.noise_pos is not None and rec.noise_pos > 0:
-        return float(rec.noise_pos)
+    if rec.stated_noise is not None:
+        return rec.stated_noise
     # stated clean (0) or not stated: what the splines leave, which at a low rate is the error of
     # smoothing between samples (measured on the robot at 10 Hz, clean markers, 4 takes of 5 s:
     # without replicas worst K 12.3 % with RMS z 21; with them 1.0 % and 0.3)

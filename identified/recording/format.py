@@ -88,6 +88,12 @@ class Recording:
         return int(self.episode.max()) + 1 if self.n_frames else 0
 
     @property
+    def stated_noise(self) -> float | None:
+        """The markers' noise std (m) the recording states (``noise_pos`` above 0), else ``None``
+        (not stated, or stated clean: the fit then measures it)."""
+        return float(self.noise_pos) if self.noise_pos is not None and self.noise_pos > 0 else None
+
+    @property
     def unlabelled(self) -> bool:
         """True when the marker columns carry no site names (``marker<N>``)."""
         return bool(self.marker_names) and all(UNLABELLED.match(n) for n in self.marker_names)

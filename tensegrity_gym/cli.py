@@ -204,6 +204,7 @@ def _marker_options(args: argparse.Namespace) -> list[str]:
     """The options of ``fit R.csv --refine`` (the marker fit) given on this command line."""
     given = {"--start": args.start is not None, "--windows": args.windows != 64, "--window-frames": args.window_frames != 10,
              "--window-step": args.window_step != 0.005, "--iterations": args.iterations != 8,
+             "--state-iterations": args.state_iterations != 3,
              "--checkpoint": args.checkpoint is not None}
     return [name for name, g in given.items() if g]
 
@@ -276,7 +277,8 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
         print("tensegrity: note: no --total-mass: the marker fit keeps the start's total mass "
               f"({float(start.mass.sum()):.6g} kg), which the markers cannot check", file=sys.stderr)
     config = MarkerRefineConfig(windows=None if args.windows == 0 else args.windows, frames=args.window_frames,
-                                step=args.window_step, iterations=args.iterations)
+                                step=args.window_step, state_iterations=args.state_iterations,
+                                iterations=args.iterations)
     return refine_recording(rec, args.model, start, total_mass=args.total_mass, config=config,
                             progress=not args.quiet, checkpoint=args.checkpoint)
 
@@ -720,6 +722,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--window-step", type=finite_float(0.0, 0.1, "s", True), default=0.005, metavar="SECONDS",
                    help="recording with --refine: the windows' Jacobians stepped at up to this (default 0.005 s; "
                    "the cost always at the model's own step)")
+    f.add_argument("--state-iterations", type=count(0), default=3, metavar="N",
+                   help="recording with --refine: steps in the windows' states alone before the joint ones "
+                   "(default 3)")
     f.add_argument("--iterations", type=count(1), default=8, metavar="N",
                    help="recording with --refine: joint steps at most (default 8)")
     f.add_argument("--checkpoint", default=None, metavar="FILE",

@@ -24,6 +24,7 @@ from identified.fit.marker_model import (
     _model,
     refine_recording,
 )
+from identified.model import save_model
 from identified.recording import RecordingError
 from identified.recording.format import save_recording
 from tensegrity_gym.cli import main
@@ -178,11 +179,36 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert main(["fit", npz, "--model", path, "--out", out, "--windows", "3"]) != 0
     err = capsys.readouterr().err
     assert "--windows is for a recording's marker fit" in err and len(err.strip().splitlines()) == 1
+    assert main(["fit", npz, "--model", path, "--out", out, "--state-iterations", "5"]) != 0
+    assert "--state-iterations is for a recording's marker fit" in capsys.readouterr().err
+    assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--state-iterations", "-1"]) == 2
+    assert "--state-iterations" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--checkpoint", str(tmp_path / "c.pt")]) != 0
     assert "--checkpoint is for the marker fit: add --refine" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--checkpoint", csv]) != 0
     assert "--checkpoint" in capsys.readouterr().err and os.path.getsize(csv) > 0
     assert not os.path.exists(out)
+
+
+def test_state_iterations_reach_the_marker_fit(robot, tmp_path, monkeypatch, capsys):
+    """``--state-iterations N``: the marker fit's steps in the windows' states alone (3 unless given)."""
+    import identified.fit.marker_model as mm
+
+    path, _, csv, truth, _ = robot
+    start = str(tmp_path / "start.json")
+    save_model(start, truth)
+    seen = []
+
+    def spy(rec, mjcf, start, total_mass=None, config=None, progress=False, checkpoint=None):
+        seen.append(config.state_iterations)
+        raise RecordingError("spied")
+
+    monkeypatch.setattr(mm, "refine_recording", spy)
+    for extra in (["--state-iterations", "7"], ["--state-iterations", "0"], []):
+        assert main(["fit", csv, "--model", path, "--out", str(tmp_path / "m.json"), "--refine", "--start", start,
+                     "--quiet", *extra]) != 0
+    assert seen == [7, 0, 3]
+    assert capsys.readouterr().err.count("spied") == 3
 
 
 def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, capsys):

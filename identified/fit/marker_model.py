@@ -243,8 +243,10 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
     """The fit's error bars withheld where they would not mean what they say: all of them where the
     fit leaves the markers more than :data:`MISFIT` times their noise ``sigma`` off, or (``stated``:
     the recording states that noise) their variance more than :data:`MISFIT_SD` standard deviations
-    of a chi-square above it (the windows do
-    not follow the recording: a local minimum, or an effect the model lacks) or an unconverged fit's
+    of a chi-square above it (the windows do not follow the recording: their states short of their
+    minimum -- measured at 30 Hz / 1 cm, at the truth from the plant's own states, eight state-only
+    steps left a variance 1.075 times the noise's --, a local minimum, or an effect the model lacks)
+    or an unconverged fit's
     last joint step still lowered the cost by more than :data:`STILL_MOVING`; else those of
     :func:`_still_moving` (``model`` built by :func:`_model` with them withheld), named with their
     steps in ``metrics.withheld`` and a warning; a fit that had nearly stopped keeps them, and says
@@ -266,9 +268,10 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                     (f"the marker fit leaves the markers {1e3 * fit.residual_rms:.3g} mm off against their stated noise "
                      f"of {1e3 * sigma:.3g} mm: a variance {(fit.residual_rms / sigma) ** 2:.3g} times the noise's over "
                      f"{fit.dof:.0f} degrees of freedom, {excess:.1f} standard deviations above it (more than "
-                     f"{MISFIT_SD:g}): the model does not follow the recording as its noise allows (an effect it lacks, "
-                     "or a local minimum), a bias its error bars would not cover, so its values have none; try "
-                     "`tensegrity diagnose`, or check the recording's stated noise"))
+                     f"{MISFIT_SD:g}): the model does not follow the recording as its noise allows (the windows' "
+                     "states short of their minimum, an effect it lacks, or a local minimum), a bias its error bars "
+                     "would not cover, so its values have none; try more --state-iterations, `tensegrity "
+                     "diagnose`, or check the recording's stated noise"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling

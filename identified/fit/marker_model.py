@@ -270,8 +270,8 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                      f"{fit.dof:.0f} degrees of freedom, {excess:.1f} standard deviations above it (more than "
                      f"{MISFIT_SD:g}): the model does not follow the recording as its noise allows (the windows' "
                      "states short of their minimum, an effect it lacks, or a local minimum), a bias its error bars "
-                     "would not cover, so its values have none; try more --state-iterations, `tensegrity "
-                     "diagnose`, or check the recording's stated noise"))
+                     "would not cover, so its values have none; try `tensegrity diagnose`, or check the "
+                     "recording's stated noise"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling

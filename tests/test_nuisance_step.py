@@ -1,0 +1,67 @@
+"""The windows' state-only Levenberg-Marquardt step: every window is its own problem once the
+parameters are held (:func:`identified.fit.marker_bound.nuisance_step`)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from identified.fit.marker_bound import nuisance_step
+
+
+class _Toy:
+    """W windows of one rod with one nuisance each, ``r_w(x) = a_w tanh(b_w x) - y_w``: a window with
+    a steep ``b`` and a far target overshoots on a plain Gauss-Newton step (the tanh saturates)."""
+
+    def __init__(self, a: list[float], b: list[float], y: list[float]) -> None:
+        self.a, self.b, self.y = (torch.tensor(v, dtype=torch.float64) for v in (a, b, y))
+
+    def residuals(self, theta: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+        x = dx[:, 0, 0]
+        return (self.a * torch.tanh(self.b * x) - self.y)[:, None]
+
+    def jacobians(self, theta: torch.Tensor, dx: torch.Tensor, params: bool = True):
+        x = dx[:, 0, 0]
+        J = self.a * self.b / torch.cosh(self.b * x) ** 2
+        return self.residuals(theta, dx), J[:, None, None], None
+
+
+def _step(toy: _Toy, x: list[float], mu: float | torch.Tensor = 1e-3):
+    dx = torch.tensor(x, dtype=torch.float64).reshape(-1, 1, 1)
+    acts = torch.ones(dx.shape[0], 1, dtype=torch.float64)
+    cost = float(toy.residuals(None, dx).square().sum())
+    return nuisance_step(toy, torch.zeros(1), dx, acts, cost, mu)
+
+
+def test_each_window_steps_as_it_would_alone() -> None:
+    # window 0 overshoots (from x = 2 in tanh's tail the Gauss-Newton step lands at x = -11.6: its cost
+    # 0.929 -> 1.000); window 1 is nearly linear and far from its target (cost 4 -> 7e-4), so the two
+    # windows' total falls on that same trial step
+    toy = _Toy(a=[1.0, 10.0], b=[1.0, 0.01], y=[0.0, 2.0])
+    dx, r, cost, mu, moved = _step(toy, [2.0, 0.0])
+    alone = [_step(_Toy([a], [b], [y]), [x]) for a, b, y, x in ((1.0, 1.0, 0.0, 2.0), (10.0, 0.01, 2.0, 0.0))]
+    for w, (dx1, r1, c1, mu1, moved1) in enumerate(alone):
+        assert moved1
+        assert float(dx[w, 0, 0]) == float(dx1[0, 0, 0])
+        assert float(mu[w]) == float(mu1[0])
+        assert float(r[w, 0]) == float(r1[0, 0])
+    # the overshooting window took its step at a damping raised from 1e-3 (4^k), the linear one at once
+    assert float(mu[1]) == 1e-3 / 3
+    k = round(math.log(float(mu[0]) * 3 / 1e-3, 4))
+    assert k >= 1 and math.isclose(float(mu[0]), 1e-3 * 4 ** k / 3)
+    # every window's own cost fell, and the cost returned is theirs
+    before = toy.residuals(None, torch.tensor([2.0, 0.0], dtype=torch.float64).reshape(2, 1, 1)).square()[:, 0]
+    assert bool((r[:, 0].square() < before).all())
+    assert cost == float(r.square().sum())
+    assert moved
+
+
+def test_a_window_no_step_helps_keeps_its_state() -> None:
+    # window 0 at its minimum (tanh(0) = 0 = y): no step lowers its cost, and it stays, its damping
+    # raised 4^8 times; window 1 steps
+    toy = _Toy(a=[1.0, 1.0], b=[1.0, 1.0], y=[0.0, 0.5])
+    dx, r, _, mu, moved = _step(toy, [0.0, 0.0], mu=torch.tensor([1e-3, 1e-3], dtype=torch.float64))
+    assert float(dx[0, 0, 0]) == 0.0
+    assert math.isclose(float(mu[0]), 1e-3 * 4 ** 8)
+    assert float(dx[1, 0, 0]) > 0.0 and float(r[1, 0].abs()) < 0.5 and moved

@@ -90,7 +90,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
                 wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
-                progress: bool = False, checkpoint: str | None = None) -> MarkerFit:
+                progress: bool = False, checkpoint: str | None = None, settle_iters: int = 0) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -140,13 +140,15 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     cost = float(r.square().sum())
     history = [cost / n]
     mu = 1e-3
+    mu_x = torch.full((W,), 1e-3, dtype=torch.float64)  # each window's own damping in its state steps
     converged = False
     first = 0
-    key = _fit_key((theta, dx, win.x0, win.obs, win.seen, win.rest), sigma, substeps, state_iters)
+    key = _fit_key((theta, dx, win.x0, win.obs, win.seen, win.rest), sigma, substeps, state_iters, settle_iters)
     saved = _resume(checkpoint, key)
     if saved is not None:
         theta, dx, mu, history, first, converged = (saved["theta"], saved["dx"], saved["mu"], saved["history"],
                                                      saved["steps"], saved["converged"])
+        mu_x = saved.get("mu_x", mu_x)
         t0 -= float(saved.get("seconds", 0.0))  # the fit's seconds count those before the interruption
         if saved.get("exact"):
             jac = prob
@@ -161,7 +163,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             break
         joint = it >= state_iters
         if not joint:  # the nuisances alone, the parameters held (the bound's settle)
-            dx, r, cost, mu, moved = nuisance_step(prob, theta, dx, acts, cost, mu, residuals, jac=jac)
+            dx, r, cost, mu_x, moved = nuisance_step(prob, theta, dx, acts, cost, mu_x, residuals, jac=jac)
         else:
             _, Jx, Jp = jac.jacobians(theta, dx)
             Jx = Jx * acts.unsqueeze(1)
@@ -189,11 +191,14 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                     mu = max(mu / 3, 1e-7)
                     break
                 mu *= 4
+            for _ in range(settle_iters if moved else 0):  # the states re-fitted at the new parameters
+                dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, cost, mu_x, residuals, jac=jac)
         history.append(cost / n)
         if progress:
             step = f"joint step {it + 1 - state_iters}" if joint else f"states step {it + 1}"
+            damping = mu if joint else float(mu_x.median())
             print(f"marker fit: {step}, cost per residual {history[-1]:.4f} "
-                  f"(damping {mu:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)
+                  f"(damping {damping:.1e}), {time.perf_counter() - t0:.0f} s", flush=True)
         small = moved and history[-2] - history[-1] < 1e-6 * history[-1]
         if joint and jac is not prob and (not moved or (small and mu > STALL_DAMPING)):
             # the coarse step's Jacobian no longer finds a way down the cost at data.dt (measured: 30 Hz /
@@ -205,7 +210,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
         elif joint and (small or not moved):
             converged = True  # no step lowers the cost any more, or by a millionth
         if checkpoint is not None:
-            _save(checkpoint, {"key": key, "theta": theta, "dx": dx, "mu": mu, "history": history, "steps": it + 1,
+            _save(checkpoint, {"key": key, "theta": theta, "dx": dx, "mu": mu, "mu_x": mu_x, "history": history, "steps": it + 1,
                                "converged": converged, "exact": jac is prob, "seconds": time.perf_counter() - t0})
     _, Jx, Jp = jac.jacobians(theta, dx)
     Jx, Jp = (Jx * acts.unsqueeze(1)).numpy(), Jp.numpy()
@@ -233,7 +238,8 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
 STALL_DAMPING = 10.0
 
 
-def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, state_iters: int) -> str:
+def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, state_iters: int,
+             settle_iters: int = 0) -> str:
     """What a checkpoint must match to be resumed: the start (parameters, the windows' nuisances,
     their reconstructed initial states), the windows' markers and rest lengths, the markers' noise,
     the Jacobians' step and the state-only steps (a different number would change which steps were
@@ -243,6 +249,8 @@ def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, sta
         h.update(str(tuple(t.shape)).encode())
         h.update(t.detach().numpy().tobytes())
     h.update(f"{float(sigma)!r} {int(substeps)} {int(state_iters)}".encode())
+    if settle_iters:
+        h.update(f" settle {int(settle_iters)}".encode())
     return h.hexdigest()
 
 

@@ -124,18 +124,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     msl = prob.mass_slice
     U = torch.as_tensor(sla.null_space(prob.total_mass_row(start.mass)[None]))  # steps that keep the total mass
 
-    def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        """The windows' residuals; a trial step whose windows break the contact law's solve (a
-        singular system: measured at 10 Hz, a joint step from states 40 mm off) costs infinity."""
-        with torch.no_grad():
-            try:
-                return prob.residuals(th, d).reshape(W, -1)
-            except torch.linalg.LinAlgError:
-                return torch.full((W, r_shape[1]), np.inf, dtype=torch.float64)
-
-    with torch.no_grad():
-        r = prob.residuals(theta, dx).reshape(W, -1)
-    r_shape = r.shape
+    r = prob.window_residuals(theta, dx)
     n = r.numel()
     cost = float(r.square().sum())
     history = [cost / n]
@@ -152,7 +141,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
         t0 -= float(saved.get("seconds", 0.0))  # the fit's seconds count those before the interruption
         if saved.get("exact"):
             jac = prob
-        r = residuals(theta, dx)
+        r = prob.window_residuals(theta, dx)
         cost = float(r.square().sum())
         if progress:
             done = f"{min(first, state_iters)} state + {max(first - state_iters, 0)} joint steps"
@@ -163,7 +152,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             break
         joint = it >= state_iters
         if not joint:  # the nuisances alone, the parameters held (the bound's settle)
-            dx, r, cost, mu_x, moved = nuisance_step(prob, theta, dx, acts, cost, mu_x, residuals, jac=jac)
+            dx, r, cost, mu_x, moved = nuisance_step(prob, theta, dx, acts, mu_x, jac=jac)
         else:
             _, Jx, Jp = jac.jacobians(theta, dx)
             Jx = Jx * acts.unsqueeze(1)
@@ -184,7 +173,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 dphi = -torch.linalg.solve(sc.S + mu * torch.diag(sc.S.diagonal()) + ridge, gs)
                 th_new = theta + (U @ dphi).squeeze(-1)
                 dx_new = dx + (sc.back_substitute(Aig, dphi).squeeze(-1) * acts).reshape(W, R, k)
-                r_new = residuals(th_new, dx_new)
+                r_new = prob.window_residuals(th_new, dx_new)  # a broken contact solve: infinity
                 c_new = float(r_new.square().sum())
                 if np.isfinite(c_new) and c_new < cost:
                     theta, dx, r, cost, moved = th_new, dx_new, r_new, c_new, True
@@ -192,7 +181,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                     break
                 mu *= 4
             for _ in range(settle_iters if moved else 0):  # the states re-fitted at the new parameters
-                dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, cost, mu_x, residuals, jac=jac)
+                dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, mu_x, jac=jac)
         history.append(cost / n)
         if progress:
             step = f"joint step {it + 1 - state_iters}" if joint else f"states step {it + 1}"

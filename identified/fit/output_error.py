@@ -429,6 +429,22 @@ class _Problem:
         seen = win.seen if self.order > 0 else win.seen * win.free[:, win.site_rod].unsqueeze(1)
         return (pred - win.obs) * seen.unsqueeze(-1) / self.sigma
 
+    def window_residuals(self, theta: torch.Tensor, dx: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """(W', m) the residuals of the windows ``keep`` (indices; ``None``: all) at their nuisances
+        ``dx`` (W', R, n_x), without derivatives: a window's residuals depend on its own nuisances
+        and the parameters only.  A window set whose contact law's solve breaks (a singular system:
+        measured at 10 Hz, a trial step from states 40 mm off) costs infinity."""
+        whole = keep is None or len(keep) == self.win.n_windows
+        try:
+            with torch.no_grad():
+                if whole:
+                    return self.residuals(theta, dx).reshape(dx.shape[0], -1)
+                return self.residuals(theta, dx, win=self.win.subset(keep.numpy()),
+                                      axial=self.axial[keep]).reshape(dx.shape[0], -1)
+        except torch.linalg.LinAlgError:
+            m = int(self.win.seen[0].numel()) * 3
+            return torch.full((dx.shape[0], m), np.inf, dtype=torch.float64)
+
     def jacobians(self, theta: torch.Tensor, dx: torch.Tensor, chunk: int | None = None,
                   params: bool = True) -> tuple[torch.Tensor, ...]:
         """Residuals r (W, m), their Jacobian with respect to each window's own state (W, m, 12 R)

@@ -90,7 +90,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
                 wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
-                progress: bool = False, checkpoint: str | None = None, settle_iters: int = 0) -> MarkerFit:
+                progress: bool = False, checkpoint: str | None = None) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -132,7 +132,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     mu_x = torch.full((W,), 1e-3, dtype=torch.float64)  # each window's own damping in its state steps
     converged = False
     first = 0
-    key = _fit_key((theta, dx, win.x0, win.obs, win.seen, win.rest), sigma, substeps, state_iters, settle_iters)
+    key = _fit_key((theta, dx, win.x0, win.obs, win.seen, win.rest), sigma, substeps, state_iters)
     saved = _resume(checkpoint, key)
     if saved is not None:
         theta, dx, mu, history, first, converged = (saved["theta"], saved["dx"], saved["mu"], saved["history"],
@@ -180,8 +180,6 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                     mu = max(mu / 3, 1e-7)
                     break
                 mu *= 4
-            for _ in range(settle_iters if moved else 0):  # the states re-fitted at the new parameters
-                dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, mu_x, jac=jac)
         history.append(cost / n)
         if progress:
             step = f"joint step {it + 1 - state_iters}" if joint else f"states step {it + 1}"
@@ -227,8 +225,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
 STALL_DAMPING = 10.0
 
 
-def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, state_iters: int,
-             settle_iters: int = 0) -> str:
+def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, state_iters: int) -> str:
     """What a checkpoint must match to be resumed: the start (parameters, the windows' nuisances,
     their reconstructed initial states), the windows' markers and rest lengths, the markers' noise,
     the Jacobians' step and the state-only steps (a different number would change which steps were
@@ -238,8 +235,6 @@ def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, sta
         h.update(str(tuple(t.shape)).encode())
         h.update(t.detach().numpy().tobytes())
     h.update(f"{float(sigma)!r} {int(substeps)} {int(state_iters)}".encode())
-    if settle_iters:
-        h.update(f" settle {int(settle_iters)}".encode())
     return h.hexdigest()
 
 

@@ -532,11 +532,7 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     proj = torch.eye(P, dtype=torch.float64) - u @ u.T
     near = ~win.free
 
-    def residuals(th: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            return prob.residuals(th, d).reshape(W, -1)
-
-    r = residuals(theta, dx)
+    r = prob.window_residuals(theta, dx)
     history = [float(r.square().sum())]
     cov = None
     for j in range(jacobians):
@@ -558,7 +554,7 @@ def refine_markers(model: IdentifiedModel, rec: Recording, data: Dataset, starts
             while step > 0.1:
                 th_new = theta + step * (proj @ dp).squeeze(-1)
                 dx_new = dx + step * (dxs.squeeze(-1) * free_x).reshape(W, R, k)
-                r_new = residuals(th_new, dx_new)
+                r_new = prob.window_residuals(th_new, dx_new)
                 c_new = float(r_new.square().sum())
                 if np.isfinite(c_new) and c_new < history[-1]:
                     break

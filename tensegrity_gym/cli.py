@@ -204,7 +204,7 @@ def _marker_options(args: argparse.Namespace) -> list[str]:
     """The options of ``fit R.csv --refine`` (the marker fit) given on this command line."""
     given = {"--start": args.start is not None, "--windows": args.windows != 64, "--window-frames": args.window_frames != 10,
              "--window-step": args.window_step != 0.005, "--iterations": args.iterations != 8,
-             "--state-iterations": args.state_iterations != 3,
+             "--state-iterations": args.state_iterations != 3, "--window-blocks": args.window_blocks != 1,
              "--checkpoint": args.checkpoint is not None}
     return [name for name, g in given.items() if g]
 
@@ -265,6 +265,9 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
     if args.effects != "none":
         raise CommandError(f"--effects {args.effects}: not with --refine on a recording; the marker fit models the "
                            "ground's contact law (pyramid_contact) itself")
+    if args.windows and args.window_blocks * 2 > args.windows:
+        raise CommandError(f"--window-blocks {args.window_blocks}: each block needs at least two of the --windows "
+                           f"{args.windows}")
     if args.start is not None:
         start = load_model(args.start)
     else:
@@ -278,7 +281,7 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
               f"({float(start.mass.sum()):.6g} kg), which the markers cannot check", file=sys.stderr)
     config = MarkerRefineConfig(windows=None if args.windows == 0 else args.windows, frames=args.window_frames,
                                 step=args.window_step, state_iterations=args.state_iterations,
-                                iterations=args.iterations)
+                                iterations=args.iterations, blocks=args.window_blocks)
     return refine_recording(rec, args.model, start, total_mass=args.total_mass, config=config,
                             progress=not args.quiet, checkpoint=args.checkpoint)
 
@@ -727,6 +730,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 3)")
     f.add_argument("--iterations", type=count(1), default=8, metavar="N",
                    help="recording with --refine: joint steps at most (default 8)")
+    f.add_argument("--window-blocks", type=count(1), default=1, metavar="B",
+                   help="recording with --refine: fit the windows in B interleaved blocks, each on its own (its "
+                   "checkpoint FILE.block<b>), and combine their estimates by their information, with a test that "
+                   "they agree (default 1: all windows in one fit)")
     f.add_argument("--checkpoint", default=None, metavar="FILE",
                    help="recording with --refine: save the fit here after every step and resume from it when it "
                    "holds this fit (an interrupted fit goes on where it stopped)")

@@ -181,6 +181,13 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert "--windows is for a recording's marker fit" in err and len(err.strip().splitlines()) == 1
     assert main(["fit", npz, "--model", path, "--out", out, "--state-iterations", "5"]) != 0
     assert "--state-iterations is for a recording's marker fit" in capsys.readouterr().err
+    assert main(["fit", npz, "--model", path, "--out", out, "--window-blocks", "2"]) != 0
+    assert "--window-blocks is for a recording's marker fit" in capsys.readouterr().err
+    assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--windows", "6", "--window-blocks", "4"]) != 0
+    err = capsys.readouterr().err
+    assert "--window-blocks 4: each block needs at least two of the --windows 6" in err and len(err.strip().splitlines()) == 1
+    assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--window-blocks", "0"]) == 2
+    assert "--window-blocks" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--state-iterations", "-1"]) == 2
     assert "--state-iterations" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--checkpoint", str(tmp_path / "c.pt")]) != 0

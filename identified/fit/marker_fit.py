@@ -29,7 +29,7 @@ import hashlib
 import os
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
@@ -43,7 +43,19 @@ from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording
 
-__all__ = ["MarkerFit", "fit_markers"]
+__all__ = ["Agreement", "MarkerFit", "fit_markers"]
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How well the estimates of blocks of windows fitted on their own agree
+    (:func:`identified.fit.marker_blocks.combine`): ``chi2`` of their scatter about the combined
+    estimate in their own information, over ``dof`` degrees of freedom, and its upper tail ``p``
+    under the noise alone (NaN where ``dof`` is 0)."""
+
+    chi2: float
+    dof: int
+    p: float
 
 
 @dataclass
@@ -56,7 +68,12 @@ class MarkerFit:
     ``to_minimum`` (P,): the Gauss-Newton step left from the estimate to the minimum of the cost's
     quadratic model there, in each parameter's standard errors (NaN where it has none): an estimate
     whose error bar means what it says is within a fraction of one of the minimum; ``dof`` the
-    residual's degrees of freedom (marker coordinates seen less the unknowns fitted; 0: not known)."""
+    residual's degrees of freedom (marker coordinates seen less the unknowns fitted; 0: not known).
+    What a combination of fits needs (:func:`identified.fit.marker_blocks.combine_fits`):
+    ``theta`` (P,) the estimate's unknowns (logarithms; logits of the contact law's impedances),
+    ``information`` (P, P) their Fisher information ``JᵀJ / s²`` (nuisances eliminated, the
+    residual's variance ``s²``), ``constraint`` (P,) the known total mass's row there; a fit of
+    blocks of windows combined also has the ``blocks``' fits and their ``agreement``."""
 
     cov: CramerRao
     windows: int
@@ -67,6 +84,11 @@ class MarkerFit:
     converged: bool = False
     to_minimum: np.ndarray | None = None
     dof: float = 0.0
+    theta: np.ndarray | None = None
+    information: np.ndarray | None = None
+    constraint: np.ndarray | None = None
+    blocks: list[MarkerFit] = field(default_factory=list)
+    agreement: Agreement | None = None
 
     @property
     def rel_se(self) -> np.ndarray:
@@ -90,7 +112,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
                 wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
-                progress: bool = False, checkpoint: str | None = None) -> MarkerFit:
+                progress: bool = False, checkpoint: str | None = None, block: tuple[int, int] = (0, 1)) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -112,11 +134,13 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     :data:`STALL_DAMPING`), the fit goes on with the exact step's Jacobians.
     ``checkpoint``: a file the fit's state is written to (atomically) after every step, and resumed
     from when it holds a fit of the same windows from the same start (:func:`_resume`): an
-    interrupted fit of hours goes on where it stopped, to the same result."""
+    interrupted fit of hours goes on where it stopped, to the same result.  ``block`` ``(b, B)``: the
+    fit of block ``b`` of ``B`` interleaved blocks of the windows (:mod:`identified.fit.marker_blocks`)."""
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
-        margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free)
+        margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free,
+        block=block)
     jac = prob.at_step(substeps)  # the Jacobians' windows; the cost's at data.dt
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
     theta = prob.theta0.clone()
@@ -217,7 +241,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     with np.errstate(divide="ignore", invalid="ignore"):
         to_minimum = np.where(cov.finite, step / cov.rel_se, np.nan)
     return MarkerFit(cov, W, available, float(np.sqrt(s2)) * float(sigma), history, time.perf_counter() - t0,
-                     converged, to_minimum, dof)
+                     converged, to_minimum, dof, theta.numpy().copy(), F / s2, gt)
 
 
 #: Levenberg-Marquardt's damping (relative to the normal matrix's diagonal) above which a joint step

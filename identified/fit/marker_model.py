@@ -49,6 +49,11 @@ MISFIT = 1.2
 #: the misfit grew into the bias at all windows)
 MISFIT_SD = 5.0
 
+#: blocks of windows fitted on their own (:mod:`identified.fit.marker_blocks`) whose estimates
+#: scatter about their combination with a chi-square this unlikely under the noise alone disagree:
+#: the combined estimate's error bars are withheld
+DISAGREE_P = 1e-3
+
 #: effects of a start model the windows replace by their own contact law; any other effect the
 #: windows do not model, and the fit refuses a start that has one
 CONTACT_EFFECTS = ("ground_contact", "pyramid_contact")
@@ -64,13 +69,16 @@ class MarkerRefineConfig:
     """The windows and iterations of the marker fit (:func:`identified.fit.marker_fit.fit_markers`):
     up to ``windows`` windows of ``frames`` frames spread over the recording (``None``: all),
     their Jacobians stepped at up to ``step`` seconds (the cost always at the model's step),
-    ``state_iterations`` steps in the windows' states alone, then up to ``iterations`` joint steps."""
+    ``state_iterations`` steps in the windows' states alone, then up to ``iterations`` joint steps;
+    ``blocks``: the windows fitted in that many interleaved blocks, each on its own, their
+    estimates combined (:mod:`identified.fit.marker_blocks`; 1: all in one fit)."""
 
     windows: int | None = 64
     frames: int = 10
     step: float = 0.005
     state_iterations: int = 3
     iterations: int = 8
+    blocks: int = 1
 
 
 def _checked_start(start: IdentifiedModel, rec: Recording, topology, total_mass: float | None) -> IdentifiedModel:
@@ -246,7 +254,7 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
     of a chi-square above it (the windows do not follow the recording: their states short of their
     minimum -- measured at 30 Hz / 1 cm, at the truth from the plant's own states, eight state-only
     steps left a variance 1.075 times the noise's --, a local minimum, or an effect the model lacks)
-    or an unconverged fit's
+    or blocks of windows fitted on their own disagree (:data:`DISAGREE_P`), or an unconverged fit's
     last joint step still lowered the cost by more than :data:`STILL_MOVING`; else those of
     :func:`_still_moving` (``model`` built by :func:`_model` with them withheld), named with their
     steps in ``metrics.withheld`` and a warning; a fit that had nearly stopped keeps them, and says
@@ -272,6 +280,14 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
                      "states short of their minimum, an effect it lacks, or a local minimum), a bias its error bars "
                      "would not cover, so its values have none; try `tensegrity diagnose`, or check the "
                      "recording's stated noise"))
+    elif fit.agreement is not None and fit.agreement.dof > 0 and fit.agreement.p < DISAGREE_P:
+        a = fit.agreement
+        withheld = ("the marker fit's blocks of windows disagree",
+                    (f"the marker fit's {len(fit.blocks)} blocks of windows disagree by more than their error bars: "
+                     f"their estimates scatter about the combined one with a chi-square of {a.chi2:.4g} over {a.dof} "
+                     f"degrees of freedom (p = {a.p:.2g}, below {DISAGREE_P:g}): some block is not at its minimum or "
+                     "is biased, so the combined values have no error bars; run more --iterations (with --checkpoint "
+                     "it goes on where it stopped) or compare the blocks' fits"))
     elif not fit.converged and last > STILL_MOVING:
         # the Gauss-Newton error bars of a point the fit is still leaving say nothing about the
         # estimate it would reach (measured: 30 Hz / 1 cm, 16 windows, 8 joint steps still falling
@@ -306,6 +322,27 @@ def _judge_fit(model: IdentifiedModel, fit: MarkerFit, iterations: int, sigma: f
             f"{name or 'no estimate'} by {far:.2g} of its standard errors)")
 
 
+def _fit_blocks(start: IdentifiedModel, rec: Recording, ms, mjcf: str, sigma: float, law, config: MarkerRefineConfig,
+                windows: int, substeps: int, progress: bool, checkpoint: str | None) -> MarkerFit:
+    """The marker fit of ``config``: of all its windows at once, or of its ``blocks`` one after
+    another (block ``b``'s checkpoint ``checkpoint.block<b>``), combined
+    (:func:`identified.fit.marker_blocks.combine_fits`)."""
+    from identified.fit.marker_blocks import combine_fits
+
+    B = max(1, int(config.blocks))
+    law_free = () if law is None else tuple(bl.name for bl in law.blocks)
+    fits = []
+    for b in range(B):
+        if progress and B > 1:
+            print(f"marker fit: block {b + 1} of {B}", flush=True)
+        fits.append(fit_markers(start, rec, ms.data, ms.starts, mjcf, sigma, ms.unobservable, frames=config.frames,
+                                max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
+                                contact=law, law_free=law_free, substeps=substeps, progress=progress,
+                                checkpoint=checkpoint if checkpoint is None or B == 1 else f"{checkpoint}.block{b}",
+                                block=(b, B)))
+    return fits[0] if B == 1 else combine_fits(fits)
+
+
 def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_mass: float | None = None,
                      config: MarkerRefineConfig = MarkerRefineConfig(), progress: bool = False,
                      checkpoint: str | None = None) -> IdentifiedModel:
@@ -332,21 +369,24 @@ def refine_recording(rec: Recording, mjcf: str, start: IdentifiedModel, total_ma
             print(f"marker fit: {note}", flush=True)
     substeps = max(1, round(config.step / start.dt))
     windows = 10 ** 9 if config.windows is None else int(config.windows)
-    fit = fit_markers(start, rec, ms.data, ms.starts, mjcf, sigma, ms.unobservable, frames=config.frames,
-                      max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
-                      contact=law, law_free=() if law is None else tuple(b.name for b in law.blocks),
-                      substeps=substeps, progress=progress, checkpoint=checkpoint)
+    fit = _fit_blocks(start, rec, ms, mjcf, sigma, law, config, windows, substeps, progress, checkpoint)
     model = _model(start, fit, law, ms.unobservable, withheld=_still_moving(fit))
     converged = fit.converged
     model.metrics["output_error"] = {
         "windows": fit.windows, "windows_available": fit.available, "frames_per_window": config.frames,
         "jacobian_step_s": substeps * start.dt, "marker_residual_m": fit.residual_rms, "marker_noise_m": sigma,
         "degrees_of_freedom": fit.dof, "excess_variance_sd": None if fit.dof <= 0 else round(_excess_sd(fit, sigma), 3),
-        "cost_per_residual": fit.history, "converged": converged, "seconds": round(fit.seconds, 3),
+        "cost_per_residual": [b.history for b in fit.blocks] if fit.blocks else fit.history,
+        "converged": converged, "seconds": round(fit.seconds, 3),
         "step_left_se": dict(zip(("parameter", "standard_errors"), _farthest(fit))),
         "contact_start": ("no ground plane" if law is None else
                           "the start model's pyramid_contact" if law_given else "pyramid_contact's generic start"),
     }
+    if fit.agreement is not None:
+        model.metrics["output_error"]["blocks"] = {
+            "blocks": len(fit.blocks), "windows": [b.windows for b in fit.blocks],
+            "agreement_chi2": round(fit.agreement.chi2, 3), "agreement_dof": fit.agreement.dof,
+            "agreement_p": None if not np.isfinite(fit.agreement.p) else fit.agreement.p}
     model.metrics["recording"] = {"source": rec.source, "frames": rec.n_frames, "takes": rec.n_episodes,
                                   "rate_hz": rec.rate_hz(), "missing": rec.missing_fraction(),
                                   "labelled_automatically": rec.unlabelled, "notes": ms.notes, "marker_noise": sigma}

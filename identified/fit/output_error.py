@@ -61,7 +61,7 @@ from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
-from identified.recording import Recording
+from identified.recording import Recording, RecordingError
 from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
 from identified.twin import params_from_model
 
@@ -473,7 +473,7 @@ class _Problem:
 def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
                    order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN, contact=None,
-                   law_free: tuple[str, ...] = (), substeps: int = 1
+                   law_free: tuple[str, ...] = (), substeps: int = 1, block: tuple[int, int] = (0, 1)
                    ) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
     """The output-error problem of a recording at ``model``'s parameters, as the refinement, the
     bound and the staged fit all set it up: up to ``max_windows`` windows of ``frames`` frames spread
@@ -484,6 +484,8 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     With a ``contact`` law (:class:`_Problem`; ``law_free`` its unknown parameters) every rod is
     simulated in every window, through the law, and the nuisances are the initial states alone.
     ``substeps``: the windows stepped at up to that many of ``data.dt`` (:func:`coarse_steps`).
+    ``block`` ``(b, B)``: of the windows spread over the recording, every ``B``-th from the ``b``-th
+    (block ``b`` of ``B`` interleaved blocks; :mod:`identified.fit.marker_blocks`).
     Returns ``(windows, available, problem, dx, active)``."""
     if contact is not None:
         order = 0
@@ -492,6 +494,12 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     available = win.n_windows
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
+    b, B = block
+    if B > 1:
+        if win.n_windows < 2 * B:
+            raise RecordingError(f"'{rec.source}': {B} blocks of windows need at least two windows each; the fit "
+                                 f"has {win.n_windows} (fewer blocks, or more windows)")
+        win = win.subset(np.arange(b, win.n_windows, B))
     prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial, contact=contact,
                     law_free=tuple(law_free), substeps=substeps)
     W, R, k = win.n_windows, model.topology.n_rods, prob.n_x

@@ -1,12 +1,12 @@
 """The marker fit in interleaved blocks of windows, combined by their information.
 
 One fit of all of a recording's windows is one Levenberg-Marquardt problem over every window's
-states and the shared parameters, with one damping for them all.  At 30 Hz / 1 cm it crept to a
-stop above where its parts go: 330 windows of a varied robot (seed 7) ended at 0.858 per residual,
-and the 64 of them that a fit of their own brought to 0.815 stood at 0.860 there (measured; the
-README's recordings section).  A fit of a block of windows converges like that 64-window fit, and
-the windows share nothing but the parameters, so the blocks' estimates are independent
-measurements of them, combined by their Fisher information:
+states and the shared parameters; where it stops, it cannot say whether that is the minimum.  At
+30 Hz / 1 cm (a varied robot, seed 7) all 330 windows stopped at a cost per residual of 0.858, and
+the 64 of them that a fit of their own brought to 0.815 stood at 0.860 there; fits of four other
+64-window subsets stalled at 0.825-0.885 (measured; the README's recordings section).  Fitted in
+blocks, the windows check each other: they share nothing but the parameters, so the blocks'
+estimates are independent measurements of them, combined by their Fisher information:
 
     θ̄ = θ₀ + C Σ_b I_b (θ_b − θ₀),    C = U (Uᵀ (Σ_b I_b) U)⁺ Uᵀ
 
@@ -17,7 +17,8 @@ all the windows fitted together, and ``C`` its covariance (``tests/test_marker_b
 Whether the blocks agree is a chi-square of their scatter about it,
 ``Σ_b (θ_b − θ̄)ᵀ I_b (θ_b − θ̄)`` over ``Σ_b rank_b − rank`` degrees of freedom (the ranks of the
 blocks' and the sum's information within the total mass): blocks that disagree by more than their
-error bars say the fit is biased or stuck in some of them.
+error bars say that some block stopped short of its minimum or is biased.  Each block is also a
+smaller problem (its memory, its own checkpoint).
 """
 
 from __future__ import annotations

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["CramerRao", "constrained_bound", "window_gradient", "window_information"]
+__all__ = ["CramerRao", "constrained_bound", "constraint_basis", "informative", "window_gradient",
+           "window_information"]
 
 #: singular values of a window's nuisance Jacobian below this fraction of its largest are no
 #: direction the data sees (they project nothing out)
@@ -106,6 +107,20 @@ class CramerRao:
         return f"{self.names[i]}: Cramer-Rao bound {100 * r:.3g} %"
 
 
+def constraint_basis(constraints: np.ndarray | None, P: int) -> np.ndarray:
+    """(P, P - k) an orthonormal basis of the steps in ``P`` unknowns that keep the linear(ised)
+    equality constraints ``constraints`` (k, P) (rows: their gradients); the identity without any."""
+    if constraints is None or np.size(constraints) == 0:
+        return np.eye(P)
+    return sla.null_space(np.atleast_2d(constraints))
+
+
+def informative(lam: np.ndarray, null_tol: float = NULL_TOL) -> np.ndarray:
+    """(n,) bool: which eigenvalues ``lam`` of an information matrix carry information, those above
+    ``null_tol`` times the largest (the others: directions the data say nothing about)."""
+    return lam > null_tol * max(float(lam.max()) if lam.size else 0.0, 1e-300)
+
+
 def constrained_bound(F: np.ndarray, names: list[str], values: np.ndarray,
                       constraints: np.ndarray | None = None, null_tol: float = NULL_TOL) -> CramerRao:
     """The Cramér-Rao bound of log-parameters with Fisher information ``F`` (P, P) under linear(ised)
@@ -116,9 +131,9 @@ def constrained_bound(F: np.ndarray, names: list[str], values: np.ndarray,
     P = F.shape[0]
     if F.shape != (P, P) or len(names) != P or np.shape(values) != (P,):
         raise ValueError(f"information {F.shape}, {len(names)} names, values {np.shape(values)}: sizes differ")
-    U = np.eye(P) if constraints is None or len(constraints) == 0 else sla.null_space(np.atleast_2d(constraints))
+    U = constraint_basis(constraints, P)
     lam, V = np.linalg.eigh(U.T @ F @ U)
-    good = lam > null_tol * max(float(lam.max()) if lam.size else 0.0, 1e-300)
+    good = informative(lam, null_tol)
     W = U @ V
     cov = (W[:, good] / lam[good]) @ W[:, good].T
     blind = W[:, ~good]

@@ -26,20 +26,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.linalg as sla
 from scipy.special import expit, logsumexp
 from scipy.stats import chi2 as chi2_dist
 
-from identified.fit.bound import NULL_TOL, constrained_bound
+from identified.fit.bound import constrained_bound, constraint_basis, informative
 from identified.fit.marker_fit import Agreement, MarkerFit
+from identified.fit.output_error import _impedances
 
 __all__ = ["combine", "combine_fits"]
-
-
-def _rank(A: np.ndarray) -> int:
-    """The numerical rank of a symmetric positive semi-definite ``A`` (:data:`NULL_TOL`)."""
-    lam = np.linalg.eigvalsh(A) if A.size else np.zeros(0)
-    return int((lam > NULL_TOL * max(float(lam.max()) if lam.size else 0.0, 1e-300)).sum())
 
 
 def combine(thetas: Sequence[np.ndarray], informations: Sequence[np.ndarray],
@@ -51,16 +45,16 @@ def combine(thetas: Sequence[np.ndarray], informations: Sequence[np.ndarray],
     T = np.asarray(thetas, dtype=float)
     if T.ndim != 2 or len(informations) != len(T):
         raise ValueError(f"{len(T)} estimates for {len(informations)} information matrices")
-    P = T.shape[1]
-    U = np.eye(P) if constraint is None or np.size(constraint) == 0 else sla.null_space(np.atleast_2d(constraint))
+    U = constraint_basis(constraint, T.shape[1])
     Ib = [U.T @ np.asarray(I, dtype=float) @ U for I in informations]
-    total = sum(Ib)
-    C_u = np.linalg.pinv(total, hermitian=True, rtol=NULL_TOL)
+    lam, V = np.linalg.eigh(sum(Ib))
+    good = informative(lam)  # the directions some block has information about, as constrained_bound takes them
+    C_u = (V[:, good] / lam[good]) @ V[:, good].T
     t0 = T.mean(0)
     rhs = sum(I @ (U.T @ (t - t0)) for I, t in zip(Ib, T))
     theta = t0 + U @ (C_u @ rhs)
     chi2 = float(sum((U.T @ (t - theta)) @ I @ (U.T @ (t - theta)) for I, t in zip(Ib, T)))
-    dof = sum(_rank(I) for I in Ib) - _rank(total)
+    dof = sum(int(informative(np.linalg.eigvalsh(I)).sum()) for I in Ib) - int(good.sum())
     p = float(chi2_dist.sf(chi2, dof)) if dof > 0 else float("nan")
     return theta, U @ C_u @ U.T, Agreement(chi2, int(dof), p)
 
@@ -68,7 +62,7 @@ def combine(thetas: Sequence[np.ndarray], informations: Sequence[np.ndarray],
 def _natural(names: list[str], theta: np.ndarray) -> np.ndarray:
     """The unknowns ``theta`` in their own units: the contact law's impedances (``law[imp_*]``) from
     their logits, every other parameter from its logarithm."""
-    logit = np.array([n.startswith("law[imp_") for n in names])
+    logit = _impedances([n[4:-1] if n.startswith("law[") else n for n in names])
     return np.where(logit, expit(theta), np.exp(np.where(logit, 0.0, theta)))
 
 

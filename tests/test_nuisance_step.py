@@ -8,6 +8,7 @@ import math
 import torch
 
 from identified.fit.marker_bound import nuisance_step
+from identified.fit.marker_fit import STATE_SHARES, window_states_at
 
 
 class _Toy:
@@ -73,3 +74,50 @@ def test_a_window_no_step_helps_keeps_its_state() -> None:
     assert float(dx[0, 0, 0]) == 0.0
     assert math.isclose(float(mu[0]), 1e-3 * 4 ** 8)
     assert float(dx[1, 0, 0]) > 0.0 and float(r[1, 0].abs()) < 0.5 and moved
+
+
+class _Breaks(_Toy):
+    """The toy whose every window costs infinity once any window's nuisance passes ``limit``: a
+    contact solve that breaks for the whole batch of windows."""
+
+    def __init__(self, *args, limit: float) -> None:
+        super().__init__(*args)
+        self.limit = limit
+
+    def window_residuals(self, theta, dx, keep=None):
+        r = super().window_residuals(theta, dx, keep)
+        return torch.full_like(r, math.inf) if bool((dx[:, 0, 0] > self.limit).any()) else r
+
+
+def test_each_window_keeps_the_share_of_the_joint_step_that_serves_it() -> None:
+    # window 0: r = tanh(x) from x = 2, the full step overshoots to -2 (the same cost), half of it lands
+    # on the minimum; window 1 is nearly linear, the full step is best; window 2 sits at its minimum
+    # (tanh(x) = 0.5) and any share of its step raises its cost: it keeps its states
+    toy = _Toy(a=[1.0, 10.0, 1.0], b=[1.0, 0.01, 1.0], y=[0.0, 2.0, 0.5])
+    x0 = torch.tensor([2.0, 0.0, math.atanh(0.5)], dtype=torch.float64).reshape(3, 1, 1)
+    step = torch.tensor([-4.0, 20.0, 1.0], dtype=torch.float64).reshape(3, 1, 1)
+    dx, r = window_states_at(toy, torch.zeros(1), x0, step)
+    assert dx[:, 0, 0].tolist() == [0.0, 20.0, math.atanh(0.5)]
+    assert r[:, 0].tolist() == toy.window_residuals(None, dx)[:, 0].tolist()
+    assert float(r[0, 0]) == 0.0 and abs(float(r[2, 0])) < 1e-15
+    # every window's cost is the least of its three shares', and never above where it stood
+    for w in range(3):
+        costs = [float(toy.window_residuals(None, x0 + a * step)[w, 0] ** 2) for a in STATE_SHARES]
+        assert float(r[w, 0] ** 2) == min(costs)
+    # shares (1,) alone: the Gauss-Newton step as it was, every window takes all of it
+    dx1, _ = window_states_at(toy, torch.zeros(1), x0, step, shares=(1.0,))
+    assert torch.equal(dx1, x0 + step)
+
+
+def test_a_share_that_breaks_the_solve_is_never_taken() -> None:
+    # the full step takes window 1 to x = 40, past the solve's limit: every window's cost there is
+    # infinite, so each takes half of its step or none
+    toy = _Breaks([1.0, 10.0, 1.0], [1.0, 0.01, 1.0], [0.0, 2.0, 0.5], limit=30.0)
+    x0 = torch.tensor([2.0, 0.0, math.atanh(0.5)], dtype=torch.float64).reshape(3, 1, 1)
+    step = torch.tensor([-4.0, 40.0, 1.0], dtype=torch.float64).reshape(3, 1, 1)
+    dx, r = window_states_at(toy, torch.zeros(1), x0, step)
+    assert dx[:, 0, 0].tolist() == [0.0, 20.0, math.atanh(0.5)]
+    assert bool(torch.isfinite(r).all())
+    # where every share breaks, the cost returned is infinite: the joint step refuses the trial
+    _, r = window_states_at(_Breaks([1.0], [1.0], [0.0], limit=-3.0), torch.zeros(1), x0[:1], step[:1])
+    assert bool(torch.isinf(r).all())

@@ -15,10 +15,12 @@ known:
    (``joint_iters``; :mod:`identified.fit.window_solve`), with the total mass held (which also
    fixes the scale no marker sees); each window takes the share of the step's state change that
    serves it best at the new parameters (:func:`window_states_at`), and every joint step is
-   followed by one step of the windows' states alone, each window with its own damping.  The joint
-   step has one damping for all: where a few windows' cost is rough it rises and holds every
-   window's states back (measured, 30 Hz / 1 cm, a 64-window fit stalled after 20 joint steps at
-   0.882 per residual with the damping at 5: two state steps at its parameters took it to 0.850).
+   followed by one step of the windows' states alone, each window with its own damping, on the
+   exact step's Jacobians.  The joint step has one damping for all: where a few windows' cost is
+   rough it rises and holds every window's states back, and the coarse step's state columns stall
+   short of the states' minimum (measured, 30 Hz / 1 cm, a 64-window fit stalled after 20 joint
+   steps at 0.882 per residual with the damping at 5: a state step on the coarse Jacobians took it
+   0.8808 -> 0.8803, two on the exact ones 0.8817 -> 0.8615 -> 0.8501).
 
 Joint steps from states that the start parameters have not yet fitted move the parameters far
 (measured: the joint refinement from such a start, 30 Hz / 1 cm, stalled at a marker residual of
@@ -43,7 +45,7 @@ import torch
 from identified.dataset import Dataset, atomic_write
 from identified.fit.bound import CramerRao, constrained_bound, window_gradient, window_information
 from identified.fit.marker_bound import _names, natural_values, nuisance_step
-from identified.fit.output_error import CONTACT_MARGIN, window_problem
+from identified.fit.output_error import CONTACT_MARGIN, _Problem, window_problem
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording
@@ -134,7 +136,8 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     at ``data.dt`` still: Gauss-Newton with an approximate Jacobian stops where ``J_kᵀ r = 0``, which
     the noise in ``r`` does not bias, while the coarse step's own windows would (measured, 30 Hz /
     1 cm, the clean markers' residual at the truth, linearised: c 10 % off at 4 ms, 1.8 times the
-    recording's bound; K 0.5 %, 1.4 times); the standard errors from the last Jacobian.  Where the
+    recording's bound; K 0.5 %, 1.4 times); the state step after each joint step on the exact
+    Jacobians; the standard errors from the last Jacobian.  Where the
     coarse Jacobians stall (no step lowers the cost, or only at a damping above
     :data:`STALL_DAMPING`), the fit goes on with the exact step's Jacobians.
     ``checkpoint``: a file the fit's state is written to (atomically) after every step, and resumed
@@ -262,7 +265,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
 STATE_SHARES = (1.0, 0.5, 0.0)
 
 
-def window_states_at(prob, theta: torch.Tensor, dx: torch.Tensor, step_x: torch.Tensor,
+def window_states_at(prob: _Problem, theta: torch.Tensor, dx: torch.Tensor, step_x: torch.Tensor,
                      shares: tuple[float, ...] = STATE_SHARES) -> tuple[torch.Tensor, torch.Tensor]:
     """The states ``dx + a step_x`` at the parameters ``theta``, ``a`` in ``shares`` chosen for each
     window on its own (the lowest cost; a window's residuals depend on its own states only), and

@@ -729,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording with --refine: steps in the windows' states alone before the joint ones "
                    "(default 3)")
     f.add_argument("--iterations", type=count(1), default=8, metavar="N",
-                   help="recording with --refine: joint steps at most (default 8)")
+                   help="recording with --refine: joint steps at most, each followed by a step of the windows' states "
+                   "alone (default 8)")
     f.add_argument("--window-blocks", type=count(1), default=1, metavar="B",
                    help="recording with --refine: fit the windows in B interleaved blocks, each on its own (its "
                    "checkpoint FILE.block<b>), and combine their estimates by their information, with a test that "

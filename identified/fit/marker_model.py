@@ -20,6 +20,7 @@ from collections.abc import Collection
 import numpy as np
 
 from identified.fit.bound import NOT_IDENTIFIABLE
+from identified.fit.marker_blocks import combine_fits
 from identified.fit.marker_fit import MarkerFit, fit_markers
 from identified.model import IdentifiedModel, unseen_moment
 from identified.recording import Recording, RecordingError
@@ -327,8 +328,6 @@ def _fit_blocks(start: IdentifiedModel, rec: Recording, ms, mjcf: str, sigma: fl
     """The marker fit of ``config``: of all its windows at once, or of its ``blocks`` one after
     another (block ``b``'s checkpoint ``checkpoint.block<b>``), combined
     (:func:`identified.fit.marker_blocks.combine_fits`)."""
-    from identified.fit.marker_blocks import combine_fits
-
     B = max(1, int(config.blocks))
     law_free = () if law is None else tuple(bl.name for bl in law.blocks)
     fits = []

@@ -8,6 +8,7 @@ with status 2 (no traceback; set ``TENSEGRITY_DEBUG=1`` to see one).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -200,13 +201,28 @@ def _is_recording(path: str) -> bool:
     return os.path.splitext(path)[1].lower() in (".csv", ".c3d")
 
 
+#: the marker fit's options (``fit R.csv --refine``) and the
+#: :class:`~identified.fit.marker_model.MarkerRefineConfig` fields they set; their parser default is
+#: ``None`` (not given: the config's default), so an option given at its default value is still seen
+_MARKER_CONFIG = {"--windows": "windows", "--window-frames": "frames", "--window-step": "step",
+                  "--state-iterations": "state_iterations", "--iterations": "iterations",
+                  "--window-blocks": "blocks"}
+
+
 def _marker_options(args: argparse.Namespace) -> list[str]:
     """The options of ``fit R.csv --refine`` (the marker fit) given on this command line."""
-    given = {"--start": args.start is not None, "--windows": args.windows != 64, "--window-frames": args.window_frames != 10,
-             "--window-step": args.window_step != 0.005, "--iterations": args.iterations != 8,
-             "--state-iterations": args.state_iterations != 3, "--window-blocks": args.window_blocks != 1,
-             "--checkpoint": args.checkpoint is not None}
-    return [name for name, g in given.items() if g]
+    names = [*_MARKER_CONFIG, "--start", "--checkpoint"]
+    return [name for name in names if getattr(args, name[2:].replace("-", "_")) is not None]
+
+
+def _marker_config(args: argparse.Namespace):
+    """The marker fit's :class:`~identified.fit.marker_model.MarkerRefineConfig`: the options given,
+    the config's defaults for the others (``--windows 0``: all windows)."""
+    from identified.fit.marker_model import MarkerRefineConfig
+
+    given = {field: getattr(args, name[2:].replace("-", "_")) for name, field in _MARKER_CONFIG.items()}
+    config = MarkerRefineConfig(**{field: v for field, v in given.items() if v is not None})
+    return dataclasses.replace(config, windows=None) if config.windows == 0 else config
 
 
 def _fit_recording(args: argparse.Namespace, scale) -> None:
@@ -258,16 +274,17 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
     """``fit R.csv --refine``: the output-error fit to the markers themselves
     (:func:`identified.fit.marker_model.refine_recording`) from ``--start`` or, without it, from the
     regression's estimate of the same recording."""
-    from identified.fit.marker_model import MarkerRefineConfig, refine_recording
+    from identified.fit.marker_model import refine_recording
     from identified.fit.regression import IdentifiabilityError
     from identified.model import load_model
 
     if args.effects != "none":
         raise CommandError(f"--effects {args.effects}: not with --refine on a recording; the marker fit models the "
                            "ground's contact law (pyramid_contact) itself")
-    if args.windows and args.window_blocks * 2 > args.windows:
-        raise CommandError(f"--window-blocks {args.window_blocks}: each block needs at least two of the --windows "
-                           f"{args.windows}")
+    config = _marker_config(args)
+    if config.windows and config.blocks * 2 > config.windows:
+        raise CommandError(f"--window-blocks {config.blocks}: each block needs at least two of the --windows "
+                           f"{config.windows}")
     if args.start is not None:
         start = load_model(args.start)
     else:
@@ -279,9 +296,6 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
     if args.total_mass is None and args.start is not None:
         print("tensegrity: note: no --total-mass: the marker fit keeps the start's total mass "
               f"({float(start.mass.sum()):.6g} kg), which the markers cannot check", file=sys.stderr)
-    config = MarkerRefineConfig(windows=None if args.windows == 0 else args.windows, frames=args.window_frames,
-                                step=args.window_step, state_iterations=args.state_iterations,
-                                iterations=args.iterations, blocks=args.window_blocks)
     return refine_recording(rec, args.model, start, total_mass=args.total_mass, config=config,
                             progress=not args.quiet, checkpoint=args.checkpoint)
 
@@ -718,20 +732,20 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--start", default=None, metavar="MODEL.json",
                    help="recording with --refine: the model the marker fit starts from (default: the regression's "
                    "estimate of the same recording)")
-    f.add_argument("--windows", type=count(0), default=64, metavar="N",
+    f.add_argument("--windows", type=count(0), default=None, metavar="N",
                    help="recording with --refine: windows spread over the recording (default 64; 0: all)")
-    f.add_argument("--window-frames", type=count(2), default=10, metavar="N",
+    f.add_argument("--window-frames", type=count(2), default=None, metavar="N",
                    help="recording with --refine: frames per window (default 10)")
-    f.add_argument("--window-step", type=finite_float(0.0, 0.1, "s", True), default=0.005, metavar="SECONDS",
+    f.add_argument("--window-step", type=finite_float(0.0, 0.1, "s", True), default=None, metavar="SECONDS",
                    help="recording with --refine: the windows' Jacobians stepped at up to this (default 0.005 s; "
                    "the cost always at the model's own step)")
-    f.add_argument("--state-iterations", type=count(0), default=3, metavar="N",
+    f.add_argument("--state-iterations", type=count(0), default=None, metavar="N",
                    help="recording with --refine: steps in the windows' states alone before the joint ones "
                    "(default 3)")
-    f.add_argument("--iterations", type=count(1), default=8, metavar="N",
+    f.add_argument("--iterations", type=count(1), default=None, metavar="N",
                    help="recording with --refine: joint steps at most, each followed by a step of the windows' states "
                    "alone (default 8)")
-    f.add_argument("--window-blocks", type=count(1), default=1, metavar="B",
+    f.add_argument("--window-blocks", type=count(1), default=None, metavar="B",
                    help="recording with --refine: fit the windows in B interleaved blocks, each on its own (its "
                    "checkpoint FILE.block<b>), and combine their estimates by their information, with a test that "
                    "they agree (default 1: all windows in one fit)")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import time
 
 import numpy as np
@@ -183,9 +184,15 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert "--state-iterations is for a recording's marker fit" in capsys.readouterr().err
     assert main(["fit", npz, "--model", path, "--out", out, "--window-blocks", "2"]) != 0
     assert "--window-blocks is for a recording's marker fit" in capsys.readouterr().err
+    assert main(["fit", npz, "--model", path, "--out", out, "--iterations", "8"]) != 0  # given at its default: seen
+    assert "--iterations is for a recording's marker fit" in capsys.readouterr().err
+    assert main(["fit", csv, "--model", path, "--out", out, "--window-blocks", "2"]) != 0
+    assert "--window-blocks is for the marker fit: add --refine" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--windows", "6", "--window-blocks", "4"]) != 0
     err = capsys.readouterr().err
     assert "--window-blocks 4: each block needs at least two of the --windows 6" in err and len(err.strip().splitlines()) == 1
+    assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--window-blocks", "33"]) != 0
+    assert "--window-blocks 33: each block needs at least two of the --windows 64" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--window-blocks", "0"]) == 2
     assert "--window-blocks" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--state-iterations", "-1"]) == 2
@@ -197,9 +204,11 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert not os.path.exists(out)
 
 
-def test_state_iterations_reach_the_marker_fit(robot, tmp_path, monkeypatch, capsys):
-    """``--state-iterations N``: the marker fit's steps in the windows' states alone (3 unless given)."""
+def test_the_marker_options_reach_the_marker_fit(robot, tmp_path, monkeypatch, capsys):
+    """Each marker-fit option sets its field of ``MarkerRefineConfig`` (``--windows 0``: all windows);
+    the fields not given keep the config's defaults, and the help says those defaults."""
     import identified.fit.marker_model as mm
+    from tensegrity_gym.cli import build_parser
 
     path, _, csv, truth, _ = robot
     start = str(tmp_path / "start.json")
@@ -207,15 +216,27 @@ def test_state_iterations_reach_the_marker_fit(robot, tmp_path, monkeypatch, cap
     seen = []
 
     def spy(rec, mjcf, start, total_mass=None, config=None, progress=False, checkpoint=None):
-        seen.append(config.state_iterations)
+        seen.append(config)
         raise RecordingError("spied")
 
     monkeypatch.setattr(mm, "refine_recording", spy)
-    for extra in (["--state-iterations", "7"], ["--state-iterations", "0"], []):
+    runs = [(["--state-iterations", "7"], {"state_iterations": 7}), (["--state-iterations", "0"], {"state_iterations": 0}),
+            ([], {}), (["--windows", "0", "--window-blocks", "3"], {"windows": None, "blocks": 3}),
+            (["--windows", "12", "--window-frames", "7", "--window-step", "0.002", "--iterations", "5"],
+             {"windows": 12, "frames": 7, "step": 0.002, "iterations": 5})]
+    for extra, _ in runs:
         assert main(["fit", csv, "--model", path, "--out", str(tmp_path / "m.json"), "--refine", "--start", start,
                      "--quiet", *extra]) != 0
-    assert seen == [7, 0, 3]
-    assert capsys.readouterr().err.count("spied") == 3
+    assert seen == [mm.MarkerRefineConfig(**fields) for _, fields in runs]
+    assert seen[2] == mm.MarkerRefineConfig(windows=64, frames=10, step=0.005, state_iterations=3, iterations=8, blocks=1)
+    assert capsys.readouterr().err.count("spied") == len(runs)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fit", "--help"])
+    shown = {b.split()[0]: " ".join(b.split()) for b in re.split(r"\n\s+(?=--)", capsys.readouterr().out)}
+    for option, default in (("--windows", "(default 64; 0: all)"), ("--window-frames", "(default 10)"),
+                            ("--window-step", "(default 0.005 s;"), ("--state-iterations", "(default 3)"),
+                            ("--iterations", "(default 8)"), ("--window-blocks", "(default 1:")):
+        assert default in shown[option], option
 
 
 def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, capsys):

@@ -13,12 +13,15 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from identified.jsonsafe import json_safe
 from tensegrity_gym.options import count, finite_float, jobs, noise, seed
+
+if TYPE_CHECKING:
+    from identified.fit.marker_model import MarkerRefineConfig
 
 __all__ = ["build_parser", "main"]
 
@@ -215,7 +218,7 @@ def _marker_options(args: argparse.Namespace) -> list[str]:
     return [name for name in names if getattr(args, name[2:].replace("-", "_")) is not None]
 
 
-def _marker_config(args: argparse.Namespace):
+def _marker_config(args: argparse.Namespace) -> MarkerRefineConfig:
     """The marker fit's :class:`~identified.fit.marker_model.MarkerRefineConfig`: the options given,
     the config's defaults for the others (``--windows 0``: all windows)."""
     from identified.fit.marker_model import MarkerRefineConfig

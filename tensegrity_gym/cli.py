@@ -214,8 +214,12 @@ _MARKER_CONFIG = {"--windows": "windows", "--window-frames": "frames", "--window
 
 def _marker_options(args: argparse.Namespace) -> list[str]:
     """The options of ``fit R.csv --refine`` (the marker fit) given on this command line."""
-    names = [*_MARKER_CONFIG, "--start", "--checkpoint"]
-    return [name for name in names if getattr(args, name[2:].replace("-", "_")) is not None]
+    return [name for name in (*_MARKER_CONFIG, "--start", "--checkpoint") if _given(args, name) is not None]
+
+
+def _given(args: argparse.Namespace, option: str) -> Any:
+    """The value of ``option`` (``--window-frames``) on this command line, ``None`` if not given."""
+    return getattr(args, option[2:].replace("-", "_"))
 
 
 def _marker_config(args: argparse.Namespace) -> MarkerRefineConfig:
@@ -223,7 +227,7 @@ def _marker_config(args: argparse.Namespace) -> MarkerRefineConfig:
     the config's defaults for the others (``--windows 0``: all windows)."""
     from identified.fit.marker_model import MarkerRefineConfig
 
-    given = {field: getattr(args, name[2:].replace("-", "_")) for name, field in _MARKER_CONFIG.items()}
+    given = {field: _given(args, name) for name, field in _MARKER_CONFIG.items()}
     config = MarkerRefineConfig(**{field: v for field, v in given.items() if v is not None})
     return dataclasses.replace(config, windows=None) if config.windows == 0 else config
 

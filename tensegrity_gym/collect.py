@@ -241,7 +241,8 @@ class RecordConfig:
     Gaussian noise ``noise_pos`` (m) per coordinate, a share ``dropout`` of samples missing in runs
     of ``dropout_run`` frames on average, and the actuated cables' rest lengths (spool encoders).
     ``unlabelled``: anonymous marker columns whose identities are shuffled every ``swap_every``
-    seconds, plus ``ghosts`` spurious markers per frame."""
+    seconds, plus ``ghosts`` spurious markers per frame.  ``encoder_rate``: the encoders' own rate
+    (Hz), written as rows between the camera frames (``None``: at the frames)."""
 
     rate: float = 100.0
     noise_pos: float = 0.0
@@ -250,6 +251,7 @@ class RecordConfig:
     unlabelled: bool = False
     swap_every: float = 0.5
     ghosts: int = 0
+    encoder_rate: float | None = None
 
     def validate(self, dt: float) -> None:
         if not (np.isfinite(self.rate) and 0 < self.rate <= 1.0 / dt):
@@ -258,6 +260,9 @@ class RecordConfig:
             raise ValueError(f"--noise-pos must be a finite number >= 0, got {self.noise_pos}")
         if not 0 <= self.dropout < 1:
             raise ValueError(f"--dropout must be in [0, 1), got {self.dropout}")
+        if self.encoder_rate is not None and not (np.isfinite(self.encoder_rate) and 0 < self.encoder_rate <= 1.0 / dt):
+            raise ValueError(f"--encoder-rate must be in (0, {1.0 / dt:g}] Hz (the plant steps every {dt:g} s), "
+                             f"got {self.encoder_rate}")
         if self.ghosts < 0:
             raise ValueError(f"--ghosts must be >= 0, got {self.ghosts}")
 
@@ -266,7 +271,7 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     """The recording a lab would make of ``data`` (clean states of the plant): markers at every rod
     site sampled at ``rec.rate``, noisy, with gaps in runs; every tendon's rest length (the
     actuated cables' from their encoders, a passive spring's as measured once).  Returns an :class:`identified.recording.Recording`."""
-    from identified.recording import Recording, site_world_positions
+    from identified.recording import Encoders, Recording, site_world_positions
     from identified.topology import Topology
 
     rec.validate(data.dt)
@@ -274,8 +279,7 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     rng = np.random.default_rng([seed, 7])
     sites = tuple(s for r in topo.rods for s in r.sites)
     T = data.n_steps
-    idx = np.unique(np.round(np.arange(0, T * data.dt + 1e-12, 1.0 / rec.rate) / data.dt).astype(int))
-    idx = idx[idx < T]  # the rest length of step t is that read at instant t
+    idx = _sample_steps(T, data.dt, rec.rate)
     times, episodes, marks, rests = [], [], [], []
     for e in range(data.n_episodes):
         m = site_world_positions(topo, data.pos[e, idx], data.quat[e, idx], sites)
@@ -289,9 +293,23 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     names = sites
     if rec.unlabelled:
         names, markers = _anonymise(rng, np.concatenate(times), np.concatenate(episodes), markers, rec)
+    encoders = None
+    if rec.encoder_rate is not None:
+        eidx = _sample_steps(T, data.dt, rec.encoder_rate)
+        E, K = data.n_episodes, eidx.size
+        encoders = Encoders(time=np.tile(eidx * data.dt, E), episode=np.repeat(np.arange(E), K),
+                            rest=data.rest_length[:, eidx].reshape(E * K, -1), ctrl=np.zeros((E * K, 0)),
+                            length=np.zeros((E * K, 0)))
     return Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
                      markers=markers, rest_names=tuple(data.tendon_names), rest=np.concatenate(rests),
-                     noise_pos=rec.noise_pos)
+                     noise_pos=rec.noise_pos, encoders=encoders)
+
+
+def _sample_steps(T: int, dt: float, rate: float) -> np.ndarray:
+    """The steps (< ``T``) a sensor at ``rate`` Hz reads: the nearest to every ``1 / rate`` s (the rest
+    length of step t is that read at instant t)."""
+    idx = np.unique(np.round(np.arange(0, T * dt + 1e-12, 1.0 / rate) / dt).astype(int))
+    return idx[idx < T]
 
 
 def _dropout_mask(rng: np.random.Generator, F: int, n: int, p: float, run: float) -> np.ndarray:

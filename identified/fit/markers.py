@@ -14,6 +14,8 @@ The path here:
    so the recorded states step exactly as the engine's semi-implicit Euler steps them
    (``x[n+1] = x[n] + dt v[n+1]``), and the fit's forward-difference equations
    (:mod:`identified.samples`) are the engine's own discretisation of the reconstructed motion;
+   each cable's rest length at the same instants, linear between its encoder's samples (at the
+   encoders' own rate in a multi-rate recording, :meth:`identified.recording.Recording.rest_at`);
 4. each rod's equations weighed out (``Dataset.weight``) near the frames where one of its markers
    is missing (:func:`_seen_weight`): a spline bridging a gap is no measurement of acceleration;
    and those of the rods it shares a cable with during its long gaps (a bridged position is no
@@ -129,8 +131,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
                                  "shorter than three engine steps")
         grid = t[0] + dt * np.arange(n + 1)  # one sample before the first state (velocities)
         pos, quat = _poses(rec, rows, geos, col, grid, lam, smoothing, take)
-        rest = np.stack([np.interp(grid[1:], t, _filled(rec.rest[rows, rec.rest_names.index(s)], t))
-                         for s in topology.spring_names], axis=-1)
+        rest = rec.rest_at(int(rec.episode[rows[0]]), grid[1:])[:, [rec.rest_names.index(s) for s in topology.spring_names]]
         weight = _seen_weight(rec, rows, geos, col, grid[1:], _partners(topology))
         pieces.append(_states(pos, quat, dt) + (rest, weight))
         starts.append(float(grid[1]))
@@ -299,13 +300,6 @@ def _distance(mask: np.ndarray) -> np.ndarray:
     nxt = np.where(mask, np.arange(n), 10 ** 9)[::-1]
     nxt = np.minimum.accumulate(nxt)[::-1]
     return np.minimum(np.arange(n) - last, nxt - np.arange(n))
-
-
-def _filled(x: np.ndarray, t: np.ndarray) -> np.ndarray:
-    ok = np.isfinite(x)
-    if not ok.any():
-        raise RecordingError("an encoder column is empty in a whole take")
-    return np.interp(t, t[ok], x[ok])
 
 
 def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray, lam: list[float | None]) -> np.ndarray:

@@ -7,6 +7,7 @@ of each rod's markers.  Numpy and scipy only: no engine, no fit.
 """
 
 from identified.recording.format import (
+    Encoders,
     Recording,
     RecordingError,
     check_recording,
@@ -18,6 +19,7 @@ from identified.recording.format import (
 )
 
 __all__ = [
+    "Encoders",
     "Recording",
     "RecordingError",
     "check_recording",

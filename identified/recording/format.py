@@ -14,6 +14,12 @@ column                     meaning
 ``<tendon>.length``        (optional) a measured cable length, m
 =========================  ================================================================
 
+Encoders often run faster than the cameras.  A recording may then interleave rows at both rates in
+one table (sorted by time within a take): a row with no marker sample and an encoder cell is an
+encoder sample between camera frames (:func:`split_rates`).  The :class:`Recording`'s rows are then
+the camera frames, with the encoders' values interpolated at them (``.ctrl`` held), and every
+encoder sample is kept in :class:`Encoders` for :meth:`Recording.rest_at`.
+
 :func:`read_recording` parses and checks the table on its own (numbers, time order, columns it
 knows); :func:`check_recording` checks it against a model's topology (site and tendon names,
 a rod that cannot be placed, values in millimetres).  Every error is one line naming the file,
@@ -34,12 +40,15 @@ from identified.dataset import atomic_write
 from identified.topology import Topology
 
 __all__ = [
+    "Encoders",
     "Recording",
     "RecordingError",
     "check_recording",
     "read_recording",
     "save_recording",
     "site_world_positions",
+    "split_rates",
+    "with_encoders",
 ]
 
 UNLABELLED = re.compile(r"^marker\d+$")
@@ -48,10 +57,27 @@ _AXES = ("x", "y", "z")
 FAR = 100.0
 #: a take whose frames lie further apart than this (median, s) does not have its time in seconds
 SLOW = 1.0
+#: camera frames further apart than this many of the take's median interval have frames missing
+#: between them (a multi-rate recording leaves out a frame where no marker was seen)
+DROPPED = 1.5
 
 
 class RecordingError(ValueError):
     """The recording is unreadable, inconsistent or does not belong to the model."""
+
+
+@dataclass(frozen=True)
+class Encoders:
+    """Every row of a multi-rate recording that carries an encoder cell, at the encoders' own rate:
+    ``time`` (K,) s, ``episode`` (K,) the take (numbered as the recording's), ``rest``, ``ctrl``,
+    ``length`` (K, ·) in the recording's column order (NaN where empty), ``lines`` (K,) file lines."""
+
+    time: np.ndarray
+    episode: np.ndarray
+    rest: np.ndarray
+    ctrl: np.ndarray
+    length: np.ndarray
+    lines: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -63,6 +89,8 @@ class Recording:
     ``episode`` (N,) int: the take of each row, renumbered 0, 1, ... in order of appearance.
     ``lines`` (N,) int: the file line of each row (for messages). ``noise_pos``: the marker noise
     std (m) when the recording states it (a ``# noise_pos=...`` comment line), else ``None``.
+    ``encoders``: the encoder samples at their own rate where it is not the frames' (a multi-rate
+    recording, :func:`split_rates`), else ``None`` (the frames' own cells are the samples).
     """
 
     time: np.ndarray
@@ -78,6 +106,7 @@ class Recording:
     source: str = "<recording>"
     lines: np.ndarray | None = None
     noise_pos: float | None = None
+    encoders: Encoders | None = None
 
     @property
     def n_frames(self) -> int:
@@ -106,9 +135,35 @@ class Recording:
         """Row indices of each take, in order."""
         return [np.flatnonzero(self.episode == e) for e in range(self.n_episodes)]
 
+    def rest_at(self, episode: int, times: np.ndarray) -> np.ndarray:
+        """(len(times), S) every ``.rest`` column at ``times`` (s) of take ``episode``: linear
+        between the encoder's samples (at their own rate in a multi-rate recording), held beyond its
+        first and last.  RecordingError where a column has no sample in the take."""
+        src = self.encoders if self.encoders is not None else self
+        rows = np.flatnonzero(src.episode == episode)
+        out = np.empty((np.size(times), len(self.rest_names)))
+        for j, name in enumerate(self.rest_names):
+            x = src.rest[rows, j]
+            ok = np.isfinite(x)
+            if not ok.any():
+                line = int(src.lines[rows[0]]) if src.lines is not None else int(rows[0]) + 2
+                raise RecordingError(f"'{self.source}', line {line}, column '{name}.rest': empty in the whole take; "
+                                     "the fit needs every cable's rest length")
+            out[:, j] = np.interp(times, src.time[rows][ok], x[ok])
+        return out
+
     def rate_hz(self) -> float:
         """Median sampling rate over all takes, Hz."""
         d = np.concatenate([np.diff(self.time[i]) for i in self.episodes()] or [np.zeros(0)])
+        return float(1.0 / np.median(d)) if d.size else float("nan")
+
+    def encoder_rate_hz(self) -> float:
+        """The encoders' median sampling rate over all takes, Hz (the frames' where they are read at
+        the frames)."""
+        if self.encoders is None:
+            return self.rate_hz()
+        enc = self.encoders
+        d = np.concatenate([np.diff(enc.time[enc.episode == e]) for e in range(self.n_episodes)] or [np.zeros(0)])
         return float(1.0 / np.median(d)) if d.size else float("nan")
 
     def missing_fraction(self) -> float:
@@ -233,7 +288,88 @@ def parse_recording(text: str, source: str = "<recording>") -> Recording:
         source=source, lines=lines_a, noise_pos=noise,
     )
     _check_values(rec, header)
-    return rec
+    return split_rates(rec)
+
+
+def split_rates(rec: Recording) -> Recording:
+    """A recording whose encoders run faster than its cameras, written as one table: the rows with
+    no marker sample and an encoder cell are encoder samples between the camera frames.  Returns
+    the camera frames as the recording's rows (the ``.rest`` and ``.length`` columns interpolated at
+    them, ``.ctrl`` held from its last sample), every encoder row kept in ``encoders``, and the
+    frames the camera dropped (where the frames lie further apart than :data:`DROPPED` of the take's
+    median interval) put back with every marker missing, so the fit treats them as the gap they are.
+    A recording without such rows is returned as it is."""
+    if not rec.marker_names:
+        return rec
+    seen = ~np.isnan(rec.markers[..., 0]).all(1)
+    enc = np.zeros(rec.n_frames, dtype=bool)
+    for arr in (rec.rest, rec.ctrl, rec.length):
+        if arr.size:
+            enc |= np.isfinite(arr).any(1)
+    if not (~seen & enc).any():
+        return rec
+    lines = rec.lines if rec.lines is not None else np.arange(rec.n_frames) + 2
+    encoders = Encoders(rec.time[enc], rec.episode[enc], rec.rest[enc], rec.ctrl[enc], rec.length[enc], lines[enc])
+    time, episode, frame_lines, markers = [], [], [], []
+    for e in range(rec.n_episodes):
+        rows = np.flatnonzero((rec.episode == e) & seen)
+        if rows.size == 0:
+            r = int(np.flatnonzero(rec.episode == e)[0])
+            raise RecordingError(f"'{rec.source}', line {lines[r]}: this take has encoder rows but no marker sample")
+        t = rec.time[rows]
+        keep = np.ones(rows.size, dtype=bool)
+        after = rows  # the file row each frame's messages name (a dropped frame: the next frame's)
+        if rows.size > 2:
+            h = float(np.median(np.diff(t)))
+            missed = np.r_[np.round(np.diff(t) / h).astype(np.int64) - 1, 0]
+            missed[np.diff(t, append=t[-1]) < DROPPED * h] = 0
+            if missed.any():  # dropped frames back, evenly spaced in their gap
+                at = np.repeat(np.arange(rows.size), missed + 1)
+                k = np.concatenate([np.arange(n + 1) for n in missed])
+                nxt = t[np.minimum(at + 1, rows.size - 1)]
+                t = t[at] + k * (nxt - t[at]) / (missed[at] + 1)
+                keep = k == 0
+                # a dropped frame at the table's row nearest to it (the frame's own row, or an encoder
+                # sample on the same clock), where one lies within a quarter interval
+                table = rec.time[rec.episode == e]
+                j = np.clip(np.searchsorted(table, t), 1, table.size - 1)
+                near = np.where(np.abs(table[j - 1] - t) <= np.abs(table[j] - t), table[j - 1], table[j])
+                t = np.where(~keep & (np.abs(near - t) <= 0.25 * h), near, t)
+                after = np.where(keep, rows[at], rows[np.minimum(at + 1, rows.size - 1)])
+                rows = rows[at]
+        m = rec.markers[rows].copy()
+        m[~keep] = np.nan
+        time.append(t)
+        episode.append(np.full(t.size, e, dtype=np.int64))
+        frame_lines.append(lines[after])
+        markers.append(m)
+    frames = replace(rec, time=np.concatenate(time), episode=np.concatenate(episode), markers=np.concatenate(markers),
+                     lines=np.concatenate(frame_lines))
+    return with_encoders(frames, encoders)
+
+
+def with_encoders(rec: Recording, encoders: Encoders) -> Recording:
+    """``rec`` (its rows the camera frames) with the encoder samples ``encoders`` at their own rate:
+    the frames' ``.rest`` and ``.length`` cells linear between the samples (held beyond the first and
+    last), ``.ctrl`` held from its last sample (empty before the first)."""
+    def at_frames(arr: np.ndarray, hold: bool) -> np.ndarray:
+        out = np.full((rec.n_frames, arr.shape[1]), np.nan)
+        for e in range(rec.n_episodes):
+            f, r = rec.episode == e, encoders.episode == e
+            for j in range(arr.shape[1]):
+                x, tx = arr[r, j], encoders.time[r]
+                ok = np.isfinite(x)
+                if not ok.any():
+                    continue
+                if hold:
+                    i = np.searchsorted(tx[ok], rec.time[f], side="right") - 1
+                    out[f, j] = np.where(i >= 0, x[ok][np.maximum(i, 0)], np.nan)
+                else:
+                    out[f, j] = np.interp(rec.time[f], tx[ok], x[ok])
+        return out
+
+    return replace(rec, rest=at_frames(encoders.rest, False), ctrl=at_frames(encoders.ctrl, True),
+                   length=at_frames(encoders.length, False), encoders=encoders)
 
 
 def _check_rate(time: np.ndarray, episode: np.ndarray, lines: np.ndarray, source: str) -> None:
@@ -383,14 +519,17 @@ def _check_units(rec: Recording, topology: Topology, sites: dict[str, int]) -> N
 
 # ---------------------------------------------------------------------- writing
 def save_recording(path: str | os.PathLike, rec: Recording, precision: int = 7) -> None:
-    """Write ``rec`` as a recording CSV, atomically (a temporary file renamed into place)."""
+    """Write ``rec`` as a recording CSV, atomically (a temporary file renamed into place); a
+    multi-rate recording as its frames and encoder rows in time order (:func:`split_rates`)."""
+    time, episode, markers, rest, ctrl, length = (rec.time, rec.episode, rec.markers, rec.rest, rec.ctrl, rec.length) \
+        if rec.encoders is None else _merged(rec)
     header = ["time", "episode"]
-    blocks = [rec.time[:, None], rec.episode[:, None].astype(float)]
+    blocks = [time[:, None], episode[:, None].astype(float)]
     for m, n in enumerate(rec.marker_names):
         header += [f"{n}.{a}" for a in _AXES]
-        blocks.append(rec.markers[:, m])
-    for kind, names, arr in (("rest", rec.rest_names, rec.rest), ("ctrl", rec.ctrl_names, rec.ctrl),
-                             ("length", rec.length_names, rec.length)):
+        blocks.append(markers[:, m])
+    for kind, names, arr in (("rest", rec.rest_names, rest), ("ctrl", rec.ctrl_names, ctrl),
+                             ("length", rec.length_names, length)):
         header += [f"{n}.{kind}" for n in names]
         if names:
             blocks.append(arr)
@@ -406,6 +545,28 @@ def save_recording(path: str | os.PathLike, rec: Recording, precision: int = 7) 
                               for v, d in zip(row, digits)) + "\n")
 
     atomic_write(path, write)
+
+
+def _merged(rec: Recording) -> tuple[np.ndarray, ...]:
+    """The rows of a multi-rate recording's table: time, episode, markers, rest, ctrl, length of its
+    frames and its encoder rows in time order within each take (a frame at an encoder sample's
+    instant shares its row; a dropped frame is a row with every marker cell empty)."""
+    enc = rec.encoders
+    parts: list[list[np.ndarray]] = [[] for _ in range(6)]
+    for e in range(rec.n_episodes):
+        f, r = np.flatnonzero(rec.episode == e), np.flatnonzero(enc.episode == e)
+        t = np.union1d(rec.time[f], enc.time[r])
+        m = np.full((t.size,) + rec.markers.shape[1:], np.nan)
+        m[np.searchsorted(t, rec.time[f])] = rec.markers[f]
+        i = np.searchsorted(t, enc.time[r])
+        cells = []
+        for arr in (enc.rest, enc.ctrl, enc.length):
+            out = np.full((t.size, arr.shape[1]), np.nan)
+            out[i] = arr[r]
+            cells.append(out)
+        for k, a in enumerate((t, np.full(t.size, e), m, *cells)):
+            parts[k].append(a)
+    return tuple(np.concatenate(p) for p in parts)
 
 
 def site_world_positions(topology: Topology, pos: np.ndarray, quat: np.ndarray,

@@ -4,7 +4,9 @@
   ``c3d``): point labels are marker names (a ``Subject:`` prefix is dropped), units from
   ``POINT:UNITS`` (``mm`` or ``m``), missing samples where the point's residual is negative or its
   coordinates are not finite.  Analog channels labelled ``<tendon>.rest``, ``<actuator>.ctrl`` or
-  ``<tendon>.length`` become those columns (taken at the point frames).  C3D is z-up by custom;
+  ``<tendon>.length`` become those columns: at the point frames where the analogs run at the
+  points' rate, else as encoder samples at their own rate (:class:`~identified.recording.Encoders`,
+  interpolated at the frames).  C3D is z-up by custom;
   ``up="y"`` converts a y-up file.
 * **Motive CSV** (OptiTrack's export): the header block (``Length Units``), the ``Type`` / ``Name``
   / ``Position`` rows, then ``Frame, Time (Seconds), X, Y, Z, ...``.  Only ``Marker`` (and
@@ -25,7 +27,7 @@ import re
 
 import numpy as np
 
-from identified.recording.format import Recording, RecordingError, not_text
+from identified.recording.format import Encoders, Recording, RecordingError, not_text, with_encoders
 
 __all__ = ["read_c3d", "read_motive_csv"]
 
@@ -80,16 +82,26 @@ def read_c3d(path: str | os.PathLike, up: str = "z") -> Recording:
     names = [_marker_name(lbl, k) for k, lbl in enumerate(labels)]
     cols: dict[str, dict[str, np.ndarray]] = {"rest": {}, "ctrl": {}, "length": {}}
     alabels = list(params.get("ANALOG", {}).get("LABELS", {}).get("value", []) or [])
+    first = int(c["header"]["points"].get("first_frame", 0))
+    time = (first + np.arange(F)) / rate
+    per = 1
     if alabels:
         analogs = np.asarray(c["data"]["analogs"], dtype=float)[0]  # (channels, samples)
         per = max(1, analogs.shape[-1] // F)
         for k, lbl in enumerate(alabels):
             base, _, kind = lbl.strip().rpartition(".")
             if kind in cols and base:
-                cols[kind][base] = analogs[k, ::per][:F]
-    first = int(c["header"]["points"].get("first_frame", 0))
-    time = (first + np.arange(F)) / rate
-    return _recording(p, time, np.zeros(F, dtype=np.int64), names, markers, cols)
+                cols[kind][base] = analogs[k, :per * F]
+    if per == 1:
+        return _recording(p, time, np.zeros(F, dtype=np.int64), names, markers, cols)
+    # analogs faster than the points: every sample kept as the encoders' own, the frames' cells from them
+    atime = (first + np.arange(per * F) / per) / rate
+    stack = lambda d: np.stack(list(d.values()), axis=1) if d else np.zeros((per * F, 0))
+    enc = Encoders(atime, np.zeros(per * F, dtype=np.int64), stack(cols["rest"]), stack(cols["ctrl"]),
+                   stack(cols["length"]))
+    frames = _recording(p, time, np.zeros(F, dtype=np.int64), names, markers,
+                        {kind: {n: np.full(F, np.nan) for n in d} for kind, d in cols.items()})
+    return with_encoders(frames, enc)
 
 
 def read_motive_csv(path: str | os.PathLike, up: str = "y") -> Recording:

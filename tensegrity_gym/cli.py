@@ -54,6 +54,10 @@ def cmd_collect(args: argparse.Namespace) -> None:
     if args.record is not None:
         _collect_recording(args, cfg)
         return
+    given = [o for o in _RECORD_OPTIONS if _given(args, o) not in (None, False)]
+    if given:
+        raise CommandError(f"{given[0]} is for a recording (`tensegrity collect --record markers --out R.csv`); "
+                           "a dataset holds the plant's states at every step")
     data = collect(args.model, cfg, progress=not args.quiet)
     save_dataset(args.out, data)
     print(f"wrote {data.n_episodes} episodes x {data.n_steps} steps ({data.n_rods} rods, "
@@ -75,15 +79,24 @@ def _collect_recording(args: argparse.Namespace, cfg) -> None:
     if any((args.noise_vel, args.noise_quat, args.noise_angvel)):
         raise CommandError("--noise-vel/--noise-quat/--noise-angvel: a recording holds markers only; give "
                            "--noise-pos")
-    rec = RecordConfig(rate=args.rate, noise_pos=args.noise_pos, dropout=args.dropout,
-                       unlabelled=args.unlabelled, ghosts=args.ghosts)
-    rec.validate(1e-12)  # option values before the plant runs (the rate against dt after)
+    if args.ghosts and not args.unlabelled:
+        raise CommandError("--ghosts: spurious markers come with anonymous columns; add --unlabelled")
+    options = {field: _given(args, name) for name, field in _RECORD_OPTIONS.items()}
+    rec = RecordConfig(noise_pos=args.noise_pos, **{field: v for field, v in options.items() if v is not None})
+    rec.validate(1e-12)  # option values before the plant runs (the rates against dt after)
     clean = collect(args.model, cfg.__class__(**{**cfg.__dict__, "noise_pos": 0.0}), progress=not args.quiet)
     r = record_markers(clean, args.model, rec, seed=args.seed)
     save_recording(args.out, r)
-    print(f"wrote {r.n_episodes} takes x {r.n_frames // max(r.n_episodes, 1)} frames at {args.rate:g} Hz "
+    encoders = "" if rec.encoder_rate is None else f" at {rec.encoder_rate:g} Hz"
+    print(f"wrote {r.n_episodes} takes x {r.n_frames // max(r.n_episodes, 1)} frames at {rec.rate:g} Hz "
           f"({len(r.marker_names)} markers, {100 * r.missing_fraction():.1f} % missing, "
-          f"{len(r.rest_names)} encoder rest lengths) to {args.out}")
+          f"{len(r.rest_names)} encoder rest lengths{encoders}) to {args.out}")
+
+
+#: ``collect``'s options for a recording -> their :class:`~tensegrity_gym.collect.RecordConfig` fields
+#: (``None`` when not given: the config's default)
+_RECORD_OPTIONS = {"--rate": "rate", "--encoder-rate": "encoder_rate", "--dropout": "dropout",
+                   "--unlabelled": "unlabelled", "--ghosts": "ghosts"}
 
 
 def _summary_recording(args: argparse.Namespace) -> None:
@@ -98,14 +111,15 @@ def _summary_recording(args: argparse.Namespace) -> None:
     info = {"takes": r.n_episodes, "frames": r.n_frames, "rate_hz": r.rate_hz(), "duration_s": span,
             "markers": list(r.marker_names), "unlabelled": r.unlabelled, "missing": r.missing_fraction(),
             "rest": list(r.rest_names), "ctrl": list(r.ctrl_names), "length": list(r.length_names),
-            "noise_pos": r.noise_pos, "checked_against": args.model}
+            "encoder_rate_hz": r.encoder_rate_hz(), "noise_pos": r.noise_pos, "checked_against": args.model}
     if args.json:
         print(json.dumps(json_safe(info), indent=2, allow_nan=False))
         return
     print(f"{args.data}: {r.n_episodes} takes, {r.n_frames} frames at {info['rate_hz']:.4g} Hz "
           f"({sum(span):.3g} s), {len(r.marker_names)} {'unlabelled ' if r.unlabelled else ''}markers, "
           f"{100 * info['missing']:.2f} % of samples missing")
-    print(f"  {len(r.rest_names)} encoder rest lengths, {len(r.ctrl_names)} commands, {len(r.length_names)} "
+    at = "" if r.encoders is None else f" at {info['encoder_rate_hz']:.4g} Hz"
+    print(f"  {len(r.rest_names)} encoder rest lengths{at}, {len(r.ctrl_names)} commands, {len(r.length_names)} "
           f"cable lengths; marker noise {'not stated' if r.noise_pos is None else f'{r.noise_pos:g} m'}"
           + (f"; matches {args.model}" if args.model else ""))
 
@@ -685,13 +699,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--record", default=None, metavar="markers",
                    help="write a recording (CSV of end-cap markers and encoder rest lengths) instead of a dataset: "
                    "what a lab measures, to rehearse the lab pipeline")
-    c.add_argument("--rate", type=finite_float(0.0, 1e6, "Hz", True), default=100.0, metavar="HZ",
+    c.add_argument("--rate", type=finite_float(0.0, 1e6, "Hz", True), default=None, metavar="HZ",
                    help="with --record: marker sampling rate (default 100 Hz)")
-    c.add_argument("--dropout", type=finite_float(0.0, 0.99, "", False), default=0.0, metavar="P",
+    c.add_argument("--encoder-rate", type=finite_float(0.0, 1e6, "Hz", True), default=None, metavar="HZ",
+                   help="with --record: the encoders' own rate, written as rows between the camera frames "
+                   "(default: read at the frames)")
+    c.add_argument("--dropout", type=finite_float(0.0, 0.99, "", False), default=None, metavar="P",
                    help="with --record: share of marker samples missing, in runs of ~5 frames (default 0)")
     c.add_argument("--unlabelled", action="store_true",
                    help="with --record: anonymous marker columns (marker<N>) whose identities swap every 0.5 s")
-    c.add_argument("--ghosts", type=count(0), default=0, metavar="N",
+    c.add_argument("--ghosts", type=count(0), default=None, metavar="N",
                    help="with --record --unlabelled: spurious markers per frame (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_collect)

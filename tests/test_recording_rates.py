@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -142,3 +147,23 @@ def test_c3d_analogs_faster_than_the_points(tmp_path):
     np.testing.assert_allclose(rec.encoders.time, t, atol=1e-12)
     np.testing.assert_allclose(rec.rest[:, 0], 1.0 + (np.arange(5) / 100) ** 2, atol=1e-6)
     np.testing.assert_allclose(rec.rest_at(0, np.array([0.0135])), [[1.0 + 0.5 * (0.013 ** 2 + 0.014 ** 2)]], atol=1e-6)
+
+
+def test_cli_collect_encoder_rate_and_options_without_record(robot, tmp_path):
+    path = robot[0]
+    run = lambda *a: subprocess.run([sys.executable, "-m", "tensegrity_gym.cli", *a], check=False, capture_output=True,
+                                    text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    out = tmp_path / "r.csv"
+    r = run("collect", "--model", path, "--episodes", "1", "--steps", "600", "--record", "markers", "--rate", "50",
+            "--encoder-rate", "500", "--out", str(out), "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "24 encoder rest lengths at 500 Hz" in r.stdout
+    s = run("summary", str(out), "--json")
+    info = json.loads(s.stdout)
+    assert info["frames"] == 30 and info["rate_hz"] == pytest.approx(50.0) and info["encoder_rate_hz"] == pytest.approx(500.0)
+    for bad, words in ((("--rate", "30", "--out", str(tmp_path / "d.npz")), "--rate is for a recording"),
+                       (("--dropout", "0.1", "--out", str(tmp_path / "d.npz")), "--dropout is for a recording"),
+                       (("--record", "markers", "--encoder-rate", "2000", "--out", str(out)), "--encoder-rate must be in"),
+                       (("--record", "markers", "--ghosts", "1", "--out", str(out)), "add --unlabelled")):
+        r = run("collect", "--model", path, "--episodes", "1", "--steps", "100", *bad, "--quiet")
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and words in r.stderr, r.stderr

@@ -269,7 +269,8 @@ class RecordConfig:
 
 def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, seed: int = 0):
     """The recording a lab would make of ``data`` (clean states of the plant): markers at every rod
-    site sampled at ``rec.rate``, noisy, with gaps in runs; every tendon's rest length (the
+    site sampled at ``rec.rate``, noisy, with gaps in runs; the commands sent to the MuJoCo
+    actuators (``.ctrl``, read at the encoders' rate: the lab's own log); every tendon's rest length (the
     actuated cables' from their encoders, a passive spring's as measured once).  Returns an :class:`identified.recording.Recording`."""
     from identified.recording import Encoders, Recording, site_world_positions
     from identified.topology import Topology
@@ -280,7 +281,7 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     sites = tuple(s for r in topo.rods for s in r.sites)
     T = data.n_steps
     idx = _sample_steps(T, data.dt, rec.rate)
-    times, episodes, marks, rests = [], [], [], []
+    times, episodes, marks, rests, ctrls = [], [], [], [], []
     for e in range(data.n_episodes):
         m = site_world_positions(topo, data.pos[e, idx], data.quat[e, idx], sites)
         m = m + rng.normal(0.0, rec.noise_pos, m.shape) if rec.noise_pos else m
@@ -289,6 +290,7 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
         episodes.append(np.full(idx.size, e))
         marks.append(m)
         rests.append(data.rest_length[e][idx])
+        ctrls.append(data.ctrl[e][idx] if data.actuator_names else np.zeros((idx.size, 0)))
     markers = np.concatenate(marks)
     names = sites
     if rec.unlabelled:
@@ -298,10 +300,12 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
         eidx = _sample_steps(T, data.dt, rec.encoder_rate)
         E, K = data.n_episodes, eidx.size
         encoders = Encoders(time=np.tile(eidx * data.dt, E), episode=np.repeat(np.arange(E), K),
-                            rest=data.rest_length[:, eidx].reshape(E * K, -1), ctrl=np.zeros((E * K, 0)),
+                            rest=data.rest_length[:, eidx].reshape(E * K, -1),
+                            ctrl=data.ctrl[:, eidx].reshape(E * K, -1) if data.actuator_names else np.zeros((E * K, 0)),
                             length=np.zeros((E * K, 0)))
     return Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
                      markers=markers, rest_names=tuple(data.tendon_names), rest=np.concatenate(rests),
+                     ctrl_names=tuple(data.actuator_names), ctrl=np.concatenate(ctrls),
                      noise_pos=rec.noise_pos, encoders=encoders)
 
 

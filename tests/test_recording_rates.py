@@ -167,3 +167,14 @@ def test_cli_collect_encoder_rate_and_options_without_record(robot, tmp_path):
                        (("--record", "markers", "--ghosts", "1", "--out", str(out)), "add --unlabelled")):
         r = run("collect", "--model", path, "--episodes", "1", "--steps", "100", *bad, "--quiet")
         assert r.returncode == 2 and r.stderr.count("\n") == 1 and words in r.stderr, r.stderr
+
+
+def test_a_command_is_held_from_its_own_instant():
+    """``.ctrl`` at an engine step's instant is the sample written for that instant, though the
+    step's time (``t0 + k dt``) and the CSV's nine decimals differ in the last bit."""
+    t = 0.0137 + 0.001 * np.arange(200)
+    rows = "".join(f"{x:.9f},0,0,0,0,0,0,1.7,1.0,{k}\n" for k, x in enumerate(t))
+    rec = parse_recording(HEAD + rows, "r.csv")
+    below = np.flatnonzero(t < rec.time)  # instants that fall a rounding error before their row
+    assert below.size > 0
+    np.testing.assert_array_equal(rec.ctrl_at(0, t)[:, 0], np.arange(200))

@@ -49,8 +49,8 @@ from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geo
 from identified.rotation import quat_multiply, quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "recording_dataset", "recording_states",
-           "states_from_recording"]
+__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "mujoco_actuators", "recording_dataset",
+           "recording_states", "states_from_recording"]
 
 GRAVITY = (0.0, 0.0, -9.81)
 #: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
@@ -98,11 +98,17 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
     recording itself), carried as ``Dataset.replicas`` for the fit's errors in variables
     (:func:`noise_replicas`).  ``MarkerStates.marker_noise`` is measured (:func:`marker_noise`)
     where there are replicas or ``measure_noise`` asks for it."""
-    check_recording(rec, topology)
+    motors = mujoco_actuators(topology)
+    check_recording(rec, topology, motors)
     missing = [s for s in topology.spring_names if s not in rec.rest_names]
     if missing:
         raise RecordingError(f"'{rec.source}', line 1: no '{missing[0]}.rest' column: the fit needs every cable's "
                              f"rest length (encoder), {len(missing)} tendon(s) have none")
+    silent = [a for a in motors if a not in rec.ctrl_names]
+    if silent:
+        raise RecordingError(f"'{rec.source}', line 1: no '{silent[0]}.ctrl' column: the model's MuJoCo actuators pull "
+                             f"on its cables, and the fit needs the commands they were sent ({len(silent)} of "
+                             f"{len(motors)} have none)")
     geos = rod_geometries(topology, tuple(rec.marker_names))
     col = {n: k for k, n in enumerate(rec.marker_names)}
     unobs, notes = [], []
@@ -133,13 +139,14 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         pos, quat = _poses(rec, rows, geos, col, grid, lam, smoothing, take)
         rest = rec.rest_at(int(rec.episode[rows[0]]), grid[1:])[:, [rec.rest_names.index(s) for s in topology.spring_names]]
         weight = _seen_weight(rec, rows, geos, col, grid[1:], _partners(topology))
-        pieces.append(_states(pos, quat, dt) + (rest, weight))
+        ctrl = rec.ctrl_at(int(rec.episode[rows[0]]), grid[1:])[:, [rec.ctrl_names.index(a) for a in motors]]
+        pieces.append(_states(pos, quat, dt) + (rest, weight, ctrl))
         starts.append(float(grid[1]))
         spans.append((rows, grid))
     T = min(p[0].shape[0] for p in pieces) - 1
     if T < 1:
         raise RecordingError(f"'{rec.source}': every take is too short to fit")
-    data = _assemble(rec, topology, pieces, T, dt, gravity)
+    data = _assemble(rec, topology, pieces, T, dt, gravity, motors)
     sigma = None
     if replicas > 0 or measure_noise:
         sigma = marker_noise(rec, spans, geos, col, smoothing)
@@ -200,9 +207,16 @@ def marker_noise(rec: Recording, spans: list, geos: list[RodGeometry], col: dict
     return float(np.sqrt(sq / max(n, 1)))
 
 
+def mujoco_actuators(topology: Topology) -> tuple[str, ...]:
+    """The names of the model's MuJoCo tendon actuators (a recording's ``.ctrl`` columns; the
+    project's rest-length motors are read from ``.rest``)."""
+    return tuple(a.name for a in topology.actuators if a.kind != "rest_length")
+
+
 def _assemble(rec: Recording, topology: Topology, pieces: list, T: int, dt: float,
-              gravity: tuple[float, float, float]) -> Dataset:
-    """The dataset of the takes' reconstructed ``pieces``, each cut to ``T`` steps."""
+              gravity: tuple[float, float, float], motors: tuple[str, ...] = ()) -> Dataset:
+    """The dataset of the takes' reconstructed ``pieces``, each cut to ``T`` steps; ``motors``:
+    the MuJoCo actuators whose commands the pieces carry."""
     cut = lambda k, s: np.stack([p[k][:s] for p in pieces])
     R = topology.n_rods
     E = len(pieces)
@@ -212,7 +226,8 @@ def _assemble(rec: Recording, topology: Topology, pieces: list, T: int, dt: floa
                    tendon_names=topology.spring_names, actuated_names=act,
                    pos=cut(0, T + 1), quat=cut(1, T + 1), vel=cut(2, T + 1), angvel=cut(3, T + 1),
                    command=rest[..., [topology.spring_names.index(a) for a in act]], rest_length=rest,
-                   push_force=np.zeros((E, T, R, 3)), push_point=np.zeros((E, T, R, 3)), weight=cut(5, T))
+                   push_force=np.zeros((E, T, R, 3)), push_point=np.zeros((E, T, R, 3)), weight=cut(5, T),
+                   actuator_names=motors, ctrl=cut(6, T))
     try:
         data.validate()
     except DatasetError as exc:

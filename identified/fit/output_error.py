@@ -487,6 +487,11 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     ``block`` ``(b, B)``: of the windows spread over the recording, every ``B``-th from the ``b``-th
     (block ``b`` of ``B`` interleaved blocks; :mod:`identified.fit.marker_blocks`).
     Returns ``(windows, available, problem, dx, active)``."""
+    motors = [a.name for a in model.topology.actuators if a.kind != "rest_length"]
+    if motors:
+        raise RecordingError(f"'{rec.source}': the marker fit through the engine does not step MuJoCo actuators "
+                             f"({', '.join(motors[:3])}{', ...' if len(motors) > 3 else ''}); fit this robot's "
+                             "recording without it (no --refine)")
     if contact is not None:
         order = 0
     win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,

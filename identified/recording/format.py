@@ -152,6 +152,28 @@ class Recording:
             out[:, j] = np.interp(times, src.time[rows][ok], x[ok])
         return out
 
+    def ctrl_at(self, episode: int, times: np.ndarray) -> np.ndarray:
+        """(len(times), U) every ``.ctrl`` column at ``times`` (s) of take ``episode``: each command
+        held from its last sample at or before the instant (a sample within 1 ns counts as at it).
+        RecordingError where an instant comes before the column's first sample in the take."""
+        src = self.encoders if self.encoders is not None else self
+        rows = np.flatnonzero(src.episode == episode)
+        times = np.asarray(times, dtype=float)
+        out = np.empty((times.size, len(self.ctrl_names)))
+        for j, name in enumerate(self.ctrl_names):
+            x = src.ctrl[rows, j]
+            ok = np.isfinite(x)
+            i = np.searchsorted(src.time[rows][ok], times + 1e-9, side="right") - 1
+            if not ok.any() or i.min() < 0:
+                r = rows[np.flatnonzero(ok)[0]] if ok.any() else rows[0]
+                line = int(src.lines[r]) if src.lines is not None else int(r) + 2
+                what = (f"its first command ({src.time[r]:g} s) comes after the take's first state "
+                        f"({times.min():g} s)") if ok.any() else "empty in the whole take"
+                raise RecordingError(f"'{self.source}', line {line}, column '{name}.ctrl': {what}; the fit needs "
+                                     "every MuJoCo actuator's command at every step")
+            out[:, j] = x[ok][i]
+        return out
+
     def rate_hz(self) -> float:
         """Median sampling rate over all takes, Hz."""
         d = np.concatenate([np.diff(self.time[i]) for i in self.episodes()] or [np.zeros(0)])

@@ -287,6 +287,11 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     for w in model.metrics.get("warnings", []):
         print(f"tensegrity: warning: {w}", file=sys.stderr)
     r = model.metrics["recording"]
+    lengths = [v for v in r.get("cable_lengths", {}).values() if v["offset_m"] is not None]
+    if lengths and not args.quiet:
+        off = [1e3 * v["offset_m"] for v in lengths]
+        print(f"measured cable lengths against the markers' ({len(lengths)} cables): offsets {min(off):.3g} to "
+              f"{max(off):.3g} mm, RMS after them up to {1e3 * max(v['rms_m'] for v in lengths):.3g} mm")
     added = ", ".join(e["name"] for e in model.effects) or "none"
     print(f"wrote identified model to {args.out} (from {r['frames']} frames at {r['rate_hz']:.4g} Hz, "
           f"{100 * r['missing']:.1f} % missing; fit {model.metrics['fit_seconds']:.3g} s, effects: {added})")

@@ -8,7 +8,9 @@ import dataclasses
 import mujoco
 import numpy as np
 import pytest
+import torch
 
+from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.fit.identify import ScaleSpec
 from identified.fit.markers import fit_recording, states_from_recording
 from identified.fit.output_error import window_problem
@@ -81,6 +83,13 @@ def fitted(robot):
     data = collect(path, CollectConfig(episodes=6, steps=5000, seed=2))
     rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02, encoder_rate=1000.0),
                          seed=2)
+    # a stretch sensor on cable3 whose zero is 2 mm off: checked against the markers, not fitted
+    steps = np.round(rec.time / data.dt).astype(int)
+    t = lambda x: torch.as_tensor(x[rec.episode, steps], dtype=torch.float64)
+    ends = endpoint_kinematics(Topology.from_mjcf(path), t(data.pos), t(data.quat), t(data.vel), t(data.angvel))
+    length = spring_geometry(ends).length.numpy()[:, [3]] + 0.002
+    rec = dataclasses.replace(rec, length_names=("cable3",), length=length,
+                              encoders=dataclasses.replace(rec.encoders, length=np.full((rec.encoders.time.size, 1), np.nan)))
     model = fit_recording(rec, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
     return path, rec, model
 
@@ -103,3 +112,12 @@ def test_the_marker_fit_refuses_actuators(fitted):
     with pytest.raises(RecordingError, match=r"does not step MuJoCo actuators \(pull0, pull1\); fit this robot's "
                                              r"recording without it \(no --refine\)"):
         window_problem(model, rec, ms.data, ms.starts, path, 0.001)
+
+
+def test_the_fit_reports_measured_lengths(fitted):
+    """A recording's ``.length`` columns are checked against the markers' lengths (1 mm noise: the
+    2 mm zero comes back to a tenth of a millimetre), a cable that follows raises no warning."""
+    _, _, model = fitted
+    report = model.metrics["recording"]["cable_lengths"]
+    assert list(report) == ["cable3"] and report["cable3"]["offset_m"] == pytest.approx(0.002, abs=1e-4)
+    assert report["cable3"]["correlation"] > 0.99 and not [w for w in model.metrics["warnings"] if "cable3" in w]

@@ -521,6 +521,12 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
                                   "noise_replicas": len(ms.data.replicas), "marker_noise": ms.marker_noise}
     if damping[0] is not None:
         model.metrics["recording"]["friction_damping"] = damping[0]
+    if rec.length_names:  # the cables' measured lengths against the markers' (a check; the fit needs none)
+        from identified.fit.cable_lengths import cable_length_check
+
+        report, warnings = cable_length_check(rec, ms.data, ms.starts, topo)
+        model.metrics["recording"]["cable_lengths"] = report
+        model.metrics.setdefault("warnings", []).extend(warnings)
     if output_error:
         from identified.fit.output_error import refine_markers
 

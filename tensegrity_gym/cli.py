@@ -101,10 +101,10 @@ _RECORD_OPTIONS = {"--rate": "rate", "--encoder-rate": "encoder_rate", "--dropou
 
 def _summary_recording(args: argparse.Namespace) -> None:
     from identified.fit.markers import mujoco_actuators
-    from identified.recording import check_recording, load_recording
+    from identified.recording import check_recording
     from identified.topology import Topology
 
-    r = load_recording(args.data)
+    r = _load_recording(args)
     if args.model is not None:
         _check_readable(args.model)
         topology = Topology.from_mjcf(args.model)
@@ -129,7 +129,7 @@ def _summary_recording(args: argparse.Namespace) -> None:
 def cmd_summary(args: argparse.Namespace) -> None:
     from identified.dataset import load_dataset
 
-    if _is_recording(args.data):
+    if _is_recording(args.data_files[0]):
         _summary_recording(args)
         return
     d = load_dataset(args.data)
@@ -178,10 +178,10 @@ def _fit(args: argparse.Namespace) -> None:
 
     parse_effects(args.effects)  # a bad name fails before anything is read
     _check_readable(args.model)
-    _check_writable(args.out, inputs={"the dataset": args.data, "--model": args.model})
+    _check_writable(args.out, inputs={**_data_inputs(args), "--model": args.model})
     masses = tuple(_parse_mass(m) for m in (args.mass or []))
     scale = ScaleSpec(masses=masses, total_mass=args.total_mass, pushes_in_newton=not args.pushes_unscaled)
-    if _is_recording(args.data):
+    if _is_recording(args.data_files[0]):
         _fit_recording(args, scale)
         return
     for name in _marker_options(args):
@@ -213,6 +213,36 @@ def _strict(args: argparse.Namespace, model) -> None:
         raise CommandError(f"--strict: the fit leaves {res['relative_one_step']:.3g} of the recorded wrench "
                            f"unexplained on its own data (above {res['threshold']:g}); '{args.out}' is written "
                            "for inspection")
+
+
+def _takes(args: argparse.Namespace) -> None:
+    """A command's ``data`` given as one file or several: several are the takes of one recording
+    (``args.data_files``; ``args.data`` names them in messages)."""
+    files = getattr(args, "data", None)
+    if not isinstance(files, list):
+        return
+    if len(files) > 1:
+        for p in files:
+            if not _is_recording(p):
+                raise CommandError(f"'{p}' is not a recording (.csv, .c3d): several files are the takes of one "
+                                   "recording; give a dataset alone")
+    args.data_files = files
+    args.data = files[0] if len(files) == 1 else " ".join(files)
+
+
+def _load_recording(args: argparse.Namespace):
+    """The recording the command was given: its files read and checked one by one, then joined as
+    its takes (:func:`identified.recording.join_recordings`)."""
+    from identified.recording import join_recordings, load_recording
+
+    return join_recordings([load_recording(p) for p in args.data_files])
+
+
+def _data_inputs(args: argparse.Namespace) -> dict[str, str]:
+    """The command's data files as inputs an output must not overwrite."""
+    if len(args.data_files) == 1:
+        return {"the dataset": args.data_files[0]}
+    return {f"the recording '{p}'": p for p in args.data_files}
 
 
 def _is_recording(path: str) -> bool:
@@ -253,7 +283,6 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     from identified.fit.markers import fit_recording
     from identified.fit.pipeline import parse_effects
     from identified.model import save_model
-    from identified.recording import load_recording
 
     if args.solver != "lstsq" or args.integrator not in (None, "euler") or args.scheme:
         raise CommandError("--solver, --integrator and --scheme are for datasets; a recording is fitted "
@@ -263,9 +292,9 @@ def _fit_recording(args: argparse.Namespace, scale) -> None:
     if args.start is not None:
         _check_readable(args.start)
     if args.checkpoint is not None:
-        given = {"the recording": args.data, "--model": args.model, "--out": args.out, "--start": args.start}
+        given = {**_data_inputs(args), "--model": args.model, "--out": args.out, "--start": args.start}
         _check_writable(args.checkpoint, "--checkpoint", inputs={k: v for k, v in given.items() if v})
-    rec = load_recording(args.data)
+    rec = _load_recording(args)
 
     def fit(effects: str | list[str]):
         return fit_recording(rec, args.model, dt=args.dt, weak_window=args.weak_window or None, effects=effects,
@@ -336,7 +365,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     from identified.model import load_model
 
     if args.out is not None:  # a report folder: never one of the inputs, never over a file
-        inputs = [p for p in (args.data, args.identified, args.model) if p]
+        inputs = [p for p in (*args.data_files, args.identified, args.model) if p]
         if any(os.path.realpath(args.out) == os.path.realpath(p) for p in inputs):
             raise CommandError(f"--out '{args.out}' is one of the command's inputs; give a new folder for the report")
         if os.path.exists(args.out) and not os.path.isdir(args.out):
@@ -344,11 +373,10 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     model = load_model(args.identified)
     scoring: dict[str, int] = {}
     rec = None
-    if _is_recording(args.data):  # rod states reconstructed from the markers (identified.fit.markers)
+    if _is_recording(args.data_files[0]):  # rod states reconstructed from the markers (identified.fit.markers)
         from identified.fit.markers import diagnosis_options, recording_states
-        from identified.recording import load_recording
 
-        rec = load_recording(args.data)
+        rec = _load_recording(args)
         states = recording_states(rec, model, noise=True)
         data = states.data
         scoring = diagnosis_options(rec, model.dt)  # the candidates scored as the fit reads a recording
@@ -410,12 +438,12 @@ def cmd_predict(args: argparse.Namespace) -> None:
     from identified.predict import rollout_errors, write_error_plot
 
     if args.plot:
-        _check_writable(args.plot, "--plot", {"the dataset": args.data, "--identified": args.identified})
+        _check_writable(args.plot, "--plot", {**_data_inputs(args), "--identified": args.identified})
     model = load_model(args.identified)
-    if _is_recording(args.data):
+    if _is_recording(args.data_files[0]):
         from identified.fit.markers import recording_dataset
 
-        data = recording_dataset(args.data, model)
+        data = recording_dataset(_load_recording(args), model)
     else:
         data = load_dataset(args.data)
     errs = rollout_errors(model, data, horizon=args.horizon)
@@ -721,7 +749,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_collect)
 
     s = sub.add_parser("summary", help="summarise a dataset", description="Validate a dataset and summarise it.")
-    s.add_argument("data", help="dataset .npz, or a recording .csv/.c3d")
+    s.add_argument("data", nargs="+", help="dataset .npz, or a recording .csv/.c3d (several files: the takes of one "
+                   "recording)")
     s.add_argument("--model", default=None, help="for a recording: check it against this MJCF (names, units)")
     s.add_argument("--json", action="store_true", help="machine-readable output")
     s.set_defaults(func=cmd_summary)
@@ -729,7 +758,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", help="identify K, c, M, I (and h) from a dataset",
                        description="Identify spring stiffness and damping, rod mass and inertia and the "
                        "control-force scale from rod states alone, by linear least squares on 1D-reduced features.")
-    f.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (markers, encoder rest lengths)")
+    f.add_argument("data", nargs="+", help="dataset .npz, or a recording .csv/.c3d (markers, encoder rest lengths; "
+                   "several files: the takes of one recording)")
     f.add_argument("--model", required=True, help="MJCF file: only topology and geometry are read")
     f.add_argument("--out", required=True, help="output identified-model .json")
     f.add_argument("--regressors", choices=("single", "multiple"), default="multiple",
@@ -806,7 +836,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "data it was not fitted on), by rod, axis and region of state; residual whiteness "
                         "(Ljung-Box); each effect of the library scored by the share of the residual it would "
                         "remove; the error without and with the model's own effects.")
-    dg.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its markers)")
+    dg.add_argument("data", nargs="+", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its "
+                    "markers; several files: the takes of one recording)")
     dg.add_argument("--identified", required=True, help="identified-model .json")
     dg.add_argument("--model", default=None, help="MJCF for geometry (ground plane); default: the model's source")
     dg.add_argument("--horizon", type=finite_float(0.0, 1e6, "s", True), default=1.0, metavar="SECONDS", help="free-run horizon (default 1 s)")
@@ -817,7 +848,8 @@ def build_parser() -> argparse.ArgumentParser:
     pr = sub.add_parser("predict", help="free-run the identified model against recorded data",
                         description="Roll the identified model from each recorded initial state with the "
                         "recorded rest lengths and pushes; report position and quaternion error per step.")
-    pr.add_argument("data", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its markers)")
+    pr.add_argument("data", nargs="+", help="dataset .npz, or a recording .csv/.c3d (rod states reconstructed from its "
+                    "markers; several files: the takes of one recording)")
     pr.add_argument("--identified", required=True, help="identified-model .json")
     pr.add_argument("--horizon", type=count(1), default=None, help="steps to roll (default: the whole episode)")
     pr.add_argument("--plot", default=None, help="write an error-vs-step PNG here")
@@ -1045,6 +1077,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     func: Callable[[argparse.Namespace], None] = args.func
     try:
+        _takes(args)
         func(args)
     except KeyboardInterrupt:
         print("tensegrity: interrupted (nothing half-written was kept)", file=sys.stderr)

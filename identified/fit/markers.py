@@ -133,7 +133,7 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         t = rec.time[rows]
         n = int(np.floor((t[-1] - t[0]) / dt + 1e-9))
         if n < 3:
-            raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: a take of {t[-1] - t[0]:.3g} s is "
+            raise RecordingError(f"{rec.where(int(rows[0]))}: a take of {t[-1] - t[0]:.3g} s is "
                                  "shorter than three engine steps")
         grid = t[0] + dt * np.arange(n + 1)  # one sample before the first state (velocities)
         pos, quat = _poses(rec, rows, geos, col, grid, lam, smoothing, take)
@@ -243,7 +243,7 @@ def _placed_span(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col:
         seen = (~np.isnan(rec.markers[np.ix_(rows, [col[s] for s in g.sites])][..., 0])).sum(-1)
         ok &= seen >= (2 if g.collinear else 3)
     if ok.sum() < 2:
-        raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: no two frames of this take place "
+        raise RecordingError(f"{rec.where(int(rows[0]))}: no two frames of this take place "
                              "every rod")
     first, last = np.flatnonzero(ok)[[0, -1]]
     return rows[first:last + 1]
@@ -401,7 +401,7 @@ def _poses(rec: Recording, rows: np.ndarray, geos: list[RodGeometry], col: dict[
         try:
             pts = np.stack([smoothed(s) for s in g.sites], axis=1)
         except RecordingError as exc:
-            raise RecordingError(f"'{rec.source}', line {rec.line(int(rows[0]))}: rod '{g.name}': {exc}") from None
+            raise RecordingError(f"{rec.where(int(rows[0]))}: rod '{g.name}': {exc}") from None
         w = np.ones(len(g.sites))
         if g.collinear:
             point, direction = fit_axis(pts, g.along, w)

@@ -44,6 +44,7 @@ __all__ = [
     "Recording",
     "RecordingError",
     "check_recording",
+    "join_recordings",
     "read_recording",
     "save_recording",
     "site_world_positions",
@@ -91,6 +92,8 @@ class Recording:
     std (m) when the recording states it (a ``# noise_pos=...`` comment line), else ``None``.
     ``encoders``: the encoder samples at their own rate where it is not the frames' (a multi-rate
     recording, :func:`split_rates`), else ``None`` (the frames' own cells are the samples).
+    ``sources``: the file of each take where the recording joins several (:func:`join_recordings`),
+    else empty (every take is ``source``'s).
     """
 
     time: np.ndarray
@@ -107,6 +110,7 @@ class Recording:
     lines: np.ndarray | None = None
     noise_pos: float | None = None
     encoders: Encoders | None = None
+    sources: tuple[str, ...] = ()
 
     @property
     def n_frames(self) -> int:
@@ -131,6 +135,13 @@ class Recording:
         """The file line of row ``row`` (the header is line 1)."""
         return int(self.lines[row]) if self.lines is not None else row + 2
 
+    def where(self, row: int, episode: int | None = None, line: int | None = None) -> str:
+        """``'file', line N`` of row ``row`` for messages: the file of its take (``episode``, else
+        the row's) and its line (``line``, else the row's)."""
+        e = int(self.episode[row]) if episode is None else int(episode)
+        src = self.sources[e] if self.sources else self.source
+        return f"'{src}', line {self.line(row) if line is None else int(line)}"
+
     def episodes(self) -> list[np.ndarray]:
         """Row indices of each take, in order."""
         return [np.flatnonzero(self.episode == e) for e in range(self.n_episodes)]
@@ -147,7 +158,7 @@ class Recording:
             ok = np.isfinite(x)
             if not ok.any():
                 line = int(src.lines[rows[0]]) if src.lines is not None else int(rows[0]) + 2
-                raise RecordingError(f"'{self.source}', line {line}, column '{name}.rest': empty in the whole take; "
+                raise RecordingError(f"{self.where(0, episode, line)}, column '{name}.rest': empty in the whole take; "
                                      "the fit needs every cable's rest length")
             out[:, j] = np.interp(times, src.time[rows][ok], x[ok])
         return out
@@ -169,7 +180,7 @@ class Recording:
                 line = int(src.lines[r]) if src.lines is not None else int(r) + 2
                 what = (f"its first command ({src.time[r]:g} s) comes after the take's first state "
                         f"({times.min():g} s)") if ok.any() else "empty in the whole take"
-                raise RecordingError(f"'{self.source}', line {line}, column '{name}.ctrl': {what}; the fit needs "
+                raise RecordingError(f"{self.where(0, episode, line)}, column '{name}.ctrl': {what}; the fit needs "
                                      "every MuJoCo actuator's command at every step")
             out[:, j] = x[ok][i]
         return out
@@ -466,14 +477,77 @@ def _check_values(rec: Recording, header: list[str]) -> None:
         neg = np.argwhere(arr < 0)
         if neg.size:
             r, j = (int(i) for i in neg[0])
-            raise RecordingError(f"'{rec.source}', line {rec.line(r)}, column '{names[j]}.{kind}': a length "
+            raise RecordingError(f"{rec.where(r)}, column '{names[j]}.{kind}': a length "
                                  f"cannot be negative ({arr[r, j]:g})")
     far = np.abs(rec.markers) > FAR
     if far.any():
         r, m, a = (int(i) for i in np.argwhere(far)[0])
-        raise RecordingError(f"'{rec.source}', line {rec.line(r)}, column '{rec.marker_names[m]}.{_AXES[a]}': "
+        raise RecordingError(f"{rec.where(r)}, column '{rec.marker_names[m]}.{_AXES[a]}': "
                              f"{rec.markers[r, m, a]:g} is {FAR:g} m or more from the origin: the recording "
                              "must be in metres (divide millimetres by 1000)")
+
+
+# ---------------------------------------------------------------------- several files
+def join_recordings(recs: list[Recording]) -> Recording:
+    """Several recordings as the takes of one, in the order given (motion-capture software writes
+    a file per take).  Columns are matched by name; a column one file lacks is empty in its takes
+    (a marker not seen, an encoder not logged: the checks and the fit then say so, naming that
+    file).  Messages name each take's own file (:meth:`Recording.where`).  The files must agree on
+    what their markers are (named by site, or anonymous) and on the noise they state."""
+    if len(recs) == 1:
+        return recs[0]
+    kinds = {r.unlabelled for r in recs if r.marker_names}
+    if len(kinds) > 1:
+        odd = next(r for r in recs if r.unlabelled != recs[0].unlabelled)
+        raise RecordingError(f"'{odd.source}': its markers are {'anonymous' if odd.unlabelled else 'named by site'} "
+                             f"and those of '{recs[0].source}' are not: join recordings of one kind")
+    noises = {r.noise_pos for r in recs}
+    if len(noises) > 1:
+        odd = next(r for r in recs if r.noise_pos != recs[0].noise_pos)
+        raise RecordingError(f"'{odd.source}' states a marker noise of {odd.noise_pos} m and '{recs[0].source}' of "
+                             f"{recs[0].noise_pos} m: join recordings of one noise (or state none)")
+
+    def union(attr: str) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(n for r in recs for n in getattr(r, attr)))
+
+    names = {a: union(a) for a in ("marker_names", "rest_names", "ctrl_names", "length_names")}
+
+    def placed(r, arr: np.ndarray, have: tuple[str, ...], attr: str, rows: int) -> np.ndarray:
+        out = np.full((rows, len(names[attr])) + arr.shape[2:], np.nan)
+        for j, n in enumerate(have):
+            out[:, names[attr].index(n)] = arr[:, j]
+        return out
+
+    parts: dict[str, list] = {k: [] for k in ("time", "episode", "markers", "rest", "ctrl", "length", "lines")}
+    enc_parts: dict[str, list] = {k: [] for k in ("time", "episode", "rest", "ctrl", "length", "lines")}
+    sources: list[str] = []
+    first = 0
+    for r in recs:
+        lines = r.lines if r.lines is not None else np.arange(r.n_frames) + 2
+        parts["time"].append(r.time)
+        parts["episode"].append(r.episode + first)
+        parts["lines"].append(lines)
+        parts["markers"].append(placed(r, r.markers, r.marker_names, "marker_names", r.n_frames))
+        for kind in ("rest", "ctrl", "length"):
+            parts[kind].append(placed(r, getattr(r, kind), getattr(r, f"{kind}_names"), f"{kind}_names", r.n_frames))
+        enc = r.encoders or Encoders(r.time, r.episode, r.rest, r.ctrl, r.length, lines)
+        enc_parts["time"].append(enc.time)
+        enc_parts["episode"].append(enc.episode + first)
+        enc_parts["lines"].append(enc.lines if enc.lines is not None else np.zeros(enc.time.size, dtype=np.int64))
+        for kind in ("rest", "ctrl", "length"):
+            enc_parts[kind].append(placed(r, getattr(enc, kind), getattr(r, f"{kind}_names"), f"{kind}_names",
+                                          enc.time.size))
+        sources += list(r.sources) if r.sources else [r.source] * r.n_episodes
+        first += r.n_episodes
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    encoders = None
+    if any(r.encoders is not None for r in recs):
+        encoders = Encoders(**{k: np.concatenate(v) for k, v in enc_parts.items()})
+    return Recording(time=cat["time"], episode=cat["episode"], marker_names=names["marker_names"],
+                     markers=cat["markers"], rest_names=names["rest_names"], rest=cat["rest"],
+                     ctrl_names=names["ctrl_names"], ctrl=cat["ctrl"], length_names=names["length_names"],
+                     length=cat["length"], source=", ".join(dict.fromkeys(r.source for r in recs)), lines=cat["lines"],
+                     noise_pos=recs[0].noise_pos, encoders=encoders, sources=tuple(sources))
 
 
 # ---------------------------------------------------------------------- against the model
@@ -512,7 +586,7 @@ def check_recording(rec: Recording, topology: Topology, actuators: tuple[str, ..
             ok = seen[ep] >= 2
             if ok.mean() < 0.5:
                 r = int(ep[np.flatnonzero(~ok)[0]])
-                raise RecordingError(f"'{src}', line {rec.line(r)}, column '{rec.marker_names[cols[0]]}.x': rod "
+                raise RecordingError(f"{rec.where(r)}, column '{rec.marker_names[cols[0]]}.x': rod "
                                      f"'{rod.name}' has fewer than 2 visible markers in {100 * (1 - ok.mean()):.0f} % "
                                      "of this take's frames: too few to place it")
 
@@ -534,7 +608,7 @@ def _check_units(rec: Recording, topology: Topology, sites: dict[str, int]) -> N
                     r = int(np.flatnonzero(np.isfinite(d))[0])
                     unit = "millimetres (divide by 1000)" if 300 < ratio < 3000 else "another unit than metres"
                     raise RecordingError(
-                        f"'{rec.source}', line {rec.line(r)}, column '{rec.marker_names[cols[b]]}.x': markers "
+                        f"{rec.where(r)}, column '{rec.marker_names[cols[b]]}.x': markers "
                         f"{rec.marker_names[cols[a]]} and {rec.marker_names[cols[b]]} are {np.nanmedian(d):.4g} "
                         f"apart, the model's sites {ref:.4g} m: the recording looks like {unit}")
 

@@ -95,7 +95,7 @@ def _label_take(rec: Recording, rows: np.ndarray, ref: np.ndarray, out: np.ndarr
                 worse = a if np.sum((frame[a] - pred[a]) ** 2) > np.sum((frame[b] - pred[b]) ** 2) else b
                 frame[worse] = np.nan
         if k == 0 and np.isnan(frame[:, 0]).mean() > 0.5:
-            raise RecordingError(f"'{rec.source}', line {rec.line(r)}: cannot label the markers: fewer than half "
+            raise RecordingError(f"{rec.where(r)}: cannot label the markers: fewer than half "
                                  f"the sites have a marker within {4 * gate:g} m of the reference pose at the "
                                  "start of this take")
         out[r] = frame

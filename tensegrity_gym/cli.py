@@ -241,7 +241,7 @@ def _load_recording(args: argparse.Namespace):
 def _data_inputs(args: argparse.Namespace) -> dict[str, str]:
     """The command's data files as inputs an output must not overwrite."""
     if len(args.data_files) == 1:
-        return {"the dataset": args.data_files[0]}
+        return {"the recording" if _is_recording(args.data_files[0]) else "the dataset": args.data_files[0]}
     return {f"the recording '{p}'": p for p in args.data_files}
 
 

@@ -61,6 +61,9 @@ SLOW = 1.0
 #: camera frames further apart than this many of the take's median interval have frames missing
 #: between them (a multi-rate recording leaves out a frame where no marker was seen)
 DROPPED = 1.5
+#: a sample within this many seconds of an instant counts as at it (the CSV's nine decimals against
+#: ``t0 + k dt`` in floating point)
+SAME_INSTANT = 1e-9
 
 
 class RecordingError(ValueError):
@@ -165,7 +168,7 @@ class Recording:
 
     def ctrl_at(self, episode: int, times: np.ndarray) -> np.ndarray:
         """(len(times), U) every ``.ctrl`` column at ``times`` (s) of take ``episode``: each command
-        held from its last sample at or before the instant (a sample within 1 ns counts as at it).
+        held from its last sample at or before the instant (:data:`SAME_INSTANT`).
         RecordingError where an instant comes before the column's first sample in the take."""
         src = self.encoders if self.encoders is not None else self
         rows = np.flatnonzero(src.episode == episode)
@@ -174,7 +177,7 @@ class Recording:
         for j, name in enumerate(self.ctrl_names):
             x = src.ctrl[rows, j]
             ok = np.isfinite(x)
-            i = np.searchsorted(src.time[rows][ok], times + 1e-9, side="right") - 1
+            i = np.searchsorted(src.time[rows][ok], times + SAME_INSTANT, side="right") - 1
             if not ok.any() or i.min() < 0:
                 r = rows[np.flatnonzero(ok)[0]] if ok.any() else rows[0]
                 line = int(src.lines[r]) if src.lines is not None else int(r) + 2
@@ -395,7 +398,7 @@ def with_encoders(rec: Recording, encoders: Encoders) -> Recording:
                 if not ok.any():
                     continue
                 if hold:
-                    i = np.searchsorted(tx[ok], rec.time[f], side="right") - 1
+                    i = np.searchsorted(tx[ok], rec.time[f] + SAME_INSTANT, side="right") - 1
                     out[f, j] = np.where(i >= 0, x[ok][np.maximum(i, 0)], np.nan)
                 else:
                     out[f, j] = np.interp(rec.time[f], tx[ok], x[ok])

@@ -12,7 +12,7 @@ import torch
 
 from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.fit.identify import ScaleSpec
-from identified.fit.markers import fit_recording, states_from_recording
+from identified.fit.markers import fit_recording, recording_states, states_from_recording
 from identified.fit.output_error import window_problem
 from identified.recording import RecordingError, read_recording, save_recording
 from identified.topology import Topology
@@ -121,3 +121,12 @@ def test_the_fit_reports_measured_lengths(fitted):
     report = model.metrics["recording"]["cable_lengths"]
     assert list(report) == ["cable3"] and report["cable3"]["offset_m"] == pytest.approx(0.002, abs=1e-4)
     assert report["cable3"]["correlation"] > 0.99 and not [w for w in model.metrics["warnings"] if "cable3" in w]
+
+
+def test_predict_and_diagnose_read_the_commands(fitted):
+    """On the identified model (whose topology carries no MuJoCo actuators; the model lists them),
+    the recording's states carry the commands that predict and diagnose step the actuators with."""
+    _, rec, model = fitted
+    data = recording_states(rec, model).data
+    assert data.actuator_names == ("pull0", "pull1") and data.ctrl.shape[-1] == 2
+    np.testing.assert_array_equal(data.ctrl, states_from_recording(rec, Topology.from_mjcf(fitted[0])).data.ctrl)

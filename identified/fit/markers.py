@@ -89,7 +89,8 @@ class MarkerStates:
 
 def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
                           gravity: tuple[float, float, float] = GRAVITY, lam: float | None = None,
-                          replicas: int = 0, seed: int = 0, measure_noise: bool = False) -> MarkerStates:
+                          replicas: int = 0, seed: int = 0, measure_noise: bool = False,
+                          actuators: tuple[str, ...] | None = None) -> MarkerStates:
     """Rod states at every ``dt`` from a labelled, checked recording (the module docstring).
 
     ``lam``: the splines' smoothing (``None``: generalised cross validation per coordinate).
@@ -97,8 +98,9 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
     recording's size added (antithetic pairs; each spline with the smoothing chosen for the
     recording itself), carried as ``Dataset.replicas`` for the fit's errors in variables
     (:func:`noise_replicas`).  ``MarkerStates.marker_noise`` is measured (:func:`marker_noise`)
-    where there are replicas or ``measure_noise`` asks for it."""
-    motors = mujoco_actuators(topology)
+    where there are replicas or ``measure_noise`` asks for it.  ``actuators``: the MuJoCo actuators
+    whose commands the recording must carry (``None``: the topology's, :func:`mujoco_actuators`)."""
+    motors = mujoco_actuators(topology) if actuators is None else tuple(actuators)
     check_recording(rec, topology, motors)
     missing = [s for s in topology.spring_names if s not in rec.rest_names]
     if missing:
@@ -573,7 +575,8 @@ def recording_states(path: str | Recording, model, noise: bool = False) -> Marke
         if not model.source_model:
             raise RecordingError(f"'{rec.source}': unlabelled markers need the model's MJCF to be labelled")
         rec = labelled(rec, model.topology, model.source_model)
-    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity), measure_noise=noise)
+    return states_from_recording(rec, model.topology, model.dt, tuple(model.gravity), measure_noise=noise,
+                                 actuators=tuple(a["name"] for a in model.actuators))
 
 
 def diagnosis_options(rec: Recording, dt: float) -> dict[str, int]:

@@ -300,3 +300,18 @@ def test_effect_search_fits_a_recording_on_a_part_without_replicas(robot, monkey
     np.testing.assert_array_equal(part.weight, ms.data.weight[:, a:a + 1000])
     monkeypatch.setattr(pipeline, "RECORDING_SEARCH_STEPS", 3000)
     assert pipeline.search_part(ms.data).n_steps == min(1500, ms.data.n_steps)
+
+
+def test_a_rod_whose_markers_miss_its_origin_is_refused():
+    """End caps on a line that misses the rod's frame origin (the composite rod of ``examples/``, an
+    electronics box off the axis): the origin moves with the unseen spin, refused in one line
+    that says by how much and what would place it."""
+    import os
+
+    model = os.path.join(os.path.dirname(__file__), os.pardir, "examples", "six_bar_composite.xml")
+    data = collect(model, CollectConfig(episodes=1, steps=300, seed=1))
+    rec = record_markers(data, model, RecordConfig(rate=100), seed=1)
+    with pytest.raises(RecordingError, match=r"rod 'strut0': its markers lie on a line that misses the rod's origin "
+                                             r"by \d.* cm.*record a marker off that line") as err:
+        states_from_recording(rec, Topology.from_mjcf(model))
+    assert "\n" not in str(err.value)

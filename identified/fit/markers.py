@@ -118,7 +118,9 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
         if g.collinear:
             if np.linalg.norm(g.origin) > 1e-9:
                 raise RecordingError(f"'{rec.source}': rod '{g.name}': its markers lie on a line that misses the "
-                                     "rod's origin, so the origin's position is not observable from them")
+                                     f"rod's origin by {100 * np.linalg.norm(g.origin):.3g} cm, so the origin's "
+                                     "position is not observable from them (its spin about that line moves it): "
+                                     "record a marker off that line (a site of the rod in the MJCF, and its column)")
             ax = int(np.argmax(np.abs(g.axis)))
             if abs(abs(g.axis[ax]) - 1.0) > 1e-9:
                 raise RecordingError(f"'{rec.source}': rod '{g.name}': its markers lie on a line that is not a "

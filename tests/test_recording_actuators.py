@@ -1,5 +1,6 @@
 """Recordings of a robot with MuJoCo actuators: the commands sent (``<actuator>.ctrl``) reach the
-fit at every step, the actuators' gains come out of the markers, and what cannot be done is refused."""
+fit at every step, the actuators' gains come out of the markers, the marker fit's windows step the
+actuators, and a recording without the commands is refused."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from identified.engine.forces import endpoint_kinematics, spring_geometry
 from identified.fit.identify import ScaleSpec
 from identified.fit.markers import fit_recording, recording_states, states_from_recording
 from identified.fit.output_error import window_problem
+from identified.fit.pipeline import fit_model
 from identified.recording import RecordingError, read_recording, save_recording
 from identified.topology import Topology
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
@@ -106,12 +108,23 @@ def test_gains_from_a_recording(fitted):
     assert np.abs(model.stiffness / K - 1).max() < 0.01
 
 
-def test_the_marker_fit_refuses_actuators(fitted):
-    path, rec, model = fitted
-    ms = states_from_recording(rec, model.topology)
-    with pytest.raises(RecordingError, match=r"does not step MuJoCo actuators \(pull0, pull1\); fit this robot's "
-                                             r"recording without it \(no --refine\)"):
-        window_problem(model, rec, ms.data, ms.starts, path, 0.001)
+def test_the_marker_fits_windows_step_the_actuators(robot):
+    """The marker fit's windows (the output-error fit through the engine) apply the actuators'
+    forces from the recorded commands: started from the plant's own states with the parameters a
+    full-state fit recovers exactly, they put every simulated marker where the plant's was, to
+    rounding; without the actuators' forces, centimetres off."""
+    path, _, _ = robot
+    data = collect(path, CollectConfig(episodes=2, steps=2000, seed=7))
+    exact = fit_model(data, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
+    assert [round(a["gain"], 6) for a in exact.actuators] == [GAINS["pull0"], GAINS["pull1"]]
+    rec = record_markers(data, path, RecordConfig(rate=100, encoder_rate=1000.0), seed=1)
+    off = {}
+    for name, model in (("with", exact), ("without", dataclasses.replace(exact, actuators=[]))):
+        # order 0: the rods near the ground move as recorded, the others are simulated
+        win, _, prob, dx, _ = window_problem(model, rec, data, [0.0, 0.0], path, 0.001, [], 10, 64, order=0)
+        assert win.n_windows == 40 and 0.3 < float(win.free.float().mean()) < 0.9
+        off[name] = 0.001 * float(prob.window_residuals(prob.theta0, dx).abs().max())
+    assert off["with"] < 1e-12 and off["without"] > 0.01
 
 
 def test_the_fit_reports_measured_lengths(fitted):

@@ -59,6 +59,7 @@ from torch.func import jvp, vmap
 
 from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
+from identified.engine.actuators import tendon_forces
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
@@ -81,7 +82,8 @@ class MarkerWindows:
     that are not simulated); ``rest`` (W, H, S); ``step`` (L,) engine step of each observed frame;
     ``obs`` (W, L, N, 3) marker positions, ``seen`` (W, L, N) float (1 where seen and its rod is
     simulated); ``free`` (W, R) bool: the rods simulated in each window; ``site_rod`` (N,),
-    ``site_offset`` (N, 3); ``window_time`` (W,) the recording's time of each window's start.
+    ``site_offset`` (N, 3); ``window_time`` (W,) the recording's time of each window's start;
+    ``force`` (W, H, S): the MuJoCo actuators' force on each tendon at each step (``None``: none).
     """
 
     x0: torch.Tensor
@@ -94,6 +96,7 @@ class MarkerWindows:
     site_rod: torch.Tensor
     site_offset: torch.Tensor
     window_time: np.ndarray
+    force: torch.Tensor | None = None
 
     @property
     def n_windows(self) -> int:
@@ -102,7 +105,8 @@ class MarkerWindows:
     def subset(self, keep: np.ndarray) -> MarkerWindows:
         k = torch.as_tensor(keep)
         return replace(self, x0=self.x0[k], states=self.states[k], rest=self.rest[k], obs=self.obs[k],
-                       seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep])
+                       seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep],
+                       force=None if self.force is None else self.force[k])
 
 
 def _near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARGIN) -> np.ndarray | None:
@@ -123,11 +127,13 @@ def _near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MAR
 
 
 def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology, mjcf: str | None,
-                   frames: int = 10, contact_frames: int = 3, margin: float = CONTACT_MARGIN) -> MarkerWindows:
+                   frames: int = 10, contact_frames: int = 3, margin: float = CONTACT_MARGIN,
+                   forces: np.ndarray | None = None) -> MarkerWindows:
     """Cut a labelled recording into windows of ``frames`` frames over the reconstructed states
     ``data`` (take ``e``'s state ``n`` at the time ``starts[e] + n dt``).  A rod near the ground
     within ``contact_frames`` frames of a window is not simulated in it.  Frames must fall on the
-    engine's steps (a rate that divides 1 / dt)."""
+    engine's steps (a rate that divides 1 / dt).  ``forces`` (E, T, S): the MuJoCo actuators' force
+    on each tendon at each step of ``data``, cut into the windows alike (``None``: no actuators)."""
     dt = data.dt
     sites = [(i, k, s) for i, r in enumerate(topology.rods) for k, s in enumerate(r.sites) if s in rec.marker_names]
     col = [rec.marker_names.index(s) for _, _, s in sites]
@@ -136,7 +142,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     near = _near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
-    x0, sts, rest, obs, seen, free, wt = [], [], [], [], [], [], []
+    x0, sts, rest, obs, seen, free, wt, force = [], [], [], [], [], [], [], []
     H = None
     for e, rows in enumerate(rec.episodes()):
         t = rec.time[rows]
@@ -163,6 +169,8 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
             x0.append(state[e, a])
             sts.append(state[e, a:b + 1])
             rest.append(data.rest_length[e, a:b])
+            if forces is not None:
+                force.append(forces[e, a:b])
             obs.append(np.nan_to_num(m))
             seen.append(ok.astype(float))
             free.append(fr)
@@ -171,7 +179,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
         raise ValueError("no window of the recording has a rod off the ground to simulate")
     tt = lambda x, dtype=torch.float64: torch.as_tensor(np.array(x), dtype=dtype)
     return MarkerWindows(tt(x0), tt(sts), tt(rest), torch.as_tensor(step), tt(obs), tt(seen), tt(free, torch.bool),
-                         site_rod, site_offset, np.array(wt))
+                         site_rod, site_offset, np.array(wt), tt(force) if forces is not None else None)
 
 
 #: units of the ground's free wrench in the unknowns (N, N m): of the order of a rod's weight
@@ -415,7 +423,8 @@ class _Problem:
                 a = int(grid[j - 1])
                 if wrench is not None:
                     wrench.n = (a + n) / 2 - 0.5  # the coarse step's middle
-                state = engines[n - a].step(state, win.rest[:, a])
+                state = engines[n - a].step(state, win.rest[:, a],
+                                            tendon_force=None if win.force is None else win.force[:, a])
                 if self.order == 0 and self.contact is None:  # the rods near the ground move as reconstructed
                     rec = win.states[:, n]
                     state = type(state)(torch.where(free, state.pos, rec[..., 0:3]),
@@ -487,15 +496,14 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     ``block`` ``(b, B)``: of the windows spread over the recording, every ``B``-th from the ``b``-th
     (block ``b`` of ``B`` interleaved blocks; :mod:`identified.fit.marker_blocks`).
     Returns ``(windows, available, problem, dx, active)``."""
-    motors = [a.name for a in model.topology.actuators if a.kind != "rest_length"]
-    if motors:
-        raise RecordingError(f"'{rec.source}': the marker fit through the engine does not step MuJoCo actuators "
-                             f"({', '.join(motors[:3])}{', ...' if len(motors) > 3 else ''}); fit this robot's "
-                             "recording without it (no --refine)")
+    # the MuJoCo actuators' forces from the recorded commands, their gains, biases and filters held
+    # at the model's (identified.engine.actuators.tendon_forces)
+    forces = tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, model.topology.spring_names) \
+        if model.actuators else None
     if contact is not None:
         order = 0
     win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,
-                         margin=margin)
+                         margin=margin, forces=forces)
     available = win.n_windows
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))

@@ -222,10 +222,14 @@ def _takes(args: argparse.Namespace) -> None:
     if not isinstance(files, list):
         return
     if len(files) > 1:
+        seen: set[str] = set()
         for p in files:
             if not _is_recording(p):
                 raise CommandError(f"'{p}' is not a recording (.csv, .c3d): several files are the takes of one "
                                    "recording; give a dataset alone")
+            if os.path.realpath(p) in seen:
+                raise CommandError(f"'{p}' is given twice: each take once (its data would count twice)")
+            seen.add(os.path.realpath(p))
     args.data_files = files
     args.data = files[0] if len(files) == 1 else " ".join(files)
 

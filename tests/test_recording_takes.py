@@ -92,7 +92,8 @@ def test_cli_takes_several_files(takes):
     for key in ("takes", "frames", "rate_hz", "duration_s", "missing", "encoder_rate_hz"):
         assert three[key] == one[key], key
     for bad, words in (((str(files[0]), str(d / "d.npz")), f"'{d / 'd.npz'}' is not a recording (.csv, .c3d)"),
-                       ((str(files[0]), str(d / "missing.csv")), f"recording '{d / 'missing.csv'}' does not exist")):
+                       ((str(files[0]), str(d / "missing.csv")), f"recording '{d / 'missing.csv'}' does not exist"),
+                       ((str(files[0]), str(files[1]), str(files[0])), f"'{files[0]}' is given twice")):
         r = run("fit", *bad, "--model", path, "--out", str(d / "f.json"))
         assert r.returncode == 2 and r.stderr.count("\n") == 1 and words in r.stderr, r.stderr
     r = run("fit", *map(str, files), "--model", path, "--out", str(files[1]))

@@ -351,9 +351,17 @@ def _refine_recording(args: argparse.Namespace, rec, fit):
     else:
         try:
             start = fit("none")
-        except IdentifiabilityError as exc:
-            raise CommandError(f"'{args.data}': the regression cannot start the marker fit ({exc}); give --start "
-                               "MODEL.json, a model of this robot (an earlier fit, or its design values)") from None
+        except IdentifiabilityError:
+            # without a contact law the regression leaves out the rows of the rods near the ground;
+            # where too few are left (rods on the ground most of the time), it keeps them through one
+            print("tensegrity: note: the regression without effects cannot start the marker fit (too few rows "
+                  "off the ground); starting from one with ground_contact", file=sys.stderr)
+            try:
+                start = fit("ground_contact")
+            except IdentifiabilityError as exc:
+                raise CommandError(f"'{args.data}': the regression cannot start the marker fit ({exc}); give "
+                                   "--start MODEL.json, a model of this robot (an earlier fit, or its design values)"
+                                   ) from None
     if args.total_mass is None and args.start is not None:
         print("tensegrity: note: no --total-mass: the marker fit keeps the start's total mass "
               f"({float(start.mass.sum()):.6g} kg), which the markers cannot check", file=sys.stderr)

@@ -143,3 +143,27 @@ def test_predict_and_diagnose_read_the_commands(fitted):
     data = recording_states(rec, model).data
     assert data.actuator_names == ("pull0", "pull1") and data.ctrl.shape[-1] == 2
     np.testing.assert_array_equal(data.ctrl, states_from_recording(rec, Topology.from_mjcf(fitted[0])).data.ctrl)
+
+
+def test_the_marker_fit_starts_from_a_contact_regression_where_it_must(fitted, tmp_path, monkeypatch, capsys):
+    """``fit R.csv --refine`` without ``--start``: on this robot the regression without effects
+    cannot identify the cables (the rods near the ground leave too few rows), so the marker fit
+    starts from the regression with ground_contact, and says so."""
+    from identified.fit import marker_model
+    from tensegrity_gym import cli
+
+    path, rec, _ = fitted
+    csv = tmp_path / "r.csv"
+    save_recording(csv, rec)
+    seen = {}
+
+    def refine(rec, mjcf, start, **kwargs):  # the marker fit itself is tested elsewhere: its start here
+        seen["start"] = start
+        return start
+
+    monkeypatch.setattr(marker_model, "refine_recording", refine)
+    rc = cli.main(["fit", str(csv), "--model", path, "--total-mass", "21", "--refine", "--quiet",
+                   "--out", str(tmp_path / "f.json")])
+    assert rc == 0
+    assert "starting from one with ground_contact" in capsys.readouterr().err
+    assert [e["name"] for e in seen["start"].effects] == ["ground_contact"]

@@ -125,6 +125,12 @@ class Topology:
         return tuple(s.name for s in self.springs)
 
     @property
+    def force_actuators(self) -> tuple[Actuator, ...]:
+        """The MuJoCo tendon actuators (a force on their tendon; a recording's ``.ctrl`` columns),
+        not the project's rest-length motors (a command that is the rest length, ``.rest``)."""
+        return tuple(a for a in self.actuators if a.kind != "rest_length")
+
+    @property
     def site_names(self) -> tuple[str, ...]:
         names: list[str] = []
         for s in self.springs:

@@ -100,7 +100,6 @@ _RECORD_OPTIONS = {"--rate": "rate", "--encoder-rate": "encoder_rate", "--dropou
 
 
 def _summary_recording(args: argparse.Namespace) -> None:
-    from identified.fit.markers import mujoco_actuators
     from identified.recording import check_recording
     from identified.topology import Topology
 
@@ -108,7 +107,7 @@ def _summary_recording(args: argparse.Namespace) -> None:
     if args.model is not None:
         _check_readable(args.model)
         topology = Topology.from_mjcf(args.model)
-        check_recording(r, topology, mujoco_actuators(topology))
+        check_recording(r, topology, tuple(a.name for a in topology.force_actuators))
     span = [float(r.time[i[-1]] - r.time[i[0]]) for i in r.episodes()]
     info = {"takes": r.n_episodes, "frames": r.n_frames, "rate_hz": r.rate_hz(), "duration_s": span,
             "markers": list(r.marker_names), "unlabelled": r.unlabelled, "missing": r.missing_fraction(),

@@ -225,7 +225,7 @@ def identify(
     t0 = time.perf_counter()
     joint = [e for e in effects if e.fit_strategy != "residual"]
     late = [e for e in effects if e.fit_strategy == "residual"]
-    forces = [a for a in topology.actuators if a.kind != "rest_length"]
+    forces = topology.force_actuators
     use_act = bool(forces) and all(a.name in dataset.actuator_names for a in forces)
     chosen = inertia == "auto"
     if chosen:

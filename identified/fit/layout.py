@@ -78,7 +78,7 @@ class ParameterLayout:
         every rod's centre of mass and products of inertia."""
         if regressors not in REGRESSORS:
             raise ValueError(f"regressors must be one of {', '.join(REGRESSORS)}, got '{regressors}'")
-        forces = tuple(a.name for a in topology.actuators if a.kind != "rest_length") if actuators else ()
+        forces = tuple(a.name for a in topology.force_actuators) if actuators else ()
         steps = bool(rest_lengths) and any(e.reads_rest_length for e in effects)
         return cls(topology.n_springs, topology.n_rods, regressors, topology.spring_names, topology.rod_names,
                    tuple(effects), bool(rest_lengths), forces, steps, bool(full_inertia))

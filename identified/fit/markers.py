@@ -49,8 +49,8 @@ from identified.recording.poses import RodGeometry, fit_axis, fit_rigid, rod_geo
 from identified.rotation import quat_multiply, quat_to_matrix
 from identified.topology import Topology
 
-__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "mujoco_actuators", "recording_dataset",
-           "recording_states", "states_from_recording"]
+__all__ = ["MarkerStates", "diagnosis_options", "fit_recording", "recording_dataset", "recording_states",
+           "states_from_recording"]
 
 GRAVITY = (0.0, 0.0, -9.81)
 #: frames before and after a contact whose smoothed states the joint fit leaves out (a spline
@@ -99,8 +99,9 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
     recording itself), carried as ``Dataset.replicas`` for the fit's errors in variables
     (:func:`noise_replicas`).  ``MarkerStates.marker_noise`` is measured (:func:`marker_noise`)
     where there are replicas or ``measure_noise`` asks for it.  ``actuators``: the MuJoCo actuators
-    whose commands the recording must carry (``None``: the topology's, :func:`mujoco_actuators`)."""
-    motors = mujoco_actuators(topology) if actuators is None else tuple(actuators)
+    whose commands the recording must carry (``None``: the topology's,
+    :attr:`~identified.topology.Topology.force_actuators`)."""
+    motors = tuple(a.name for a in topology.force_actuators) if actuators is None else tuple(actuators)
     check_recording(rec, topology, motors)
     missing = [s for s in topology.spring_names if s not in rec.rest_names]
     if missing:
@@ -209,12 +210,6 @@ def marker_noise(rec: Recording, spans: list, geos: list[RodGeometry], col: dict
                     sq += float(np.sum((y[ok, k] - fit) ** 2))
                     n += int(ok.sum())
     return float(np.sqrt(sq / max(n, 1)))
-
-
-def mujoco_actuators(topology: Topology) -> tuple[str, ...]:
-    """The names of the model's MuJoCo tendon actuators (a recording's ``.ctrl`` columns; the
-    project's rest-length motors are read from ``.rest``)."""
-    return tuple(a.name for a in topology.actuators if a.kind != "rest_length")
 
 
 def _assemble(rec: Recording, topology: Topology, pieces: list, T: int, dt: float,

@@ -263,7 +263,7 @@ class IdentifiedBackend(Backend):
     def _actuators(self, topo_mjcf: Topology, dtype: torch.dtype, device: torch.device | str) -> None:
         """The MJCF's tendon actuators, stepped with the identified model's force law (``actuators``
         of the model: gain, bias, dynamics, time constant), in the MJCF's order (the plant's)."""
-        mine = [a for a in topo_mjcf.actuators if a.kind != "rest_length"]
+        mine = topo_mjcf.force_actuators
         fitted = {a["name"]: a for a in self.model.actuators}
         missing = [a.name for a in mine if a.name not in fitted]
         if missing:

@@ -45,6 +45,7 @@ from identified.twin import effects_from_model, engine_from_model
 __all__ = [
     "OneStepParts",
     "ResidualWrench",
+    "actuator_forces",
     "k_step_errors",
     "one_step_data",
     "one_step_parts",
@@ -241,18 +242,26 @@ def residual_wrench(engine: SpringRodEngine, ch: Chunk, push_point: torch.Tensor
     return ResidualWrench(force, torque_body, ref_f, ref_t, terms)
 
 
+def actuator_forces(model: IdentifiedModel, data: Dataset) -> np.ndarray | None:
+    """(E, T, S) the force of ``model``'s MuJoCo actuators on each tendon at every step of
+    ``data``, from its recorded commands (:func:`identified.engine.actuators.tendon_forces`: a
+    filter's activation runs through each whole episode); ``None`` for a model without actuators."""
+    if not model.actuators:
+        return None
+    return tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, model.topology.spring_names)
+
+
 def model_inputs(model: IdentifiedModel, data: Dataset, ch: Chunk) -> tuple[torch.Tensor, torch.Tensor | None]:
     """What a model's engine takes at the instants of ``ch`` (whole episodes of ``data``, from the
     start): every tendon's rest length -- the model's own for a passive spring, the recorded
     command for a motor-driven cable -- (N, S), and its actuators' tendon forces (N, S) from the
-    recorded commands (:func:`identified.engine.actuators.tendon_forces`), ``None`` without
-    actuators."""
+    recorded commands (:func:`actuator_forces`), ``None`` without actuators."""
     passive = torch.as_tensor([not s.actuated for s in model.topology.springs])
     rest = torch.where(passive, torch.as_tensor(model.rest_length, dtype=ch.rest.dtype), ch.rest)
-    if not model.actuators:
+    f = actuator_forces(model, data)
+    if f is None:
         return rest, None
     n_t = ch.pos.shape[0] // data.n_episodes
-    f = tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, model.topology.spring_names)
     return rest, torch.as_tensor(f[:, data.n_steps - n_t:].reshape(-1, f.shape[-1]), dtype=ch.pos.dtype)
 
 

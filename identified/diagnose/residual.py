@@ -17,8 +17,7 @@ import torch
 
 from identified.dataset import Dataset
 from identified.effects import Effect
-from identified.engine.actuators import tendon_forces
-from identified.evaluate import push_points, residual_wrench
+from identified.evaluate import actuator_forces, push_points, residual_wrench
 from identified.fit.derivatives import weak_form, weak_rows, weak_stride
 from identified.fit.features import RodColumns, equation_rows
 from identified.fit.identify import dilate_rows
@@ -66,17 +65,13 @@ def one_step(model: IdentifiedModel, data: Dataset, candidates: list[Effect], re
     if scores.weak:  # the windows of the weak form lie within an episode: analysed whole
         chunk_steps = max(chunk_steps, data.n_steps)
     own = {e.name for e in effects_from_model(model)}
-    # the MuJoCo actuators' forces on their tendons from the recorded commands, over whole episodes
-    # (a filter's activation carries across the windows below)
-    forces = tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, topo.spring_names) \
-        if model.actuators else None
+    forces = actuator_forces(model, data)  # over whole episodes: a filter carries across the windows below
 
     for win, eps, t_first in _windows(data, chunk_steps, first):
         ch, n_ep = next(iter_chunks(win, 10**12, scheme))
         n_t = ch.pos.shape[0] // len(eps)
-        t_end = t_first + n_t  # the step after the window's last analysed one
         tendon_force = None if forces is None else torch.as_tensor(
-            forces[eps, t_end - n_t:t_end].reshape(-1, forces.shape[-1]), dtype=ch.pos.dtype)
+            forces[eps, t_first:t_first + n_t].reshape(-1, forces.shape[-1]), dtype=ch.pos.dtype)
         rw = residual_wrench(eng, ch, push_points(win, ch, n_ep, scheme), tendon_force)
         state = _state(ch)
         ctx = rw.terms.ctx

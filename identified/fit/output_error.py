@@ -60,7 +60,7 @@ from torch.func import jvp, vmap
 
 from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
-from identified.engine.actuators import tendon_forces
+from identified.evaluate import actuator_forces
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
@@ -497,10 +497,7 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     ``block`` ``(b, B)``: of the windows spread over the recording, every ``B``-th from the ``b``-th
     (block ``b`` of ``B`` interleaved blocks; :mod:`identified.fit.marker_blocks`).
     Returns ``(windows, available, problem, dx, active)``."""
-    # the MuJoCo actuators' forces from the recorded commands, their gains, biases and filters held
-    # at the model's (identified.engine.actuators.tendon_forces)
-    forces = tendon_forces(data.ctrl, data.dt, data.actuator_names, model.actuators, model.topology.spring_names) \
-        if model.actuators else None
+    forces = actuator_forces(model, data)  # the actuators' gains, biases and filters held at the model's
     if contact is not None:
         order = 0
     win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,

@@ -153,40 +153,39 @@ class Recording:
         """(len(times), S) every ``.rest`` column at ``times`` (s) of take ``episode``: linear
         between the encoder's samples (at their own rate in a multi-rate recording), held beyond its
         first and last.  RecordingError where a column has no sample in the take."""
-        src = self.encoders if self.encoders is not None else self
-        rows = np.flatnonzero(src.episode == episode)
-        out = np.empty((np.size(times), len(self.rest_names)))
-        for j, name in enumerate(self.rest_names):
-            x = src.rest[rows, j]
-            ok = np.isfinite(x)
-            if not ok.any():
-                line = int(src.lines[rows[0]]) if src.lines is not None else int(rows[0]) + 2
-                raise RecordingError(f"{self.where(0, episode, line)}, column '{name}.rest': empty in the whole take; "
-                                     "the fit needs every cable's rest length")
-            out[:, j] = np.interp(times, src.time[rows][ok], x[ok])
+        src, rows = self._samples(episode)
+        out = _sampled(src.time[rows], src.rest[rows], times, hold=False)
+        for j in np.flatnonzero(~np.isfinite(src.rest[rows]).any(0)):
+            raise RecordingError(f"{self._where_sample(src, episode, rows[0])}, column '{self.rest_names[j]}.rest': empty "
+                                 "in the whole take; the fit needs every cable's rest length")
         return out
 
     def ctrl_at(self, episode: int, times: np.ndarray) -> np.ndarray:
         """(len(times), U) every ``.ctrl`` column at ``times`` (s) of take ``episode``: each command
         held from its last sample at or before the instant (:data:`SAME_INSTANT`).
         RecordingError where an instant comes before the column's first sample in the take."""
-        src = self.encoders if self.encoders is not None else self
-        rows = np.flatnonzero(src.episode == episode)
+        src, rows = self._samples(episode)
         times = np.asarray(times, dtype=float)
-        out = np.empty((times.size, len(self.ctrl_names)))
-        for j, name in enumerate(self.ctrl_names):
-            x = src.ctrl[rows, j]
-            ok = np.isfinite(x)
-            i = np.searchsorted(src.time[rows][ok], times + SAME_INSTANT, side="right") - 1
-            if not ok.any() or i.min() < 0:
-                r = rows[np.flatnonzero(ok)[0]] if ok.any() else rows[0]
-                line = int(src.lines[r]) if src.lines is not None else int(r) + 2
-                what = (f"its first command ({src.time[r]:g} s) comes after the take's first state "
-                        f"({times.min():g} s)") if ok.any() else "empty in the whole take"
-                raise RecordingError(f"{self.where(0, episode, line)}, column '{name}.ctrl': {what}; the fit needs "
-                                     "every MuJoCo actuator's command at every step")
-            out[:, j] = x[ok][i]
+        out = _sampled(src.time[rows], src.ctrl[rows], times, hold=True)
+        for j in np.flatnonzero(np.isnan(out).any(0)):
+            ok = np.isfinite(src.ctrl[rows, j])
+            r = rows[np.flatnonzero(ok)[0]] if ok.any() else rows[0]
+            what = (f"its first command ({src.time[r]:g} s) comes after the take's first state "
+                    f"({times.min():g} s)") if ok.any() else "empty in the whole take"
+            raise RecordingError(f"{self._where_sample(src, episode, r)}, column '{self.ctrl_names[j]}.ctrl': {what}; the "
+                                 "fit needs every MuJoCo actuator's command at every step")
         return out
+
+    def _samples(self, episode: int) -> tuple[Recording | Encoders, np.ndarray]:
+        """Where the encoders' samples of take ``episode`` are (:class:`Encoders` in a multi-rate
+        recording, else the frames themselves), and their rows there."""
+        src = self.encoders if self.encoders is not None else self
+        return src, np.flatnonzero(src.episode == episode)
+
+    def _where_sample(self, src: Recording | Encoders, episode: int, row: int) -> str:
+        """:meth:`where` for row ``row`` of ``src``, the encoders' samples (:meth:`_samples`), in take
+        ``episode``."""
+        return self.where(0, episode, int(src.lines[row]) if src.lines is not None else int(row) + 2)
 
     def rate_hz(self) -> float:
         """Median sampling rate over all takes, Hz."""
@@ -392,20 +391,30 @@ def with_encoders(rec: Recording, encoders: Encoders) -> Recording:
         out = np.full((rec.n_frames, arr.shape[1]), np.nan)
         for e in range(rec.n_episodes):
             f, r = rec.episode == e, encoders.episode == e
-            for j in range(arr.shape[1]):
-                x, tx = arr[r, j], encoders.time[r]
-                ok = np.isfinite(x)
-                if not ok.any():
-                    continue
-                if hold:
-                    i = np.searchsorted(tx[ok], rec.time[f] + SAME_INSTANT, side="right") - 1
-                    out[f, j] = np.where(i >= 0, x[ok][np.maximum(i, 0)], np.nan)
-                else:
-                    out[f, j] = np.interp(rec.time[f], tx[ok], x[ok])
+            out[f] = _sampled(encoders.time[r], arr[r], rec.time[f], hold)
         return out
 
     return replace(rec, rest=at_frames(encoders.rest, False), ctrl=at_frames(encoders.ctrl, True),
                    length=at_frames(encoders.length, False), encoders=encoders)
+
+
+def _sampled(t: np.ndarray, x: np.ndarray, times: np.ndarray, hold: bool) -> np.ndarray:
+    """(len(times), C) each column of the samples ``x`` (K, C) taken at ``t`` (K,) (NaN: no sample)
+    at ``times``: linear between its samples and held beyond its first and last, or (``hold``)
+    held from its last sample at or before the instant (:data:`SAME_INSTANT`; NaN before the
+    first).  NaN throughout for a column without a sample."""
+    times = np.asarray(times, dtype=float)
+    out = np.full((times.size, x.shape[1]), np.nan)
+    for j in range(x.shape[1]):
+        ok = np.isfinite(x[:, j])
+        if not ok.any():
+            continue
+        if hold:
+            i = np.searchsorted(t[ok], times + SAME_INSTANT, side="right") - 1
+            out[:, j] = np.where(i >= 0, x[ok, j][np.maximum(i, 0)], np.nan)
+        else:
+            out[:, j] = np.interp(times, t[ok], x[ok, j])
+    return out
 
 
 def _check_rate(time: np.ndarray, episode: np.ndarray, lines: np.ndarray, source: str) -> None:
@@ -515,7 +524,7 @@ def join_recordings(recs: list[Recording]) -> Recording:
 
     names = {a: union(a) for a in ("marker_names", "rest_names", "ctrl_names", "length_names")}
 
-    def placed(r, arr: np.ndarray, have: tuple[str, ...], attr: str, rows: int) -> np.ndarray:
+    def placed(arr: np.ndarray, have: tuple[str, ...], attr: str, rows: int) -> np.ndarray:
         out = np.full((rows, len(names[attr])) + arr.shape[2:], np.nan)
         for j, n in enumerate(have):
             out[:, names[attr].index(n)] = arr[:, j]
@@ -530,15 +539,15 @@ def join_recordings(recs: list[Recording]) -> Recording:
         parts["time"].append(r.time)
         parts["episode"].append(r.episode + first)
         parts["lines"].append(lines)
-        parts["markers"].append(placed(r, r.markers, r.marker_names, "marker_names", r.n_frames))
+        parts["markers"].append(placed(r.markers, r.marker_names, "marker_names", r.n_frames))
         for kind in ("rest", "ctrl", "length"):
-            parts[kind].append(placed(r, getattr(r, kind), getattr(r, f"{kind}_names"), f"{kind}_names", r.n_frames))
+            parts[kind].append(placed(getattr(r, kind), getattr(r, f"{kind}_names"), f"{kind}_names", r.n_frames))
         enc = r.encoders or Encoders(r.time, r.episode, r.rest, r.ctrl, r.length, lines)
         enc_parts["time"].append(enc.time)
         enc_parts["episode"].append(enc.episode + first)
         enc_parts["lines"].append(enc.lines if enc.lines is not None else np.zeros(enc.time.size, dtype=np.int64))
         for kind in ("rest", "ctrl", "length"):
-            enc_parts[kind].append(placed(r, getattr(enc, kind), getattr(r, f"{kind}_names"), f"{kind}_names",
+            enc_parts[kind].append(placed(getattr(enc, kind), getattr(r, f"{kind}_names"), f"{kind}_names",
                                           enc.time.size))
         sources += list(r.sources) if r.sources else [r.source] * r.n_episodes
         first += r.n_episodes

@@ -96,9 +96,7 @@ def read_c3d(path: str | os.PathLike, up: str = "z") -> Recording:
         return _recording(p, time, np.zeros(F, dtype=np.int64), names, markers, cols)
     # analogs faster than the points: every sample kept as the encoders' own, the frames' cells from them
     atime = (first + np.arange(per * F) / per) / rate
-    stack = lambda d: np.stack(list(d.values()), axis=1) if d else np.zeros((per * F, 0))
-    enc = Encoders(atime, np.zeros(per * F, dtype=np.int64), stack(cols["rest"]), stack(cols["ctrl"]),
-                   stack(cols["length"]))
+    enc = Encoders(atime, np.zeros(per * F, dtype=np.int64), *(_stacked(cols[k], per * F) for k in ("rest", "ctrl", "length")))
     frames = _recording(p, time, np.zeros(F, dtype=np.int64), names, markers,
                         {kind: {n: np.full(F, np.nan) for n in d} for kind, d in cols.items()})
     return with_encoders(frames, enc)
@@ -172,9 +170,13 @@ def _recording(source: str, time: np.ndarray, episode: np.ndarray, names: list[s
         raise RecordingError(f"'{source}', frame {int(bad[0]) + 1}: time {time[bad[0] + 1]:g} s is not after "
                              f"the previous frame's {time[bad[0]]:g} s")
     F = time.shape[0]
-    stack = lambda d: np.stack(list(d.values()), axis=1) if d else np.zeros((F, 0))
     return Recording(time=time, episode=episode, marker_names=tuple(names), markers=markers,
-                     rest_names=tuple(cols["rest"]), rest=stack(cols["rest"]),
-                     ctrl_names=tuple(cols["ctrl"]), ctrl=stack(cols["ctrl"]),
-                     length_names=tuple(cols["length"]), length=stack(cols["length"]),
+                     rest_names=tuple(cols["rest"]), rest=_stacked(cols["rest"], F),
+                     ctrl_names=tuple(cols["ctrl"]), ctrl=_stacked(cols["ctrl"], F),
+                     length_names=tuple(cols["length"]), length=_stacked(cols["length"], F),
                      source=source, lines=lines)
+
+
+def _stacked(columns: dict[str, np.ndarray], n: int) -> np.ndarray:
+    """(n, len(columns)) the named columns side by side."""
+    return np.stack(list(columns.values()), axis=1) if columns else np.zeros((n, 0))

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from identified.jsonsafe import json_safe
-from tensegrity_gym.options import count, finite_float, jobs, noise, seed
+from tensegrity_gym.options import count, finite_float, jobs, names, noise, seed
 
 if TYPE_CHECKING:
     from identified.fit.marker_model import MarkerRefineConfig
@@ -67,6 +67,7 @@ def cmd_collect(args: argparse.Namespace) -> None:
 def _collect_recording(args: argparse.Namespace, cfg) -> None:
     """``collect --record markers``: what a lab's sensors would see, written as a recording CSV."""
     from identified.recording import save_recording
+    from identified.topology import Topology
     from tensegrity_gym.collect import RecordConfig, collect, record_markers
 
     if args.record != "markers":
@@ -81,22 +82,30 @@ def _collect_recording(args: argparse.Namespace, cfg) -> None:
                            "--noise-pos")
     if args.ghosts and not args.unlabelled:
         raise CommandError("--ghosts: spurious markers come with anonymous columns; add --unlabelled")
+    if args.noise_length is not None and args.lengths is None:
+        raise CommandError("--noise-length: the noise of length sensors; name the sensed cables with --lengths")
     options = {field: _given(args, name) for name, field in _RECORD_OPTIONS.items()}
     rec = RecordConfig(noise_pos=args.noise_pos, **{field: v for field, v in options.items() if v is not None})
     rec.validate(1e-12)  # option values before the plant runs (the rates against dt after)
+    try:
+        rec.length_sensors(Topology.from_mjcf(args.model).spring_names)  # the names before the plant runs
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
     clean = collect(args.model, cfg.__class__(**{**cfg.__dict__, "noise_pos": 0.0}), progress=not args.quiet)
     r = record_markers(clean, args.model, rec, seed=args.seed)
     save_recording(args.out, r)
     encoders = "" if rec.encoder_rate is None else f" at {rec.encoder_rate:g} Hz"
+    lengths = f", {len(r.length_names)} cable lengths" if r.length_names else ""
     print(f"wrote {r.n_episodes} takes x {r.n_frames // max(r.n_episodes, 1)} frames at {rec.rate:g} Hz "
           f"({len(r.marker_names)} markers, {100 * r.missing_fraction():.1f} % missing, "
-          f"{len(r.rest_names)} encoder rest lengths{encoders}) to {args.out}")
+          f"{len(r.rest_names)} encoder rest lengths{encoders}{lengths}) to {args.out}")
 
 
 #: ``collect``'s options for a recording -> their :class:`~tensegrity_gym.collect.RecordConfig` fields
 #: (``None`` when not given: the config's default)
 _RECORD_OPTIONS = {"--rate": "rate", "--encoder-rate": "encoder_rate", "--dropout": "dropout",
-                   "--unlabelled": "unlabelled", "--ghosts": "ghosts"}
+                   "--unlabelled": "unlabelled", "--ghosts": "ghosts", "--lengths": "lengths",
+                   "--noise-length": "noise_length"}
 
 
 def _summary_recording(args: argparse.Namespace) -> None:
@@ -756,6 +765,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --record: anonymous marker columns (marker<N>) whose identities swap every 0.5 s")
     c.add_argument("--ghosts", type=count(0), default=None, metavar="N",
                    help="with --record --unlabelled: spurious markers per frame (default 0)")
+    c.add_argument("--lengths", type=names, default=None, metavar="CABLES",
+                   help="with --record: cables whose length a sensor of their own measures (stretch sensors), "
+                   "written as <tendon>.length columns at the encoders' rate: 'all' or names, comma-separated")
+    c.add_argument("--noise-length", type=noise(1.0, "m"), default=None, metavar="SIGMA",
+                   help="with --record --lengths: the length sensors' noise std, m (default 0)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=cmd_collect)
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -242,7 +242,10 @@ class RecordConfig:
     of ``dropout_run`` frames on average, and the actuated cables' rest lengths (spool encoders).
     ``unlabelled``: anonymous marker columns whose identities are shuffled every ``swap_every``
     seconds, plus ``ghosts`` spurious markers per frame.  ``encoder_rate``: the encoders' own rate
-    (Hz), written as rows between the camera frames (``None``: at the frames)."""
+    (Hz), written as rows between the camera frames (``None``: at the frames).  ``lengths``: the
+    cables whose length a sensor of their own measures (a stretch sensor, a string encoder along
+    the cable; ``("all",)`` every cable), read with the encoders, with Gaussian noise
+    ``noise_length`` (m)."""
 
     rate: float = 100.0
     noise_pos: float = 0.0
@@ -252,6 +255,8 @@ class RecordConfig:
     swap_every: float = 0.5
     ghosts: int = 0
     encoder_rate: float | None = None
+    lengths: tuple[str, ...] = ()
+    noise_length: float = 0.0
 
     def validate(self, dt: float) -> None:
         if not (np.isfinite(self.rate) and 0 < self.rate <= 1.0 / dt):
@@ -265,6 +270,19 @@ class RecordConfig:
                              f"got {self.encoder_rate}")
         if self.ghosts < 0:
             raise ValueError(f"--ghosts must be >= 0, got {self.ghosts}")
+        if not (np.isfinite(self.noise_length) and self.noise_length >= 0):
+            raise ValueError(f"--noise-length must be a finite number >= 0, got {self.noise_length}")
+
+    def length_sensors(self, tendons: Sequence[str]) -> tuple[str, ...]:
+        """The cables of ``tendons`` that :attr:`lengths` names, in the model's order; an unknown
+        name is refused, naming the option."""
+        if tuple(self.lengths) == ("all",):
+            return tuple(tendons)
+        unknown = [n for n in self.lengths if n not in tendons]
+        if unknown:
+            raise ValueError(f"--lengths: '{unknown[0]}' is not a tendon of the model (its tendons: "
+                             f"{', '.join(tendons)}; or 'all')")
+        return tuple(n for n in tendons if n in self.lengths)
 
 
 def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, seed: int = 0):
@@ -272,7 +290,7 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     site sampled at ``rec.rate``, noisy, with gaps in runs; the commands sent to the MuJoCo
     actuators (``.ctrl``, read at the encoders' rate: the lab's own log); every tendon's rest length (the
     actuated cables' from their encoders, a passive spring's as measured once).  Returns an :class:`identified.recording.Recording`."""
-    from identified.recording import Encoders, Recording, site_world_positions
+    from identified.recording import Encoders, Recording, site_world_positions, with_encoders
     from identified.topology import Topology
 
     rec.validate(data.dt)
@@ -295,18 +313,44 @@ def record_markers(data: Dataset, model: str | os.PathLike, rec: RecordConfig, s
     names = sites
     if rec.unlabelled:
         names, markers = _anonymise(rng, np.concatenate(times), np.concatenate(episodes), markers, rec)
+    sensors = rec.length_sensors(data.tendon_names)
+    eidx = idx if rec.encoder_rate is None else _sample_steps(T, data.dt, rec.encoder_rate)
+    lengths = _cable_lengths(model, data, eidx, sensors)
+    if sensors and rec.noise_length:  # drawn last: the markers' noise and gaps are those without sensors
+        lengths = lengths + rng.normal(0.0, rec.noise_length, lengths.shape)
     encoders = None
     if rec.encoder_rate is not None:
-        eidx = _sample_steps(T, data.dt, rec.encoder_rate)
         E, K = data.n_episodes, eidx.size
         encoders = Encoders(time=np.tile(eidx * data.dt, E), episode=np.repeat(np.arange(E), K),
                             rest=data.rest_length[:, eidx].reshape(E * K, -1),
                             ctrl=data.ctrl[:, eidx].reshape(E * K, -1) if data.actuator_names else np.zeros((E * K, 0)),
-                            length=np.zeros((E * K, 0)))
-    return Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
-                     markers=markers, rest_names=tuple(data.tendon_names), rest=np.concatenate(rests),
-                     ctrl_names=tuple(data.actuator_names), ctrl=np.concatenate(ctrls),
-                     noise_pos=rec.noise_pos, encoders=encoders)
+                            length=lengths)
+    out = Recording(time=np.concatenate(times), episode=np.concatenate(episodes), marker_names=names,
+                    markers=markers, rest_names=tuple(data.tendon_names), rest=np.concatenate(rests),
+                    ctrl_names=tuple(data.actuator_names), ctrl=np.concatenate(ctrls), length_names=sensors,
+                    length=lengths if encoders is None else np.zeros((len(markers), len(sensors))),
+                    noise_pos=rec.noise_pos, encoders=encoders)
+    # the frames' cable lengths, as a reader of the written file finds them: the sensors' samples
+    # interpolated at the frames
+    return out if encoders is None else replace(out, length=with_encoders(out, encoders).length)
+
+
+def _cable_lengths(model: str | os.PathLike, data: Dataset, steps: np.ndarray, cables: Sequence[str]) -> np.ndarray:
+    """(E * len(steps), len(cables)) the named cables' lengths (m) at ``steps`` of every episode of
+    ``data``, as the plant's MuJoCo model measures its tendons (``ten_length``) at those states."""
+    out = np.zeros((data.n_episodes * steps.size, len(cables)))
+    if not cables:
+        return out
+    plant = MujocoPlant(model)
+    cols = [list(plant.tendon_names).index(n) for n in cables]
+    row = 0
+    for e in range(data.n_episodes):
+        for t in steps:
+            plant.set_states(RodState(data.pos[e, t], data.quat[e, t], data.vel[e, t], data.angvel[e, t]))
+            out[row] = plant.tendon_lengths()[cols]
+            row += 1
+    plant.close()
+    return out
 
 
 def _sample_steps(T: int, dt: float, rate: float) -> np.ndarray:
@@ -357,8 +401,6 @@ def twin_recordings(model, data: Dataset, mjcf: str | os.PathLike, like, noise_p
     share of missing samples and markers' noise ``noise_pos``, one draw of the noise and gaps per
     seed of ``seeds``.  They hold no effect the model lacks: what a diagnosis finds in them is what
     reconstructing markers makes up (``diagnose``'s null, :func:`tensegrity_gym.loop.recording_null`)."""
-    from dataclasses import replace
-
     from identified.evaluate import rollout
 
     states = rollout(model, data)

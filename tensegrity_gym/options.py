@@ -10,7 +10,7 @@ import argparse
 import math
 from collections.abc import Callable
 
-__all__ = ["count", "finite_float", "jobs", "noise", "seed"]
+__all__ = ["count", "finite_float", "jobs", "names", "noise", "seed"]
 
 #: largest seed numpy's generators take
 MAX_SEED = 2**63 - 1
@@ -44,6 +44,17 @@ def jobs(text: str) -> int | str:
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be auto or a whole number >= 1, got {text}")
     return v
+
+
+def names(text: str) -> tuple[str, ...]:
+    """Comma-separated names (``cable0,cable7``), each non-empty, none twice."""
+    out = tuple(n.strip() for n in text.split(","))
+    if not all(out):
+        raise argparse.ArgumentTypeError(f"an empty name in '{text}' (names are separated by commas)")
+    twice = [n for i, n in enumerate(out) if n in out[:i]]
+    if twice:
+        raise argparse.ArgumentTypeError(f"'{twice[0]}' is named twice in '{text}'")
+    return out
 
 
 def seed(text: str) -> int:

@@ -17,6 +17,7 @@ from identified.recording.format import (
     read_recording,
     save_recording,
     site_world_positions,
+    with_encoders,
 )
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "read_recording",
     "save_recording",
     "site_world_positions",
+    "with_encoders",
 ]
 
 

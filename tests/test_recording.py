@@ -120,8 +120,10 @@ def test_checks_against_the_model(robot, tmp_path):
         assert p in str(err.value)
         return str(err.value)
 
-    assert "no site 'rodX_end0'" in bad(text.replace("rod2_end0.", "rodX_end0."))
-    assert "no tendon 'rope7'" in bad(text.replace("cable7.rest", "rope7.rest"))
+    # the header is line 2, below the stated noise: the messages name it
+    assert text.startswith("# noise_pos=0\n")
+    assert "line 2, column 'rodX_end0.x': the model has no site 'rodX_end0'" in bad(text.replace("rod2_end0.", "rodX_end0."))
+    assert "line 2, column 'rope7.rest': the model has no tendon 'rope7'" in bad(text.replace("cable7.rest", "rope7.rest"))
     # millimetres: every coordinate x1000
     mm = rec.with_markers(rec.marker_names, rec.markers * 1000)
     p = tmp_path / "mm.csv"

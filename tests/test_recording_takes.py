@@ -7,12 +7,19 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from identified.fit.markers import states_from_recording
-from identified.recording import RecordingError, join_recordings, read_recording, save_recording
+from identified.recording import (
+    RecordingError,
+    check_recording,
+    join_recordings,
+    read_recording,
+    save_recording,
+)
 from identified.topology import Topology
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.models import write_model
@@ -74,6 +81,14 @@ def test_joined_columns_and_what_is_refused(takes):
         states_from_recording(j, topo)
     with pytest.raises(RecordingError, match=rf"^'{files[1]}', line 3, column 'cable0.rest': empty in the whole take"):
         j.rest_at(1, np.array([0.1]))
+    # a column only take 1's file has, named for no tendon: that file's header named
+    lines = Path(files[1]).read_text().splitlines()
+    h = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    extra = str(files[1]) + ".rope.csv"
+    with open(extra, "w") as fh:
+        fh.write("\n".join(lines[:h] + [lines[h] + ",rope3.length"] + [x + ",1.0" for x in lines[h + 1:]]) + "\n")
+    with pytest.raises(RecordingError, match=rf"^'{extra}', line {h + 1}, column 'rope3.length': the model has no tendon"):
+        check_recording(join_recordings([recs[0], read_recording(extra)]), topo)
     with pytest.raises(RecordingError, match="states a marker noise of 0.002 m.*join recordings of one noise"):
         join_recordings([recs[0], dataclasses.replace(recs[1], noise_pos=0.002)])
     anon = dataclasses.replace(recs[1], marker_names=tuple(f"marker{i}" for i in range(len(recs[1].marker_names))))

@@ -105,11 +105,11 @@ def states_from_recording(rec: Recording, topology: Topology, dt: float = 0.001,
     check_recording(rec, topology, motors)
     missing = [s for s in topology.spring_names if s not in rec.rest_names]
     if missing:
-        raise RecordingError(f"'{rec.source}', line 1: no '{missing[0]}.rest' column: the fit needs every cable's "
+        raise RecordingError(f"{rec.header_where()}: no '{missing[0]}.rest' column: the fit needs every cable's "
                              f"rest length (encoder), {len(missing)} tendon(s) have none")
     silent = [a for a in motors if a not in rec.ctrl_names]
     if silent:
-        raise RecordingError(f"'{rec.source}', line 1: no '{silent[0]}.ctrl' column: the model's MuJoCo actuators pull "
+        raise RecordingError(f"{rec.header_where()}: no '{silent[0]}.ctrl' column: the model's MuJoCo actuators pull "
                              f"on its cables, and the fit needs the commands they were sent ({len(silent)} of "
                              f"{len(motors)} have none)")
     geos = rod_geometries(topology, tuple(rec.marker_names))

@@ -23,7 +23,7 @@ encoder sample is kept in :class:`Encoders` for :meth:`Recording.rest_at`.
 :func:`read_recording` parses and checks the table on its own (numbers, time order, columns it
 knows); :func:`check_recording` checks it against a model's topology (site and tendon names,
 a rod that cannot be placed, values in millimetres).  Every error is one line naming the file,
-the line (the header is line 1) and the column.  :func:`save_recording` writes atomically.
+the line and the column.  :func:`save_recording` writes atomically.
 """
 
 from __future__ import annotations
@@ -114,6 +114,7 @@ class Recording:
     noise_pos: float | None = None
     encoders: Encoders | None = None
     sources: tuple[str, ...] = ()
+    headers: tuple[tuple[str, int, frozenset[str]], ...] = ()
 
     @property
     def n_frames(self) -> int:
@@ -144,6 +145,15 @@ class Recording:
         e = int(self.episode[row]) if episode is None else int(episode)
         src = self.sources[e] if self.sources else self.source
         return f"'{src}', line {self.line(row) if line is None else int(line)}"
+
+    def header_where(self, name: str | None = None) -> str:
+        """``'file', line N`` of the header row that has column ``name`` (a site, tendon or actuator
+        name; ``None``: the first file's header) for messages about a column: ``headers`` holds each
+        file's header line and its names (one entry per file joined), else line 1 of ``source``."""
+        for src, line, names in self.headers:
+            if name is None or name in names:
+                return f"'{src}', line {line}"
+        return f"'{self.source}', line 1"
 
     def episodes(self) -> list[np.ndarray]:
         """Row indices of each take, in order."""
@@ -321,6 +331,7 @@ def parse_recording(text: str, source: str = "<recording>") -> Recording:
         ctrl_names=tuple(cols["ctrl"]), ctrl=table[:, list(cols["ctrl"].values())],
         length_names=tuple(cols["length"]), length=table[:, list(cols["length"].values())],
         source=source, lines=lines_a, noise_pos=noise,
+        headers=((source, header_line, frozenset(n for k in ("markers", "rest", "ctrl", "length") for n in cols[k])),),
     )
     _check_values(rec, header)
     return split_rates(rec)
@@ -559,7 +570,8 @@ def join_recordings(recs: list[Recording]) -> Recording:
                      markers=cat["markers"], rest_names=names["rest_names"], rest=cat["rest"],
                      ctrl_names=names["ctrl_names"], ctrl=cat["ctrl"], length_names=names["length_names"],
                      length=cat["length"], source=", ".join(dict.fromkeys(r.source for r in recs)), lines=cat["lines"],
-                     noise_pos=recs[0].noise_pos, encoders=encoders, sources=tuple(sources))
+                     noise_pos=recs[0].noise_pos, encoders=encoders, sources=tuple(sources),
+                     headers=tuple(h for r in recs for h in (r.headers or ((r.source, 1, frozenset()),))))
 
 
 # ---------------------------------------------------------------------- against the model
@@ -568,21 +580,20 @@ def check_recording(rec: Recording, topology: Topology, actuators: tuple[str, ..
 
     ``actuators``: the model's MuJoCo actuator names (the ``.ctrl`` columns may name them).
     """
-    src = rec.source
     sites = {s: i for i, r in enumerate(topology.rods) for s in r.sites}
     springs = set(topology.spring_names)
     if not rec.unlabelled:
         for n in rec.marker_names:
             if n not in sites and not UNLABELLED.match(n):
-                raise RecordingError(f"'{src}', line 1, column '{n}.x': the model has no site '{n}' on a rod "
+                raise RecordingError(f"{rec.header_where(n)}, column '{n}.x': the model has no site '{n}' on a rod "
                                      f"(sites: {', '.join(list(sites)[:6])}, ...)")
     for kind, names in (("rest", rec.rest_names), ("length", rec.length_names)):
         for n in names:
             if n not in springs:
-                raise RecordingError(f"'{src}', line 1, column '{n}.{kind}': the model has no tendon '{n}'")
+                raise RecordingError(f"{rec.header_where(n)}, column '{n}.{kind}': the model has no tendon '{n}'")
     for n in rec.ctrl_names:
         if n not in actuators:
-            raise RecordingError(f"'{src}', line 1, column '{n}.ctrl': the model has no actuator '{n}'"
+            raise RecordingError(f"{rec.header_where(n)}, column '{n}.ctrl': the model has no actuator '{n}'"
                                  + (f" (actuators: {', '.join(actuators[:6])})" if actuators else ""))
     if rec.unlabelled:
         return
@@ -591,7 +602,7 @@ def check_recording(rec: Recording, topology: Topology, actuators: tuple[str, ..
         cols = [m for m, n in enumerate(rec.marker_names) if sites.get(n) == i]
         if len(cols) < 2:
             have = ", ".join(rec.marker_names[m] for m in cols) or "none"
-            raise RecordingError(f"'{src}', line 1: rod '{rod.name}' has {len(cols)} marker column(s) ({have}); "
+            raise RecordingError(f"{rec.header_where()}: rod '{rod.name}' has {len(cols)} marker column(s) ({have}); "
                                  f"at least 2 of its sites ({', '.join(rod.sites)}) are needed to place it")
         seen = (~np.isnan(rec.markers[:, cols, 0])).sum(axis=1)
         for ep in rec.episodes():

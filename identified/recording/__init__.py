@@ -1,21 +1,19 @@
 """Recordings: what a lab measures (markers at sites, encoder rest lengths, commands), read, checked
 against a model, labelled and turned into rod poses.
 
-:mod:`.format` the recording CSV (reader, checks, atomic writer); :mod:`.mocap` C3D and Motive CSV
-exports; :mod:`.labelling` anonymous markers labelled against the model; :mod:`.poses` rigid fits
-of each rod's markers.  Numpy and scipy only: no engine, no fit.
+:mod:`.table` the recording in memory; :mod:`.format` the recording CSV (reader, atomic writer);
+:mod:`.rates` encoders faster than the cameras; :mod:`.join` a file per take; :mod:`.checks` against
+a model; :mod:`.mocap` C3D and Motive CSV exports; :mod:`.labelling` anonymous markers labelled
+against the model; :mod:`.poses` rigid fits of each rod's markers.  Numpy and scipy only: no engine, no fit.
 """
 
-from identified.recording.format import (
+from identified.recording.checks import check_recording
+from identified.recording.format import not_text, parse_recording, read_recording, save_recording
+from identified.recording.join import join_recordings
+from identified.recording.table import (
     Encoders,
     Recording,
     RecordingError,
-    check_recording,
-    join_recordings,
-    not_text,
-    parse_recording,
-    read_recording,
-    save_recording,
     site_world_positions,
     with_encoders,
 )

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from identified.recording.format import Recording, RecordingError
+from identified.recording.table import Recording, RecordingError
 from identified.topology import Topology
 
 __all__ = ["EXTRAPOLATE", "label_markers"]

@@ -27,7 +27,8 @@ import re
 
 import numpy as np
 
-from identified.recording.format import Encoders, Recording, RecordingError, not_text, with_encoders
+from identified.recording.format import not_text
+from identified.recording.table import Encoders, Recording, RecordingError, with_encoders
 
 __all__ = ["read_c3d", "read_motive_csv"]
 

@@ -315,3 +315,26 @@ def test_a_rod_whose_markers_miss_its_origin_is_refused():
                                              r"by \d.* cm.*record a marker off that line") as err:
         states_from_recording(rec, Topology.from_mjcf(model))
     assert "\n" not in str(err.value)
+
+
+def test_a_robot_standing_on_the_ground_is_told_to_fit_through_the_engine(robot, tmp_path):
+    """The regression leaves the equations of a rod on the ground out (its contact law is fitted on
+    their residual): where the rods stand on it all the time (the prism of ``examples/``), the data
+    cannot identify the cables, and the refusal says why and what fits such a robot; a robot that
+    leaves the ground (the ico robot, ~30 % of its rod-instants on it) is refused without it."""
+    import os
+
+    from identified.fit.markers import fit_recording
+    from identified.fit.regression import IdentifiabilityError
+
+    prism = os.path.join(os.path.dirname(__file__), "..", "examples", "prism3.xml")
+    data = collect(prism, CollectConfig(episodes=2, steps=2000, seed=3))
+    rec = record_markers(data, prism, RecordConfig(rate=100, noise_pos=0.001), seed=1)
+    with pytest.raises(IdentifiabilityError, match=r"the data cannot identify .*; but the rods are on the ground "
+                                                   r"\(within 1 cm\) at (9[0-9]|100) % of the instants.*add --refine"):
+        fit_recording(rec, prism, effects=["ground_contact"], jobs=1)
+    path, _, robot_data = robot
+    few = record_markers(robot_data.select(steps=700), path, RecordConfig(rate=100, noise_pos=0.001), seed=1)
+    with pytest.raises(IdentifiabilityError) as err:
+        fit_recording(few, path, effects=["ground_contact"], jobs=1)
+    assert "on the ground" not in str(err.value)

@@ -110,7 +110,7 @@ class MarkerWindows:
                        force=None if self.force is None else self.force[k])
 
 
-def _near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARGIN) -> np.ndarray | None:
+def near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARGIN) -> np.ndarray | None:
     """(E, T + 1, R) bool: rods with an end sphere within ``margin`` (m) of the ground (``None``
     when the model has no ground plane)."""
     from identified.effects import GeometryError
@@ -140,7 +140,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     col = [rec.marker_names.index(s) for _, _, s in sites]
     site_rod = torch.as_tensor([i for i, _, _ in sites])
     site_offset = torch.as_tensor(np.array([topology.rods[i].site_offsets[k] for i, k, _ in sites]), dtype=torch.float64)
-    near = _near_ground(mjcf, topology, data, margin) if mjcf else None
+    near = near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
     x0, sts, rest, obs, seen, free, wt, force = [], [], [], [], [], [], [], []

@@ -73,7 +73,8 @@ class IdentifiedModel:
     source_model: str | None = None
     integrator: str = "euler"  # how the engine steps: "euler", "implicit" or "rk4" (engine.integration)
     #: MuJoCo tendon actuators: {name, tendon, kind, dynamics, gain, gain_stderr, bias, bias_stderr,
-    #: time_constant, time_constant_stderr} (identified.fit.actuation)
+    #: time_constant, time_constant_stderr} (identified.fit.actuation); ``held``: why the values are
+    #: not this fit's estimates (the marker fit holds them at its start's), where they are not
     actuators: list[dict[str, Any]] = field(default_factory=list)
     #: (R, 3) m: each rod's centre of mass in its frame; None: at the origin
     com: np.ndarray | None = None
@@ -149,6 +150,8 @@ class IdentifiedModel:
                     f"bias {a['bias']:.4g} N{pm(a.get('bias_stderr'))}")
             if a.get("time_constant") is not None:
                 line += f", time constant {a['time_constant']:.4g} s{pm(a.get('time_constant_stderr'))}"
+            if a.get("held"):
+                line += f" (held: {a['held']})"
             lines.append(line)
         if self.scale:
             lines.append(f"scale: {self.scale.get('description', '')}")

@@ -127,6 +127,33 @@ def test_the_marker_fits_windows_step_the_actuators(robot):
     assert off["with"] < 1e-12 and off["without"] > 0.01
 
 
+def test_the_marker_fit_says_it_holds_the_actuators(robot):
+    """The marker fit's windows hold the actuators' gains, biases and filters at its start's values:
+    the model it writes carries no error bar for them (the start's would read as this fit's) and says
+    they are held, in the file and in its summary."""
+    from identified.fit.bound import CramerRao
+    from identified.fit.marker_fit import MarkerFit
+    from identified.fit.marker_model import _model
+    from identified.model import load_model, save_model
+
+    path, topo, d = robot
+    data = collect(path, CollectConfig(episodes=1, steps=1500, seed=2))
+    start = fit_model(data, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
+    assert all(a["gain_stderr"] is not None for a in start.actuators)
+    names = ([f"K[{s}]" for s in topo.spring_names] + [f"c[{s}]" for s in topo.spring_names]
+             + [f"M[{r}]" for r in topo.rod_names])
+    values = np.concatenate([start.stiffness, start.damping, start.mass])
+    cov = CramerRao(names, values, np.diag(np.full(len(names), 1e-4)), np.ones(len(names), dtype=bool))
+    model = _model(start, MarkerFit(cov, 8, 8, 0.001, [1.0], 1.0), None, [])
+    assert [a["gain"] for a in model.actuators] == [a["gain"] for a in start.actuators]
+    for a in model.actuators:
+        assert a["gain_stderr"] is None and a["bias_stderr"] is None and "marker fit holds them" in a["held"]
+    assert np.allclose(model.stderr["stiffness"], 0.01 * start.stiffness)  # the fit's own bars, where it has them
+    save_model(d / "held.json", model)
+    back = load_model(d / "held.json")
+    assert back.actuators == model.actuators and "(held: the start's values" in back.summary()
+
+
 def test_the_fit_reports_measured_lengths(fitted):
     """A recording's ``.length`` columns are checked against the markers' lengths (1 mm noise: the
     2 mm zero comes back to a tenth of a millimetre), a cable that follows raises no warning."""

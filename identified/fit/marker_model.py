@@ -176,8 +176,13 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
         not_identifiable.append(unseen_moment(topo.rod_names[i], a))
     if law is not None:
         _law_estimates(law, names, values, rel, ok, bar, not_identifiable)
+    # the MuJoCo actuators' gains, biases and filters are held at the start's values in the windows:
+    # no error bar of this fit is theirs, and the start's would read as if it were
+    held = ["gain", "bias", "time_constant"]
+    actuators = [{**a, **{f"{k}_stderr": None for k in held}, "held": "the start's values (the marker fit holds them)"}
+                 for a in start.actuators]
     return dataclasses.replace(start, stiffness=est["stiffness"], damping=est["damping"], mass=est["mass"],
-                               inertia=inertia, stderr=stderr,
+                               inertia=inertia, stderr=stderr, actuators=actuators,
                                effects=[] if law is None else [law.to_json()],
                                metrics={"not_identifiable": not_identifiable})
 

@@ -105,6 +105,7 @@ def _fake_fit(rng, names, total=10.0) -> MarkerFit:
     A = rng.normal(size=(3 * P, P))
     info = A.T @ A
     natural = np.where([n.startswith("law[imp_") for n in names], expit(theta), np.exp(theta))
+    natural = np.where([n.startswith("gain[") for n in names], -40.0 * natural, natural)  # a gain: its start's times
     cov = constrained_bound(info, names, natural, constraints=row[None])
     step = cov.cov @ rng.normal(size=P)  # a Gauss-Newton step keeps the total mass, as -C g does
     return MarkerFit(cov, 7, 30, 0.011, [3.0, 2.0], 5.0, True, step / cov.rel_se, 200.0, theta, info, row)
@@ -112,13 +113,14 @@ def _fake_fit(rng, names, total=10.0) -> MarkerFit:
 
 def test_a_fit_combined_with_itself_is_itself_with_half_the_covariance():
     rng = np.random.default_rng(4)
-    names = ["K[a]", "K[b]", "M[r0]", "M[r1]", "M[r2]", "law[beta]", "law[imp_min]"]
+    names = ["K[a]", "K[b]", "M[r0]", "M[r1]", "M[r2]", "gain[m0]", "law[beta]", "law[imp_min]"]
     f = _fake_fit(rng, names)
     g = combine_fits([f, f])
     np.testing.assert_allclose(g.theta, f.theta, atol=1e-12)
     np.testing.assert_allclose(g.cov.cov, f.cov.cov / 2, rtol=1e-9, atol=1e-14)
     np.testing.assert_allclose(g.cov.values, f.cov.values, rtol=1e-12)
     assert g.cov.values[-1] == pytest.approx(expit(f.theta[-1]), rel=1e-12)  # the impedance from its logit
+    assert g.cov.values[5] == pytest.approx(-40.0 * np.exp(f.theta[5]), rel=1e-12)  # the gain from its start's
     np.testing.assert_allclose(g.to_minimum, f.to_minimum * np.sqrt(2), rtol=1e-9)  # same step, bars sqrt(2) smaller
     assert np.exp(g.theta[2:5]).sum() == pytest.approx(10.0, rel=1e-14)
     assert g.agreement.chi2 == pytest.approx(0.0, abs=1e-10) and g.agreement.dof == len(names) - 1

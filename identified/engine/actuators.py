@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["DYNAMICS", "FILTERS", "ActuatorBank", "activations", "filter_rates", "tendon_forces"]
+__all__ = ["DYNAMICS", "FILTERS", "ActuatorBank", "activations", "filter_rates", "tendon_force_parts", "tendon_forces"]
 
 DYNAMICS = ("none", "filter", "filterexact", "integrator")
 #: activation dynamics with a time constant
@@ -124,10 +124,20 @@ def tendon_forces(ctrl: np.ndarray, dt: float, ctrl_names: Sequence[str], actuat
     """(E, T, S) every tendon's actuator force ``Σ (g act + b)`` over a record of commands ``ctrl``
     (E, T, U) named ``ctrl_names``; ``actuators``: identified actuators ``{name, tendon, dynamics,
     gain, bias, time_constant}``.  ValueError naming an actuator the record has no command for."""
+    gained, spread, bias = tendon_force_parts(ctrl, dt, ctrl_names, actuators, tendon_names)
+    return bias + gained @ spread
+
+
+def tendon_force_parts(ctrl: np.ndarray, dt: float, ctrl_names: Sequence[str], actuators: Sequence[Mapping[str, Any]],
+                       tendon_names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`tendon_forces` in the parts a fit of the gains needs: each actuator's ``g act`` (E, T,
+    U), the tendon each pulls on (U, S, one 1 a row) and the biases' sum on each tendon (E, T, S);
+    ``tendon_forces = bias + gained @ spread``, and a gain scaled by ``x`` scales its column alone."""
     E, T = ctrl.shape[:2]
-    out = np.zeros((E, T, len(tendon_names)))
+    U, S = len(actuators), len(tendon_names)
+    gained, spread, bias = np.zeros((E, T, U)), np.zeros((U, S)), np.zeros((E, T, S))
     if not actuators:
-        return out
+        return gained, spread, bias
     missing = [a["name"] for a in actuators if a["name"] not in ctrl_names]
     if missing:
         raise ValueError(f"the record has no command ('ctrl') for actuator '{missing[0]}'")
@@ -136,5 +146,8 @@ def tendon_forces(ctrl: np.ndarray, dt: float, ctrl_names: Sequence[str], actuat
     tau = np.array([a.get("time_constant") or 0.0 for a in actuators], dtype=float)
     act, _ = activations(np.asarray(ctrl, dtype=float)[..., idx], dt, dyn, tau)
     for u, a in enumerate(actuators):
-        out[..., list(tendon_names).index(a["tendon"])] += a["gain"] * act[..., u] + a.get("bias", 0.0)
-    return out
+        j = list(tendon_names).index(a["tendon"])
+        gained[..., u] = a["gain"] * act[..., u]
+        spread[u, j] = 1.0
+        bias[..., j] += a.get("bias", 0.0)
+    return gained, spread, bias

@@ -59,11 +59,13 @@ def combine(thetas: Sequence[np.ndarray], informations: Sequence[np.ndarray],
     return theta, U @ C_u @ U.T, Agreement(chi2, int(dof), p)
 
 
-def _natural(names: list[str], theta: np.ndarray) -> np.ndarray:
+def _natural(names: list[str], theta: np.ndarray, like: MarkerFit) -> np.ndarray:
     """The unknowns ``theta`` in their own units: the contact law's impedances (``law[imp_*]``) from
-    their logits, every other parameter from its logarithm."""
+    their logits, every other parameter from its logarithm, relative to its unit in the fit ``like``
+    (1, but an actuator's gain is its start's times the exponential of its unknown)."""
     logit = _impedances([n[4:-1] if n.startswith("law[") else n for n in names])
-    return np.where(logit, expit(theta), np.exp(np.where(logit, 0.0, theta)))
+    unit = np.where(logit, 1.0, like.cov.values / np.exp(np.where(logit, 0.0, like.theta)))
+    return np.where(logit, expit(theta), unit * np.exp(np.where(logit, 0.0, theta)))
 
 
 def combine_fits(fits: Sequence[MarkerFit]) -> MarkerFit:
@@ -88,7 +90,7 @@ def combine_fits(fits: Sequence[MarkerFit]) -> MarkerFit:
     row = np.zeros_like(theta)
     row[msl] = mass / mass.sum()
     information = sum(f.information for f in fits)
-    cov = constrained_bound(information, names, _natural(names, theta), constraints=row[None])
+    cov = constrained_bound(information, names, _natural(names, theta, fits[0]), constraints=row[None])
     # each block's step left to its minimum, in its unknowns, combined like the estimates
     steps = [np.nan_to_num(f.to_minimum * f.cov.rel_se, posinf=0.0, neginf=0.0) if f.to_minimum is not None
              else np.zeros_like(theta) for f in fits]

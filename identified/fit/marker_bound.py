@@ -57,13 +57,15 @@ def _names(prob: _Problem, model: IdentifiedModel) -> list[str]:
     return ([f"K[{s}]" for s in topo.spring_names] + [f"c[{s}]" for s in topo.spring_names]
             + [f"M[{r}]" for r in topo.rod_names]
             + [f"I[{topo.rod_names[i]}:{''.join(axes[a] for a in ax)}]" for i, ax in prob.groups]
-            + [f"law[{n}]" for n in prob.law_names])
+            + [f"gain[{n}]" for n in prob.gain_names] + [f"law[{n}]" for n in prob.law_names])
 
 
 def natural_values(prob: _Problem, theta: torch.Tensor) -> np.ndarray:
     """The parameters at the unknowns ``theta`` in their own units: K, c, M, I (their logarithms'
-    exponentials), then the contact law's free parameters."""
+    exponentials), the actuators' gains (the start's times their unknowns' exponentials), then the
+    contact law's free parameters."""
     out = theta[:prob.n_spring_rod].exp()
+    out = torch.cat([out[:prob.gain_slice.start], prob.gain0 * out[prob.gain_slice], out[prob.gain_slice.stop:]])
     if prob.law_idx:
         out = torch.cat([out, prob.law_theta(theta)[prob.law_idx]])
     return out.detach().numpy()
@@ -146,7 +148,7 @@ def recording_bound(model: IdentifiedModel, rec: Recording, data: Dataset, start
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(model, rec, data, starts, mjcf, sigma, hold_inertia, frames,
                                                     max_windows, order, axial=True, contact=contact,
-                                                    law_free=law_free, substeps=substeps)
+                                                    law_free=law_free, substeps=substeps, free_gains=True)
     W = win.n_windows
     theta = prob.theta0
     dx = settle(prob, theta, dx, acts, state_steps, progress)

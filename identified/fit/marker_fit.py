@@ -148,7 +148,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
         margin=CONTACT_MARGIN if contact_margin is None else contact_margin, contact=contact, law_free=law_free,
-        block=block)
+        block=block, free_gains=True)
     jac = prob.at_step(substeps)  # the Jacobians' windows; the cost's at data.dt
     W, R, k = win.n_windows, start.topology.n_rods, prob.n_x
     theta = prob.theta0.clone()

@@ -126,11 +126,14 @@ def _contact_law(start: IdentifiedModel, topology, mjcf: str):
 
 
 def _withhold_error_bars(model: IdentifiedModel) -> None:
-    """Every standard error of ``model`` NaN (``null`` in the file), its contact law's too."""
+    """Every standard error of ``model`` NaN (``null`` in the file), its contact law's and its
+    actuators' gains' too."""
     for k in ("stiffness", "damping", "mass", "inertia"):
         model.stderr[k] = np.full(np.shape(getattr(model, k)), np.nan)
     for e in model.effects:
         e["stderr"] = {n: None for n in e["parameters"]}
+    for a in model.actuators:
+        a["gain_stderr"] = None
 
 
 def _why(rel: float, logit: bool) -> str:
@@ -171,16 +174,19 @@ def _model(start: IdentifiedModel, fit: MarkerFit, law, held: list[tuple[int, in
         inertia_se[rod[r], cols] = values[i] * rel[i] if bar[i] else np.nan
     for i, n in enumerate(names):
         if not ok[i] and not n.startswith("law["):
-            not_identifiable.append(f"{n}: {_why(rel[i], False)}")
+            not_identifiable.append(f"{n}: {_why(rel[i], False)}")  # K, c, M, I and the gains
     for i, a in held:
         not_identifiable.append(unseen_moment(topo.rod_names[i], a))
     if law is not None:
         _law_estimates(law, names, values, rel, ok, bar, not_identifiable)
-    # the MuJoCo actuators' gains, biases and filters are held at the start's values in the windows:
-    # no error bar of this fit is theirs, and the start's would read as if it were
-    held = ["gain", "bias", "time_constant"]
-    actuators = [{**a, **{f"{k}_stderr": None for k in held}, "held": "the start's values (the marker fit holds them)"}
-                 for a in start.actuators]
+    # the MuJoCo actuators' gains are the fit's; their biases and filters are held at the start's
+    # values in the windows: no error bar of this fit is theirs, and the start's would read as its own
+    actuators = []
+    for a in start.actuators:
+        i = names.index(f"gain[{a['name']}]")
+        actuators.append({**a, "gain": float(values[i]), "gain_stderr": float(abs(values[i]) * rel[i]) if bar[i] else None,
+                          "bias_stderr": None, "time_constant_stderr": None,
+                          "held": "bias and time constant at the start's (the marker fit holds them)"})
     return dataclasses.replace(start, stiffness=est["stiffness"], damping=est["damping"], mass=est["mass"],
                                inertia=inertia, stderr=stderr, actuators=actuators,
                                effects=[] if law is None else [law.to_json()],

@@ -60,6 +60,7 @@ from torch.func import jvp, vmap
 
 from identified.dataset import Dataset
 from identified.engine import SpringRodEngine, SpringRodParams
+from identified.engine.actuators import tendon_force_parts
 from identified.evaluate import actuator_forces
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
@@ -84,7 +85,9 @@ class MarkerWindows:
     ``obs`` (W, L, N, 3) marker positions, ``seen`` (W, L, N) float (1 where seen and its rod is
     simulated); ``free`` (W, R) bool: the rods simulated in each window; ``site_rod`` (N,),
     ``site_offset`` (N, 3); ``window_time`` (W,) the recording's time of each window's start;
-    ``force`` (W, H, S): the MuJoCo actuators' force on each tendon at each step (``None``: none).
+    ``force`` (W, H, S): the MuJoCo actuators' force on each tendon at each step (``None``: none);
+    ``gained`` (W, H, U): where the fit estimates the actuators' gains, each one's ``g act`` at its
+    start's gain, and ``force`` holds the biases alone (``None``: the gains are in ``force``).
     """
 
     x0: torch.Tensor
@@ -98,6 +101,7 @@ class MarkerWindows:
     site_offset: torch.Tensor
     window_time: np.ndarray
     force: torch.Tensor | None = None
+    gained: torch.Tensor | None = None
 
     @property
     def n_windows(self) -> int:
@@ -107,7 +111,8 @@ class MarkerWindows:
         k = torch.as_tensor(keep)
         return replace(self, x0=self.x0[k], states=self.states[k], rest=self.rest[k], obs=self.obs[k],
                        seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep],
-                       force=None if self.force is None else self.force[k])
+                       force=None if self.force is None else self.force[k],
+                       gained=None if self.gained is None else self.gained[k])
 
 
 def near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARGIN) -> np.ndarray | None:
@@ -129,12 +134,14 @@ def near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARG
 
 def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology, mjcf: str | None,
                    frames: int = 10, contact_frames: int = 3, margin: float = CONTACT_MARGIN,
-                   forces: np.ndarray | None = None) -> MarkerWindows:
+                   forces: np.ndarray | None = None, gained: np.ndarray | None = None) -> MarkerWindows:
     """Cut a labelled recording into windows of ``frames`` frames over the reconstructed states
     ``data`` (take ``e``'s state ``n`` at the time ``starts[e] + n dt``).  A rod near the ground
     within ``contact_frames`` frames of a window is not simulated in it.  Frames must fall on the
     engine's steps (a rate that divides 1 / dt).  ``forces`` (E, T, S): the MuJoCo actuators' force
-    on each tendon at each step of ``data``, cut into the windows alike (``None``: no actuators)."""
+    on each tendon at each step of ``data``, cut into the windows alike (``None``: no actuators);
+    ``gained`` (E, T, U): each actuator's ``g act`` where the gains are estimated (``forces`` then
+    the biases alone), cut alike."""
     dt = data.dt
     sites = [(i, k, s) for i, r in enumerate(topology.rods) for k, s in enumerate(r.sites) if s in rec.marker_names]
     col = [rec.marker_names.index(s) for _, _, s in sites]
@@ -143,7 +150,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     near = near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
-    x0, sts, rest, obs, seen, free, wt, force = [], [], [], [], [], [], [], []
+    x0, sts, rest, obs, seen, free, wt, force, gain_force = [], [], [], [], [], [], [], [], []
     H = None
     for e, rows in enumerate(rec.episodes()):
         t = rec.time[rows]
@@ -172,6 +179,8 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
             rest.append(data.rest_length[e, a:b])
             if forces is not None:
                 force.append(forces[e, a:b])
+            if gained is not None:
+                gain_force.append(gained[e, a:b])
             obs.append(np.nan_to_num(m))
             seen.append(ok.astype(float))
             free.append(fr)
@@ -180,7 +189,8 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
         raise ValueError("no window of the recording has a rod off the ground to simulate")
     tt = lambda x, dtype=torch.float64: torch.as_tensor(np.array(x), dtype=dtype)
     return MarkerWindows(tt(x0), tt(sts), tt(rest), torch.as_tensor(step), tt(obs), tt(seen), tt(free, torch.bool),
-                         site_rod, site_offset, np.array(wt), tt(force) if forces is not None else None)
+                         site_rod, site_offset, np.array(wt), tt(force) if forces is not None else None,
+                         tt(gain_force) if gained is not None else None)
 
 
 #: units of the ground's free wrench in the unknowns (N, N m): of the order of a rod's weight
@@ -266,7 +276,8 @@ class _Problem:
 
     def __init__(self, model: IdentifiedModel, win: MarkerWindows, dt: float, sigma: float,
                  hold_inertia: list[tuple[int, int]], wrench_order: int = 2, axial: bool = False,
-                 contact=None, law_free: tuple[str, ...] = (), substeps: int = 1) -> None:
+                 contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
+                 gains: tuple[tuple[str, ...], np.ndarray, np.ndarray] | None = None) -> None:
         """``axial``: the held moments (``hold_inertia``) are parameters too, each its own group (for
         a bound that shows they carry no information; never for a fit).  The spin about a held
         axis stays as reconstructed, not a free unknown: the axis's motion does not depend on it
@@ -285,7 +296,12 @@ class _Problem:
         rest lengths at its start, as the engine's semi-implicit Euler holds its inputs over a step
         (and as the plant held each reading over its own step): ``substeps`` 1 is the windows at
         ``dt`` exactly, and the windows at ``k dt`` are those of a reconstruction sampled every
-        ``k`` steps."""
+        ``k`` steps.
+
+        ``gains`` ``(names, start gains (U,), spread (U, S))``: the MuJoCo actuators' gains are
+        unknowns too, each the start's times the exponential of its unknown (forces: the global
+        scale moves them with K, c, M), the windows' ``gained`` their forces at the start's gains
+        (:func:`identified.engine.actuators.tendon_force_parts`); ``None``: held in ``win.force``."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.substeps = substeps
         self.grid = coarse_steps(win.step.numpy(), substeps)  # (n + 1,) the steps' bounds in dt
@@ -312,8 +328,15 @@ class _Problem:
         inertia = self.base.inertia
         theta0 = [self.base.stiffness.log(), self.base.damping.log(), self.base.mass.log(),
                   torch.stack([inertia[i, axes].mean().log() for i, axes in groups])]
-        self.sizes = [S, S, R, len(groups)]
-        self.n_spring_rod = sum(self.sizes)  # K, c, M, I: the parameters the global scale moves
+        self.gain_names: tuple[str, ...] = () if gains is None else tuple(gains[0])
+        U = len(self.gain_names)
+        if U and win.gained is None:
+            raise ValueError("the actuators' gains are unknowns, but the windows carry no forces at the start's gains")
+        self.gain0 = torch.as_tensor(np.zeros(0) if gains is None else gains[1], dtype=torch.float64)
+        self.spread = torch.as_tensor(np.zeros((0, S)) if gains is None else gains[2], dtype=torch.float64)
+        theta0.append(torch.zeros(U, dtype=torch.float64))  # each gain relative to the start's
+        self.sizes = [S, S, R, len(groups), U]
+        self.n_spring_rod = sum(self.sizes)  # K, c, M, I and the gains: the parameters the global scale moves
         self.law_names: list[str] = []
         self.law_idx: list[int] = []
         if contact is not None:
@@ -335,7 +358,7 @@ class _Problem:
             theta0.append(torch.as_tensor(_law_transform(self.law_names, vals[self.law_idx]), dtype=torch.float64))
         self.theta0 = torch.cat(theta0)
         self.names = (["stiffness"] * S + ["damping"] * S + ["mass"] * R + ["inertia"] * len(groups)
-                      + ["law"] * len(self.law_idx))
+                      + ["gain"] * U + ["law"] * len(self.law_idx))
         gi = torch.zeros(R, 3, len(groups), dtype=torch.float64)
         for g, (i, axes) in enumerate(groups):
             gi[i, axes, g] = 1.0
@@ -362,9 +385,23 @@ class _Problem:
         return out
 
     def params(self, theta: torch.Tensor) -> SpringRodParams:
-        K, c, M, Ig = torch.split(theta[:self.n_spring_rod].exp(), self.sizes)
+        K, c, M, Ig, _ = torch.split(theta[:self.n_spring_rod].exp(), self.sizes)
         inertia = self.inertia_fixed + (self.gi * Ig).sum(-1)
         return replace(self.base, stiffness=K, damping=c, mass=M, inertia=inertia)
+
+    @property
+    def gain_slice(self) -> slice:
+        """Where the actuators' gains (logarithms relative to the start's) lie among the unknowns."""
+        a = sum(self.sizes[:4])
+        return slice(a, a + self.sizes[4])
+
+    def tendon_force(self, theta: torch.Tensor, win: MarkerWindows, n: int) -> torch.Tensor | None:
+        """(W, S) the actuators' force on each tendon at step ``n`` of the windows ``win`` at the
+        unknowns ``theta`` (``None``: no actuators)."""
+        if win.gained is None:
+            return None if win.force is None else win.force[:, n]
+        f = (win.gained[:, n] * theta[self.gain_slice].exp()) @ self.spread
+        return f if win.force is None else f + win.force[:, n]
 
     @property
     def mass_slice(self) -> slice:
@@ -424,8 +461,7 @@ class _Problem:
                 a = int(grid[j - 1])
                 if wrench is not None:
                     wrench.n = (a + n) / 2 - 0.5  # the coarse step's middle
-                state = engines[n - a].step(state, win.rest[:, a],
-                                            tendon_force=None if win.force is None else win.force[:, a])
+                state = engines[n - a].step(state, win.rest[:, a], tendon_force=self.tendon_force(theta, win, a))
                 if self.order == 0 and self.contact is None:  # the rods near the ground move as reconstructed
                     rec = win.states[:, n]
                     state = type(state)(torch.where(free, state.pos, rec[..., 0:3]),
@@ -483,8 +519,8 @@ class _Problem:
 def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts: list[float], mjcf: str | None,
                    sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 256,
                    order: int = 2, axial: bool = False, margin: float = CONTACT_MARGIN, contact=None,
-                   law_free: tuple[str, ...] = (), substeps: int = 1, block: tuple[int, int] = (0, 1)
-                   ) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
+                   law_free: tuple[str, ...] = (), substeps: int = 1, block: tuple[int, int] = (0, 1),
+                   free_gains: bool = False) -> tuple[MarkerWindows, int, _Problem, torch.Tensor, torch.Tensor]:
     """The output-error problem of a recording at ``model``'s parameters, as the refinement, the
     bound and the staged fit all set it up: up to ``max_windows`` windows of ``frames`` frames spread
     evenly over the recording (of ``available``), the :class:`_Problem` on them, the windows'
@@ -496,12 +532,18 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     ``substeps``: the windows stepped at up to that many of ``data.dt`` (:func:`coarse_steps`).
     ``block`` ``(b, B)``: of the windows spread over the recording, every ``B``-th from the ``b``-th
     (block ``b`` of ``B`` interleaved blocks; :mod:`identified.fit.marker_blocks`).
+    ``free_gains``: the MuJoCo actuators' gains are unknowns too (their biases and filters held at
+    the model's); else all three are held.
     Returns ``(windows, available, problem, dx, active)``."""
-    forces = actuator_forces(model, data)  # the actuators' gains, biases and filters held at the model's
+    forces, gained, gains = actuator_forces(model, data), None, None  # held at the model's
+    if free_gains and model.actuators:
+        gained, spread, forces = tendon_force_parts(data.ctrl, data.dt, data.actuator_names, model.actuators,
+                                                    model.topology.spring_names)
+        gains = (tuple(a["name"] for a in model.actuators), np.array([a["gain"] for a in model.actuators]), spread)
     if contact is not None:
         order = 0
     win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,
-                         margin=margin, forces=forces)
+                         margin=margin, forces=forces, gained=gained)
     available = win.n_windows
     if win.n_windows > max_windows:
         win = win.subset(np.linspace(0, win.n_windows - 1, max_windows).round().astype(int))
@@ -512,7 +554,7 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
                                  f"has {win.n_windows} (fewer blocks, or more windows)")
         win = win.subset(np.arange(b, win.n_windows, B))
     prob = _Problem(model, win, data.dt, float(sigma), list(hold_inertia), order, axial=axial, contact=contact,
-                    law_free=tuple(law_free), substeps=substeps)
+                    law_free=tuple(law_free), substeps=substeps, gains=gains)
     W, R, k = win.n_windows, model.topology.n_rods, prob.n_x
     dx = torch.zeros(W, R, k, dtype=torch.float64)
     if order > 0:  # the ground starts out carrying the weight of the rods near it

@@ -9,8 +9,9 @@ equations near them are weighed out.  Here the markers themselves are the measur
 * the recording is cut into windows of ``frames`` consecutive frames (each frame in one window);
 * in each window the rods are stepped by the identified engine (semi-implicit Euler at the fit's
   ``dt``, or at up to ``substeps`` of it: :func:`coarse_steps`; the encoders' rest lengths and the
-  MuJoCo actuators' forces from the recorded commands as the inputs, the actuators' gains, biases
-  and time constants held at the model's) from a *free* initial state per window and rod
+  MuJoCo actuators' forces from the recorded commands as the inputs, the actuators' biases and
+  time constants held at the model's, their gains too unless they are unknowns, ``free_gains`` of
+  :func:`window_problem`) from a *free* initial state per window and rod
   (position, rotation, velocity, angular velocity: multiple shooting, so no error accumulates from
   one window into the next), and each site's simulated position is compared with its marker at
   every frame where it is seen;

@@ -287,6 +287,7 @@ def test_motive_csv_export(robot, tmp_path):
     np.testing.assert_allclose(rec.markers[1, 0], [0.11, -0.31, 0.21])
     assert np.isnan(rec.markers[1, 1]).all()
     np.testing.assert_allclose(rec.time, [0.0, 0.008333])
+    assert rec.header_where("rod0_end0") == f"'{p}', line 4"  # a message about a marker names its 'Name' row
 
 
 def test_c3d_file(tmp_path):

@@ -123,7 +123,8 @@ def read_motive_csv(path: str | os.PathLike, up: str = "y") -> Recording:
     head = next((i for i, r in enumerate(rows) if len(r) > 1 and r[0].strip() == "Frame"), None)
     if head is None:
         raise RecordingError(f"'{p}': no 'Frame, Time (Seconds), ...' row: not a Motive CSV export")
-    label = lambda key: next((rows[i] for i in range(head) if len(rows[i]) > 1 and rows[i][1].strip() == key), None)
+    at = lambda key: next((i for i in range(head) if len(rows[i]) > 1 and rows[i][1].strip() == key), None)
+    label = lambda key: None if at(key) is None else rows[at(key)]
     type_row, name_row = label("Type"), label("Name")
     kind_row = next((rows[i] for i in range(head) if any(c.strip() == "Position" for c in rows[i])), None)
     if type_row is None or name_row is None or kind_row is None:
@@ -161,11 +162,13 @@ def read_motive_csv(path: str | os.PathLike, up: str = "y") -> Recording:
                     raise RecordingError(f"'{p}', line {line}, column '{name}': not a number") from None
     markers = _up(markers * scale, up, p)
     return _recording(p, time, np.zeros(F, dtype=np.int64), names, markers,
-                      {"rest": {}, "ctrl": {}, "length": {}}, lines=head + 2 + np.arange(F))
+                      {"rest": {}, "ctrl": {}, "length": {}}, lines=head + 2 + np.arange(F),
+                      headers=((p, at("Name") + 1, frozenset(names)),))  # the markers' names: the 'Name' row
 
 
 def _recording(source: str, time: np.ndarray, episode: np.ndarray, names: list[str], markers: np.ndarray,
-               cols: dict[str, dict[str, np.ndarray]], lines: np.ndarray | None = None) -> Recording:
+               cols: dict[str, dict[str, np.ndarray]], lines: np.ndarray | None = None,
+               headers: tuple = ()) -> Recording:
     bad = np.flatnonzero(~(np.diff(time) > 0))
     if bad.size:
         raise RecordingError(f"'{source}', frame {int(bad[0]) + 1}: time {time[bad[0] + 1]:g} s is not after "
@@ -175,7 +178,7 @@ def _recording(source: str, time: np.ndarray, episode: np.ndarray, names: list[s
                      rest_names=tuple(cols["rest"]), rest=_stacked(cols["rest"], F),
                      ctrl_names=tuple(cols["ctrl"]), ctrl=_stacked(cols["ctrl"], F),
                      length_names=tuple(cols["length"]), length=_stacked(cols["length"], F),
-                     source=source, lines=lines)
+                     source=source, lines=lines, headers=headers)
 
 
 def _stacked(columns: dict[str, np.ndarray], n: int) -> np.ndarray:

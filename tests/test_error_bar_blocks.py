@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from identified.fit.identify import run_blocks, shortest_cut_run
+from identified.fit.identify import run_blocks, shortest_cut_run, shortest_cut_take
 from identified.fit.regression import accumulate
 from identified.fit.uncertainty import LinearSolve, block_slices, blocks_per_run, covariance
 
@@ -55,6 +55,13 @@ def test_run_blocks_of_recordings():
         assert run_blocks(takes(n, need), 10**6, "forward", 301)["blocks"] > 1
         assert run_blocks(takes(n, need - 1), 10**6, "forward", 301)["blocks"] == 1
     assert shortest_cut_run(6, 0.001, 301) == 33 * 75 + 301  # 2 blocks of 17 rows
+    # 4 takes of 5 s: the chunks cut each at 4096 steps, and the 903-step rest is too short to cut
+    assert run_blocks(takes(4, 4999), 4096, "forward", 301)["blocks"] == 1
+    shortest = shortest_cut_take(4, 0.001, 301)
+    assert shortest == shortest_cut_run(4, 0.001, 301) and shortest < 4096  # within one chunk: as before
+    longer = shortest_cut_take(4, 0.001, 301, at_least=5000)
+    assert run_blocks(takes(4, longer), 4096, "forward", 301)["blocks"] > 1
+    assert run_blocks(takes(4, longer - 75), 4096, "forward", 301)["blocks"] == 1  # the shortest of them
 
 
 def _rows(rng: np.random.Generator, runs: int, per: int, p: int = 3) -> tuple[np.ndarray, np.ndarray]:

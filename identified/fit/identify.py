@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -580,6 +581,22 @@ def shortest_cut_run(runs: int, dt: float, weak: int) -> int:
     ``MIN_RUNS`` blocks in all (runs of at most the chunks' length)."""
     rows = -(-MIN_RUNS // max(runs, 1)) * _block_min_rows(dt, weak)
     return (rows - 1) * weak_stride(weak) + weak if weak > 1 else rows
+
+
+def shortest_cut_take(takes: int, dt: float, weak: int, at_least: int = 0, chunk_steps: int = 4096,
+                      scheme: str = "forward") -> int | None:
+    """The fewest steps, at least ``at_least``, each of ``takes`` takes needs for :func:`run_blocks`
+    to cut them into blocks, the chunks' own cut of a take longer than ``chunk_steps`` included (its
+    last piece is a run of its own, and may be too short to cut: 4 takes of 5 s are not cut, of 4.1 s
+    they are); ``None`` where no take up to 64 chunks long is."""
+    n = max(int(at_least), shortest_cut_run(takes, dt, weak))
+    step = weak_stride(weak) if weak > 1 else 1
+    while n <= 64 * chunk_steps:
+        like = SimpleNamespace(n_episodes=takes, n_steps=n, dt=dt)
+        if run_blocks(like, chunk_steps, scheme, weak)["blocks"] > 1:
+            return n
+        n += step
+    return None
 
 
 #: the passes of a classification keep the rows between them (:func:`_cached_runs`) when they take

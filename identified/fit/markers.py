@@ -492,7 +492,7 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
     the recording's rate, the dampings', masses' and moments' standard errors are withheld and a
     warning says why (:mod:`identified.fit.sampling_rate`; ``metrics.recording.fastest_oscillation_hz``)."""
     from identified.fit.derivatives import default_window
-    from identified.fit.identify import shortest_cut_run
+    from identified.fit.identify import shortest_cut_take
     from identified.fit.pipeline import fit_model
     from identified.fit.sampling_rate import fastest_oscillation, withhold_unresolved
     from identified.fit.uncertainty import MIN_BLOCK_SECONDS, MIN_BLOCK_WINDOWS, MIN_RUNS
@@ -546,12 +546,17 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
         # (:func:`identified.fit.identify.run_blocks`): the rows' error bars, which on splined states
         # under-cover (6 takes of 4 s at 100 Hz, 0.5 mm, uncut: RMS z 2.9 for c, 3.1 for M)
         block = max(MIN_BLOCK_SECONDS, MIN_BLOCK_WINDOWS * window * dt)
-        need = shortest_cut_run(rec.n_episodes, dt, window) * dt
+        # the shortest takes that are cut, or, where these are longer than that and still not cut
+        # (the fit's chunks cut a long take, and their last piece is a run of its own), longer ones
+        shortest = shortest_cut_take(rec.n_episodes, dt, window)
+        longer = shortest_cut_take(rec.n_episodes, dt, window, at_least=ms.data.n_steps + 1)
+        need = shortest if shortest is not None and shortest > ms.data.n_steps else longer
+        takes = "" if need is None else f", or takes of {need * dt:.2g} s"
         model.metrics.setdefault("warnings", []).append(
             f"only {rec.n_episodes} take(s) of {ms.data.n_steps * dt:.3g} s, too short to cut into {MIN_RUNS} "
             f"blocks of {block:.2g} s for the jackknife: the standard errors are the equations' as if "
-            f"independent, which on reconstructed states are too small (record {MIN_RUNS} takes, or "
-            f"takes of {need:.2g} s or more, for error bars that cover)")
+            f"independent, which on reconstructed states are too small (record {MIN_RUNS} takes{takes}, for "
+            "error bars that cover)")
     # on the model returned, refined or not: the refinement's windows start from the same splined
     # states, and its error bars at a rate the robot outruns were never shown to cover
     fastest = fastest_oscillation(model, ms.data)

@@ -171,6 +171,11 @@ BAD_FLAGS = [
                                      "rod99=3")],
     *[("fit", opt, v) for opt in ("--regressors", "--solver", "--integrator", "--scheme", "--effects")
       for v in ("bogus",)],
+    *[("record", opt, v) for opt in ("--rate", "--encoder-rate") for v in ("0", "-1", "nan", "inf", "x", "5000")],
+    *[("record", "--dropout", v) for v in ("-0.1", "1", "nan", "x")],
+    *[("record", "--ghosts", v) for v in ("-1", "1.5", "x")],
+    *[("record", "--lengths", v) for v in ("", ",", "cable0,,cable1", "rope9", "cable0,cable0")],
+    *[("record", "--noise-length", v) for v in ("-0.1", "nan", "inf", "1e300", "x")],
     *[("predict", "--horizon", v) for v in ("0", "-1", "x")],
     *[("model", "--seed", v) for v in ("-1", "x")],
 ]
@@ -181,6 +186,8 @@ def flag_argv(cmd: str, opt: str, value: str, files: dict[str, str]) -> list[str
     base = {
         "collect": ["collect", "--model", files["ico"], "--episodes", "1", "--steps", "5", "--out", "new.npz",
                     "--quiet"],
+        "record": ["collect", "--model", files["ico"], "--episodes", "1", "--steps", "5", "--record", "markers",
+                   "--out", "new.csv", "--quiet"],
         "fit": ["fit", files["data"], "--model", files["ico"], "--out", "new.json", "--quiet"],
         "predict": ["predict", files["data"], "--identified", files["fit"]],
         "model": ["model", "ico", "--preset", "paper-nonuniform", "--out", "new.xml"],

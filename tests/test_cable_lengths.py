@@ -27,10 +27,8 @@ def robot(tmp_path_factory):
     topo = Topology.from_mjcf(path)
     data = collect(path, CollectConfig(episodes=2, steps=1500, seed=4))
     rec = record_markers(data, path, RecordConfig(rate=100), seed=1)
-    steps = np.round(rec.time / data.dt).astype(int)
-    t = lambda x: torch.as_tensor(x[rec.episode, steps], dtype=torch.float64)
-    true = spring_geometry(endpoint_kinematics(topo, t(data.pos), t(data.quat), t(data.vel), t(data.angvel))).length
-    return topo, rec, true.numpy(), data, path
+    true = _lengths_at(topo, data, rec.episode, np.round(rec.time / data.dt).astype(int))
+    return topo, rec, true, data, path
 
 
 def _lengths_at(topo: Topology, data, episode: np.ndarray, steps: np.ndarray) -> np.ndarray:

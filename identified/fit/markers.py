@@ -546,11 +546,11 @@ def fit_recording(rec: Recording, mjcf: str, dt: float = 0.001, gravity: tuple[f
         # (:func:`identified.fit.identify.run_blocks`): the rows' error bars, which on splined states
         # under-cover (6 takes of 4 s at 100 Hz, 0.5 mm, uncut: RMS z 2.9 for c, 3.1 for M)
         block = max(MIN_BLOCK_SECONDS, MIN_BLOCK_WINDOWS * window * dt)
-        # the shortest takes that are cut, or, where these are longer than that and still not cut
-        # (the fit's chunks cut a long take, and their last piece is a run of its own), longer ones
-        shortest = shortest_cut_take(rec.n_episodes, dt, window)
-        longer = shortest_cut_take(rec.n_episodes, dt, window, at_least=ms.data.n_steps + 1)
-        need = shortest if shortest is not None and shortest > ms.data.n_steps else longer
+        need = shortest_cut_take(rec.n_episodes, dt, window)  # the shortest takes that are cut
+        if need is not None and need <= ms.data.n_steps:
+            # these takes are longer and still not cut (the fit's chunks cut a long take, and their
+            # last piece is a run of its own): longer ones that are
+            need = shortest_cut_take(rec.n_episodes, dt, window, at_least=ms.data.n_steps + 1)
         takes = "" if need is None else f", or takes of {need * dt:.2g} s"
         model.metrics.setdefault("warnings", []).append(
             f"only {rec.n_episodes} take(s) of {ms.data.n_steps * dt:.3g} s, too short to cut into {MIN_RUNS} "
@@ -576,13 +576,14 @@ def _on_the_ground(exc: IdentifiabilityError, mjcf: str, topology: Topology, dat
     law is fitted on the residual of the others), and the marker fit simulates the contact instead
     (measured: the 3-bar prism of ``examples/``, its bars always standing, was refused from a clean
     recording at 100, 250 and 1000 Hz, with "excite these with more varied motion")."""
-    from identified.fit.output_error import near_ground
+    from identified.fit.output_error import CONTACT_MARGIN, near_ground
 
-    near = near_ground(mjcf, topology, data)  # within the margin where the regression leaves a rod's rows out
+    near = near_ground(mjcf, topology, data, CONTACT_MARGIN)  # where the regression leaves a rod's rows out
     share = float(near.mean()) if near is not None and near.size else 0.0
     if share <= MOSTLY_ON_THE_GROUND:
         return exc
-    return IdentifiabilityError(f"{exc}; but the rods are on the ground (within 1 cm) at {100 * share:.0f} % of the "
+    return IdentifiabilityError(f"{exc}; but the rods are on the ground (within {100 * CONTACT_MARGIN:g} cm) at "
+                                f"{100 * share:.0f} % of the "
                                 "instants, and the regression fits K, c and M on the rods off it: fit through the engine, "
                                 "which simulates the contact (add --refine, with --start MODEL.json: a model of this "
                                 "robot, an earlier fit or its design values)", exc.names)

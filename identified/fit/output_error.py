@@ -536,11 +536,12 @@ def window_problem(model: IdentifiedModel, rec: Recording, data: Dataset, starts
     ``free_gains``: the MuJoCo actuators' gains are unknowns too (their biases and filters held at
     the model's); else all three are held.
     Returns ``(windows, available, problem, dx, active)``."""
-    forces, gained, gains = actuator_forces(model, data), None, None  # held at the model's
     if free_gains and model.actuators:
         gained, spread, forces = tendon_force_parts(data.ctrl, data.dt, data.actuator_names, model.actuators,
                                                     model.topology.spring_names)
         gains = (tuple(a["name"] for a in model.actuators), np.array([a["gain"] for a in model.actuators]), spread)
+    else:
+        forces, gained, gains = actuator_forces(model, data), None, None  # held at the model's
     if contact is not None:
         order = 0
     win = marker_windows(rec, data, starts, model.topology, None if contact is not None else mjcf, frames,

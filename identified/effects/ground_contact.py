@@ -80,7 +80,12 @@ from identified.engine.smallmat import (
 )
 from identified.rotation import matrix_apply, matrix_apply_transpose
 
-__all__ = ["CapsuleOnPlane", "GroundContact", "capsule_geometry", "cluster_covariance", "read_contact_geometry"]
+__all__ = ["CONTACT_MARGIN", "CapsuleOnPlane", "GroundContact", "capsule_geometry", "cluster_covariance", "read_contact_geometry"]
+
+#: a rod with an end sphere this close to the ground (m) is near it: the regression's rows of it
+#: hold contact forces (:meth:`CapsuleOnPlane.rows_affected`), and the marker fit's windows without a
+#: contact law move it as recorded (:mod:`identified.fit.output_error`)
+CONTACT_MARGIN = 0.01
 
 #: the regulariser ε (relative, on the diagonal of the contact-space inverse mass) is identified
 #: by a profile scan over these values; MuJoCo's own is (1 - d) / d ≈ 0.05 at its default impedance
@@ -194,7 +199,7 @@ class CapsuleOnPlane(Effect):
                                 tuple(float(x) for x in n), tuple(float(x) for x in t1), float(height))
         return self._cache[key]
 
-    def rows_affected(self, state: Any, ctx: Any, margin: float = 0.01) -> torch.Tensor:
+    def rows_affected(self, state: Any, ctx: Any, margin: float = CONTACT_MARGIN) -> torch.Tensor:
         """Rods with an end sphere within ``margin`` of the ground (their equations hold contact forces)."""
         _, depth = self._end_spheres(state, ctx.rot)
         return (depth > -margin).any(-1)

@@ -60,6 +60,7 @@ import torch
 from torch.func import jvp, vmap
 
 from identified.dataset import Dataset
+from identified.effects.ground_contact import CONTACT_MARGIN
 from identified.engine import SpringRodEngine, SpringRodParams
 from identified.engine.actuators import tendon_force_parts
 from identified.evaluate import actuator_forces
@@ -70,9 +71,6 @@ from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
 from identified.twin import params_from_model
 
 __all__ = ["MarkerWindows", "marker_windows", "refine_markers"]
-
-#: a rod with an end sphere this close to the ground (m) is moved as recorded, not simulated
-CONTACT_MARGIN = 0.01
 
 
 @dataclass

@@ -161,3 +161,27 @@ def test_a_trial_step_that_breaks_the_law_is_rejected(resting):
     assert fit.group("law")[0][0] == pytest.approx(start[0], rel=1e-12)
     assert fit.group("K")[0] == pytest.approx(truth.stiffness, rel=1e-12)
     assert fit.history[-1] <= fit.history[0]
+
+
+def test_smoothed_jacobians_step_the_exact_cost(resting):
+    """``_Problem.with_smoothing``: a copy whose law is smoothed (the problem's own law untouched:
+    its residuals the same to the bit), whose residuals differ; a state step on its Jacobians
+    reports and lowers the exact law's cost (from the plant's states moved 2 mm); at width 0 the
+    problem itself."""
+    from identified.fit.marker_bound import nuisance_step
+
+    path, data, rec, truth, _ = resting
+    _, _, prob, dx, acts = window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=9, max_windows=2,
+                                          contact=_law(path, truth, TRUTH))
+    assert prob.with_smoothing(0.0) is prob
+    gen = torch.Generator().manual_seed(0)
+    dx = dx + 2e-3 * torch.randn(dx.shape, generator=gen, dtype=dx.dtype) * acts.reshape(dx.shape)
+    before = prob.window_residuals(prob.theta0, dx)
+    smooth = prob.with_smoothing(1e-3)
+    assert smooth.contact.smoothing == 1e-3 and prob.contact.smoothing == 0.0
+    assert torch.equal(prob.window_residuals(prob.theta0, dx), before)
+    assert float((smooth.window_residuals(prob.theta0, dx) - before).abs().max()) > 0.1  # 0.1 sigma
+    new, r, cost, _, moved = nuisance_step(prob, prob.theta0, dx, acts, 1e-3, jac=smooth)
+    exact = prob.window_residuals(prob.theta0, new)
+    assert moved and torch.equal(r, exact) and cost == pytest.approx(float(exact.square().sum()), rel=1e-12)
+    assert cost < 0.5 * float(before.square().sum())

@@ -54,6 +54,10 @@ __all__ = ["PyramidContact"]
 #: 6,184 rod-contacts of a 20 s plant collection (float64, against 30 iterations): 6 reach rounding
 #: (8.7e-15 of the force at worst), 5 leave 6e-4 on one contact in 3,000; fewer step sizes need more
 NEWTON_ITERATIONS = 6
+#: the same for the smoothed law (``PyramidContact.smoothing``), whose edges bend over a width:
+#: measured on the same run against 40 iterations, 6 leave 1.2e-3 of the force at 1 mm of width, 10
+#: leave 2e-11, 12 and more rounding (1e-17), at widths of 1e-5 to 1e-3 m
+SMOOTHED_ITERATIONS = 12
 STEPS = (1.0, 0.5, 0.25, 0.1, 0.03)
 #: where the fit starts (the law's order of magnitude for a hard floor), then its transforms:
 #: logarithms of the positive parameters, logits of the impedances
@@ -74,6 +78,20 @@ def impedance(depth: torch.Tensor, d0: Any, dw: Any, width: Any) -> torch.Tensor
     x = (depth / width).clamp(0.0, 1.0)
     y = torch.where(x <= 0.5, 2 * x * x, 1 - 2 * (1 - x) ** 2)
     return d0 + y * (dw - d0)
+
+
+def smoothstep(x: torch.Tensor) -> torch.Tensor:
+    """``3x² - 2x³`` on [0, 1], 0 below and 1 above: a step with a continuous slope."""
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def soft_positive(v: torch.Tensor, width: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``h(v) = w log(1 + exp(v / w))``, a smooth ``max(0, v)`` over ``width`` ``w``, and its first and
+    second derivatives."""
+    z = v / width
+    s = torch.sigmoid(z)
+    return width * torch.logaddexp(z, torch.zeros_like(z)), s, s * (1 - s) / width
 
 
 def _trail(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -185,6 +203,18 @@ class PyramidContact(CapsuleOnPlane):
     searched_on_markers = False
     warm_starts = True  # the Gauss-Newton fit starts from the values it holds
     fit_cost = 10.0
+    #: the law smoothed over this depth (m; 0: the exact law). Each contact turns on over
+    #: ``[-ε/2, ε/2]`` of depth (:func:`smoothstep` of its weight) instead of at 0, and each edge's
+    #: ``max(0, ·)`` in (2) is :func:`soft_positive` over ``κ ε`` (the spring's acceleration across the
+    #: width): the wrench is then a smooth function of the state.  The exact law's wrench jumps
+    #: where a contact makes or breaks and kinks where a friction edge switches, so the markers of a
+    #: window are piecewise smooth in its initial state, with kinks ~0.1 mm apart for rods resting
+    #: on the ground (measured, 30 Hz windows): steps of a marker fit first follow the smoothed law
+    #: (:func:`identified.fit.marker_fit.fit_markers`, ``smooth``)
+    smoothing = 0.0
+    #: Newton iterations of the smoothed law (``None``: :data:`SMOOTHED_ITERATIONS`, its solve to
+    #: rounding); a marker fit's Jacobians take :data:`NEWTON_ITERATIONS` (1e-3 of the force at 1 mm)
+    smoothed_iterations: int | None = None
 
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:
         """Each rod's contact point, the lever from its frame origin (..., R, 3) world: on the
@@ -299,7 +329,12 @@ class PyramidContact(CapsuleOnPlane):
         imp = impedance(depth.clamp_min(0.0), d0, dw, width)
         g = [-beta * r - _dot(b, a0f) for r, b in zip(rate, B)]
         g[0] = g[0] + kappa * imp * depth
-        D = torch.where(depth > 0, imp * mass_over_r / (1 - imp), torch.zeros_like(depth))
+        eps = float(self.smoothing)
+        if eps > 0:  # the contact turns on over [-ε/2, ε/2]; the edges' max(0, ·) over κ ε
+            D = imp * mass_over_r / (1 - imp) * smoothstep(depth / eps + 0.5)
+            soft = kappa * eps
+        else:
+            D = torch.where(depth > 0, imp * mass_over_r / (1 - imp), torch.zeros_like(depth))
         both = lambda e: e[0] + e[1] if isinstance(e, torch.Tensor) else 2 * e
         edge = lambda r: r[0] + sm * torch.stack(torch.broadcast_tensors(*r[1:], r[0])[:-1])
         s_col = self._steps(pos[0]).reshape((6, 1, 1, 1) + ones)
@@ -308,11 +343,16 @@ class PyramidContact(CapsuleOnPlane):
         if dense:  # the contact rows and the mass matrix as (..., 6, 6) tensors
             Bd, Md = _dense(B, D.shape, D), _dense(Mf, D.shape[1:], D)
         x: list[Entry] = [0.0] * 6
-        for _ in range(NEWTON_ITERATIONS):
+        iterations = NEWTON_ITERATIONS if eps == 0 else (self.smoothed_iterations or SMOOTHED_ITERATIONS)
+        for _ in range(iterations):
             Mx = _matvec(Mf, x)
             v = edge([_sum(gj, -_dot(b, x)) for gj, b in zip(g, B)])  # the edges' values (2, 5, 2, *b)
-            w = D * (v > 0).to(D.dtype)  # the active edges' weights
-            f = w * v  # and forces
+            if eps > 0:  # the smoothed edges: force D h h', weight (curvature) D (h'² + h h'')
+                h, h1, h2 = soft_positive(v, soft)
+                f, w = D * h * h1, D * (h1 * h1 + h * h2)
+            else:
+                w = D * (v > 0).to(D.dtype)  # the active edges' weights
+                f = w * v  # and forces
             g6 = [_lead(f[0] + f[1]), *(mk * (f[0] - f[1])).unbind(0)]
             grad = [_sum(mx, -both(_sum(*(_mul(b[i], y) for b, y in zip(B, g6))))) for i, mx in enumerate(Mx)]
             w_both = w[0] + w[1]
@@ -332,7 +372,8 @@ class PyramidContact(CapsuleOnPlane):
             # at 0 and each s of STEPS at once (a leading axis of 6), the least kept (the first of equals)
             s6 = s_col[:, 0, 0, 0]
             quad = _sum(0.5 * _dot(x, Mx), _mul(s6, _dot(step, Mx)), _mul(0.5 * s6 * s6, _dot(step, _matvec(Mf, step))))
-            short = (v - s_col * edge([_dot(b, step) for b in B])).clamp_min(0.0)  # (6, 2, 5, 2, *b)
+            short = v - s_col * edge([_dot(b, step) for b in B])  # (6, 2, 5, 2, *b)
+            short = soft_positive(short, soft)[0] if eps > 0 else short.clamp_min(0.0)
             sq = short * short
             per_contact = D * _lead((sq[:, 0] + sq[:, 1]).transpose(0, 1))  # (6, 2, *b)
             cost = _sum(quad, 0.5 * (per_contact[:, 0] + per_contact[:, 1]))

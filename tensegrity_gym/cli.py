@@ -267,7 +267,7 @@ def _is_recording(path: str) -> bool:
 #: ``None`` (not given: the config's default), so an option given at its default value is still seen
 _MARKER_CONFIG = {"--windows": "windows", "--window-frames": "frames", "--window-step": "step",
                   "--state-iterations": "state_iterations", "--iterations": "iterations",
-                  "--window-blocks": "blocks", "--contact-smoothing": "smoothing"}
+                  "--window-blocks": "blocks"}
 
 
 def _marker_options(args: argparse.Namespace) -> list[str]:
@@ -835,10 +835,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording with --refine: fit the windows in B interleaved blocks, each on its own (its "
                    "checkpoint FILE.block<b>), and combine their estimates by their information, with a test that "
                    "they agree (default 1: all windows in one fit)")
-    f.add_argument("--contact-smoothing", type=finite_float(0.0, 0.01, "m"), default=None, metavar="METRES",
-                   help="recording with --refine: the windows' state steps take their Jacobians through the ground's "
-                   "contact law smoothed over this depth, their cost through the exact law (default 0: the exact "
-                   "law's; 0.001 measured better at 30 Hz / 1 cm)")
     f.add_argument("--checkpoint", default=None, metavar="FILE",
                    help="recording with --refine: save the fit here after every step and resume from it when it "
                    "holds this fit (an interrupted fit goes on where it stopped)")

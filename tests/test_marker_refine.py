@@ -197,12 +197,6 @@ def test_command_bad_input_is_one_line(robot, tmp_path, capsys):
     assert "--window-blocks" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--state-iterations", "-1"]) == 2
     assert "--state-iterations" in capsys.readouterr().err
-    assert main(["fit", npz, "--model", path, "--out", out, "--contact-smoothing", "0.001"]) != 0
-    assert "--contact-smoothing is for a recording's marker fit" in capsys.readouterr().err
-    for bad in ("-0.001", "nan", "0.5", "1mm"):
-        assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--contact-smoothing", bad]) == 2
-        err = capsys.readouterr().err
-        assert "--contact-smoothing" in err and bad in err
     assert main(["fit", csv, "--model", path, "--out", out, "--checkpoint", str(tmp_path / "c.pt")]) != 0
     assert "--checkpoint is for the marker fit: add --refine" in capsys.readouterr().err
     assert main(["fit", csv, "--model", path, "--out", out, "--refine", "--checkpoint", csv]) != 0

@@ -34,6 +34,8 @@ contact frame and in component form (:meth:`PyramidContact._law`: every rod and 
 the constant entries of the contact rows dropped, a rod's two contacts and twenty edges stacked on
 short leading axes so that one operation serves all of them), which the twin's compiled step fuses;
 the engine's tensor form and the fit run the same function.  Two contacts on one rod are solved together.
+With :attr:`PyramidContact.smoothing` > 0 the same problem is solved with each contact's weight and
+each edge's ``max(0, ·)`` smoothed over a width (a smooth wrench, for a marker fit's Jacobians).
 """
 
 from __future__ import annotations
@@ -208,12 +210,12 @@ class PyramidContact(CapsuleOnPlane):
     #: ``max(0, ·)`` in (2) is :func:`soft_positive` over ``κ ε`` (the spring's acceleration across the
     #: width): the wrench is then a smooth function of the state.  The exact law's wrench jumps
     #: where a contact makes or breaks and kinks where a friction edge switches, so the markers of a
-    #: window are piecewise smooth in its initial state, with kinks ~0.1 mm apart for rods resting
-    #: on the ground (measured, 30 Hz windows): steps of a marker fit first follow the smoothed law
-    #: (:func:`identified.fit.marker_fit.fit_markers`, ``smooth``)
+    #: window are piecewise smooth in its initial state, with kinks microns apart (measured, 30 Hz
+    #: windows of a robot on its ground); :meth:`identified.fit.output_error._Problem.with_smoothing`
+    #: gives a marker fit's windows through it (``benchmarks/bench_state_steps.py``)
     smoothing = 0.0
     #: Newton iterations of the smoothed law (``None``: :data:`SMOOTHED_ITERATIONS`, its solve to
-    #: rounding); a marker fit's Jacobians take :data:`NEWTON_ITERATIONS` (1e-3 of the force at 1 mm)
+    #: rounding); for Jacobians :data:`NEWTON_ITERATIONS` do (1e-3 of the force at 1 mm)
     smoothed_iterations: int | None = None
 
     def contact_point(self, state: Any, ctx: Any) -> torch.Tensor:

@@ -119,8 +119,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
                 sigma: float, hold_inertia: list[tuple[int, int]] = (), frames: int = 10, max_windows: int = 64,
                 state_iters: int = 4, joint_iters: int = 6, contact_margin: float | None = None,
                 wrench_order: int = 3, contact=None, law_free: tuple[str, ...] = (), substeps: int = 1,
-                progress: bool = False, checkpoint: str | None = None, block: tuple[int, int] = (0, 1),
-                smoothing: float = 0.0) -> MarkerFit:
+                progress: bool = False, checkpoint: str | None = None, block: tuple[int, int] = (0, 1)) -> MarkerFit:
     """Fit K, c, M and the observable moments to the markers from ``start`` (its total mass is the
     known one), the module docstring's two stages; ``data`` and ``starts``: the reconstructed
     states aligned with the recording (:func:`identified.fit.markers.states_from_recording`).
@@ -144,13 +143,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
     ``checkpoint``: a file the fit's state is written to (atomically) after every step, and resumed
     from when it holds a fit of the same windows from the same start (:func:`_resume`): an
     interrupted fit of hours goes on where it stopped, to the same result.  ``block`` ``(b, B)``: the
-    fit of block ``b`` of ``B`` interleaved blocks of the windows (:mod:`identified.fit.marker_blocks`).
-    ``smoothing`` (m): the windows' state-only steps take their Jacobians through the contact law
-    smoothed over that width (:meth:`identified.fit.output_error._Problem.with_smoothing`), their
-    cost through the exact law, as the coarse step's Jacobians do: the exact law makes the markers
-    piecewise smooth in a window's initial state (measured, 30 Hz / 1 cm windows at the truth: the
-    derivative along a Gauss-Newton step 50-975 % off at 15 µm of it; smoothed over 1 mm, exact to
-    15 µm and 0.5-12 % off at 0.15 mm); 0: the exact law's."""
+    fit of block ``b`` of ``B`` interleaved blocks of the windows (:mod:`identified.fit.marker_blocks`)."""
     t0 = time.perf_counter()
     win, available, prob, dx, acts = window_problem(
         start, rec, data, starts, mjcf, sigma, hold_inertia, frames, max_windows, wrench_order,
@@ -191,8 +184,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             break
         joint = it >= state_iters
         if not joint:  # the nuisances alone, the parameters held (the bound's settle)
-            dx, r, cost, mu_x, moved = nuisance_step(prob, theta, dx, acts, mu_x,
-                                                     jac=jac.with_smoothing(smoothing) if smoothing > 0 else jac)
+            dx, r, cost, mu_x, moved = nuisance_step(prob, theta, dx, acts, mu_x, jac=jac)
         else:
             _, Jx, Jp = jac.jacobians(theta, dx)
             Jx = Jx * acts.unsqueeze(1)
@@ -227,7 +219,7 @@ def fit_markers(start: IdentifiedModel, rec: Recording, data: Dataset, starts: l
             # Jacobians: the joint step's one damping, raised by the windows whose cost is rough,
             # holds every window's states back, and the coarse step's state columns stall short of
             # the states' minimum
-            dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, mu_x, jac=prob.with_smoothing(smoothing))
+            dx, r, cost, mu_x, _ = nuisance_step(prob, theta, dx, acts, mu_x)
         history.append(cost / n)
         if progress:
             step = f"joint step {it + 1 - state_iters}" if joint else f"states step {it + 1}"
@@ -306,8 +298,7 @@ def _fit_key(tensors: tuple[torch.Tensor, ...], sigma: float, substeps: int, sta
     """What a checkpoint must match to be resumed: the start (parameters, the windows' nuisances,
     their reconstructed initial states), the windows' markers and rest lengths, the markers' noise,
     the Jacobians' step and the state-only steps (a different number would change which steps were
-    joint).  Not the state steps' smoothing: it changes the path, not the cost, so a fit may go on
-    with or without it."""
+    joint)."""
     h = hashlib.sha256()
     for t in tensors:
         h.update(str(tuple(t.shape)).encode())

@@ -72,9 +72,7 @@ class MarkerRefineConfig:
     their Jacobians stepped at up to ``step`` seconds (the cost always at the model's step),
     ``state_iterations`` steps in the windows' states alone, then up to ``iterations`` joint steps;
     ``blocks``: the windows fitted in that many interleaved blocks, each on its own, their
-    estimates combined (:mod:`identified.fit.marker_blocks`; 1: all in one fit); ``smoothing`` (m):
-    the windows' state steps take their Jacobians through the contact law smoothed over that width
-    (0: the exact law's; :func:`identified.fit.marker_fit.fit_markers`)."""
+    estimates combined (:mod:`identified.fit.marker_blocks`; 1: all in one fit)."""
 
     windows: int | None = 64
     frames: int = 10
@@ -82,7 +80,6 @@ class MarkerRefineConfig:
     state_iterations: int = 3
     iterations: int = 8
     blocks: int = 1
-    smoothing: float = 0.0
 
 
 def _checked_start(start: IdentifiedModel, rec: Recording, topology, total_mass: float | None) -> IdentifiedModel:
@@ -352,7 +349,7 @@ def _fit_blocks(start: IdentifiedModel, rec: Recording, ms, mjcf: str, sigma: fl
                                 max_windows=windows, state_iters=config.state_iterations, joint_iters=config.iterations,
                                 contact=law, law_free=law_free, substeps=substeps, progress=progress,
                                 checkpoint=checkpoint if checkpoint is None or B == 1 else f"{checkpoint}.block{b}",
-                                block=(b, B), smoothing=config.smoothing))
+                                block=(b, B)))
     return fits[0] if B == 1 else combine_fits(fits)
 
 

@@ -43,9 +43,10 @@ import scipy.linalg as sla
 import torch
 
 from identified.dataset import Dataset, atomic_write
+from identified.effects.ground_contact import CONTACT_MARGIN
 from identified.fit.bound import CramerRao, constrained_bound, window_gradient, window_information
 from identified.fit.marker_bound import _names, natural_values, nuisance_step
-from identified.fit.output_error import CONTACT_MARGIN, _Problem, window_problem
+from identified.fit.output_error import _Problem, window_problem
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording

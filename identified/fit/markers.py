@@ -576,9 +576,10 @@ def _on_the_ground(exc: IdentifiabilityError, mjcf: str, topology: Topology, dat
     law is fitted on the residual of the others), and the marker fit simulates the contact instead
     (measured: the 3-bar prism of ``examples/``, its bars always standing, was refused from a clean
     recording at 100, 250 and 1000 Hz, with "excite these with more varied motion")."""
-    from identified.fit.output_error import CONTACT_MARGIN, near_ground
+    from identified.effects.ground_contact import CONTACT_MARGIN
+    from identified.fit.output_error import near_ground
 
-    near = near_ground(mjcf, topology, data, CONTACT_MARGIN)  # where the regression leaves a rod's rows out
+    near = near_ground(mjcf, topology, data)  # within CONTACT_MARGIN: where the regression leaves a rod's rows out
     share = float(near.mean()) if near is not None and near.size else 0.0
     if share <= MOSTLY_ON_THE_GROUND:
         return exc

@@ -2,7 +2,7 @@
 K, c and M at coarse noise (``identified.fit.marker_bias``), against the parameters' standard errors.
 
 A robot with every K, c, M drawn 15 % off the preset's (``bench_recordings.varied_robot``), 10 takes
-of 10 s, markers at ``--rate`` with ``--noise`` and 2 % missing; ``--windows`` windows of 9 frames
+of 10 s, markers at ``--rate`` with ``--noise`` and 2 % missing; ``--windows`` windows of ``--frames``
 at the true K, c, M, I and the plant's own contact law (``bench_recordings.law_truth``: the truth,
 which only a benchmark knows), from the plant's own states, every parameter the marker fit frees
 free (the contact law's too), the total mass held.  Prints how far the windows' residuals shift on
@@ -47,6 +47,7 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=30.0)
     ap.add_argument("--noise", type=float, default=0.01, help="markers' noise (m)")
     ap.add_argument("--windows", type=int, default=8, help="windows spread over the recording (0: all)")
+    ap.add_argument("--frames", type=int, default=9, help="frames per window")
     ap.add_argument("--window-step", type=float, default=0.005, help="the Jacobians' step (s), as the fit's")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
@@ -64,7 +65,7 @@ def main() -> None:
         law.values = law_truth(path)
         held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
         win, available, prob, dx, acts = window_problem(
-            truth, rec, data, [0.0] * rec.n_episodes, path, args.noise, held, frames=9,
+            truth, rec, data, [0.0] * rec.n_episodes, path, args.noise, held, frames=args.frames,
             max_windows=args.windows or 10 ** 9, contact=law, law_free=tuple(b.name for b in law.blocks),
             free_gains=True)
         print(f"plant and recording {time.perf_counter() - t0:.0f} s; {win.n_windows} of {available} windows",

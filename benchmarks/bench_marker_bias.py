@@ -31,45 +31,23 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bench_recordings import law_truth, values_model, varied_robot
+from bench_recordings import truth_window_args, truth_windows
 
-from identified.effects.pyramid_contact import PyramidContact
 from identified.fit.bound import constrained_bound, window_information
 from identified.fit.marker_bias import second_order_bias, state_curvature, state_sigma_points
 from identified.fit.marker_bound import _names
-from identified.fit.output_error import window_problem
-from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=7, help="the robot's, the runs' and the markers' seed")
-    ap.add_argument("--rate", type=float, default=30.0)
-    ap.add_argument("--noise", type=float, default=0.01, help="markers' noise (m)")
-    ap.add_argument("--windows", type=int, default=8, help="windows spread over the recording (0: all)")
+    truth_window_args(ap)
     ap.add_argument("--frames", type=int, default=9, help="frames per window")
     ap.add_argument("--window-step", type=float, default=0.005, help="the Jacobians' step (s), as the fit's")
-    ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "robot.xml")
-        varied_robot(path, args.seed)
-        truth = values_model(path)
-        t0 = time.perf_counter()
-        data = collect(path, CollectConfig(episodes=10, steps=10000, seed=args.seed))
-        rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=0.02),
-                             seed=args.seed)
-        law = PyramidContact.for_system(truth.topology, path)
-        law.values = law_truth(path)
-        held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
-        win, available, prob, dx, acts = window_problem(
-            truth, rec, data, [0.0] * rec.n_episodes, path, args.noise, held, frames=args.frames,
-            max_windows=args.windows or 10 ** 9, contact=law, law_free=tuple(b.name for b in law.blocks),
-            free_gains=True)
-        print(f"plant and recording {time.perf_counter() - t0:.0f} s; {win.n_windows} of {available} windows",
-              flush=True)
+        truth, _, _, prob, dx, acts = truth_windows(tmp, args, frames=args.frames, law_free=True)
         theta = prob.theta0
         W, R, k = dx.shape
         t0 = time.perf_counter()

@@ -111,6 +111,40 @@ def law_truth(path: str) -> np.ndarray:
     return np.array([2 / (dw * tc), 1 / (dw ** 2 * tc ** 2 * zeta ** 2), d0, dw, width, f[0], f[1], f[2]])
 
 
+def truth_window_args(ap: argparse.ArgumentParser) -> None:
+    """The options of a probe of the marker windows at the truth (:func:`truth_windows`)."""
+    ap.add_argument("--seed", type=int, default=7, help="the robot's, the runs' and the markers' seed")
+    ap.add_argument("--rate", type=float, default=30.0)
+    ap.add_argument("--noise", type=float, default=0.01, help="markers' noise (m)")
+    ap.add_argument("--windows", type=int, default=8, help="windows spread over the recording (0: all)")
+    ap.add_argument("--threads", type=int, default=1)
+
+
+def truth_windows(tmp: str, args, frames: int = 9, law_free: bool = False):
+    """The marker windows of a probe at the truth: the robot of ``args.seed``
+    (:func:`varied_robot`), 10 takes of 10 s, markers at ``args.rate`` with ``args.noise`` and 2 %
+    missing, ``args.windows`` windows of ``frames`` frames at the true K, c, M, I and the plant's
+    own contact law (:func:`law_truth`, every law parameter free with ``law_free``), from the
+    plant's own states.  Returns ``(truth, window_problem's five)``."""
+    from identified.effects.pyramid_contact import PyramidContact
+    from identified.fit.output_error import window_problem
+
+    path = os.path.join(tmp, "robot.xml")
+    varied_robot(path, args.seed)
+    truth = values_model(path)
+    t0 = time.perf_counter()
+    data = collect(path, CollectConfig(episodes=10, steps=10000, seed=args.seed))
+    rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=0.02), seed=args.seed)
+    law = PyramidContact.for_system(truth.topology, path)
+    law.values = law_truth(path)
+    held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
+    out = window_problem(truth, rec, data, [0.0] * rec.n_episodes, path, args.noise, held, frames=frames,
+                         max_windows=args.windows or 10 ** 9, contact=law,
+                         law_free=tuple(b.name for b in law.blocks) if law_free else (), free_gains=law_free)
+    print(f"plant and recording {time.perf_counter() - t0:.0f} s; {out[0].n_windows} of {out[1]} windows", flush=True)
+    return (truth, *out)
+
+
 def window_law(path: str, args, values: np.ndarray | None):
     """The windows' contact law of ``--window-contact law`` (``None`` for the free wrench): the
     effect ``--law`` with its geometry from the MJCF and the parameter ``values`` given (the truth

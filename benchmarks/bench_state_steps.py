@@ -35,48 +35,29 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bench_recordings import law_truth, values_model, varied_robot
+from bench_recordings import truth_window_args, truth_windows
 
-from identified.effects.pyramid_contact import PyramidContact
 from identified.fit.marker_bound import nuisance_step
-from identified.fit.output_error import window_problem
-from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=7, help="the robot's, the runs' and the markers' seed")
-    ap.add_argument("--rate", type=float, default=30.0)
-    ap.add_argument("--noise", type=float, default=0.01, help="markers' noise (m)")
-    ap.add_argument("--windows", type=int, default=8, help="windows spread over the recording")
+    truth_window_args(ap)
     ap.add_argument("--widths", default="0,0.001", help="smoothing widths (m), one a step (or a probe)")
     ap.add_argument("--homotopy", action="store_true", help="the steps on the smoothed law's own cost")
     ap.add_argument("--roughness", action="store_true")
-    ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     widths = [float(w) for w in args.widths.split(",")]
 
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "robot.xml")
-        varied_robot(path, args.seed)
-        truth = values_model(path)
-        t0 = time.perf_counter()
-        data = collect(path, CollectConfig(episodes=10, steps=10000, seed=args.seed))
-        rec = record_markers(data, path, RecordConfig(rate=args.rate, noise_pos=args.noise, dropout=0.02),
-                             seed=args.seed)
-        law = PyramidContact.for_system(truth.topology, path)
-        law.values = law_truth(path)
-        held = [(i, 2) for i in range(truth.topology.n_rods)]  # end caps on the rods' axes
-        win, available, prob, dx, acts = window_problem(truth, rec, data, [0.0] * rec.n_episodes, path, args.noise,
-                                                        held, frames=9, max_windows=args.windows, contact=law)
-        print(f"plant and recording {time.perf_counter() - t0:.0f} s; {win.n_windows} of {available} windows")
+        truth, win, _, prob, dx, acts = truth_windows(tmp, args)
+        held = [(i, 2) for i in range(truth.topology.n_rods)]
         theta = prob.theta0
         if args.roughness:
             roughness(prob, theta, dx, acts, widths)
         else:
             steps(prob, theta, dx, acts, widths, args.homotopy, win, held)
-
 
 def roughness(prob, theta, dx, acts, widths) -> None:
     """The derivative along each window's Gauss-Newton step against central differences."""

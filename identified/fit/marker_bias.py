@@ -3,8 +3,8 @@
 The marker fit (:mod:`identified.fit.marker_fit`) estimates the shared parameters ``θ`` together
 with each window's own initial states ``x_w`` (incidental parameters: every window brings its
 own).  Least squares is unbiased only where the residuals are linear in what it fits over the
-range the noise moves it.  At coarse noise (30 Hz, 1 cm) a window's states are known to about a
-centimetre, and over a centimetre the markers of rods that make and break contact with the
+range the noise moves it.  At coarse noise (30 Hz, 1 cm) a window's states are known only to the
+noise's order, and over that range the markers of rods that make and break contact with the
 ground are far from linear in them (``benchmarks/bench_state_steps.py --roughness``).  Then the
 fitted states' residuals are shifted on average by
 
@@ -12,7 +12,7 @@ fitted states' residuals are shifted on average by
                            H_i the Hessian of residual i in the window's states,
 
 and the parameters take up the part of that shift the states cannot (Box 1971, *J. R. Stat. Soc.
-B* 33, "Bias in nonlinear estimation", eq. 2.4, with the states eliminated as in
+B* 33, "Bias in nonlinear estimation", with the states eliminated as in
 :func:`identified.fit.bound.window_gradient`):
 
     b = E[θ̂ - θ] ≈ -½ F⁻¹ Σ_w J_θwᵀ (I - P_w) d_w,    F = Σ_w J_θwᵀ (I - P_w) J_θw.
@@ -28,12 +28,13 @@ residuals quadratic in the states, and where contacts put kinks into the markers
 (a Hessian at a point says nothing about the next centimetre) it is the curvature averaged over
 the states' spread, which is what the bias needs.
 
-The expansion holds where ``d`` is small against the noise (the test's windows, ``d`` 0.06 of the
-noise RMS per window: a fit of 20000 of them stands where it predicts, within one standard error).  At 30 Hz and 1 cm on the robot it
-does not (``benchmarks/bench_marker_bias.py``, all 330 windows of two recordings at the truth):
-``d`` is 8-9 times the noise (RMS per window, median), and the bias it predicts, every K 2 %
-(seed 7) or 4 % (seed 8) low at 6-14 standard errors, is not where the marker fits of those recordings stop (every K within 0.6 and
-1.2 %).  So the marker fit does not apply it; it measures how far from linear the windows are.
+The expansion holds where ``d`` is small against the noise.  In the test's windows ``d`` is 0.06
+of the noise (RMS per window), and a fit of 20000 of them stands where it predicts, within one
+standard error.  At 30 Hz and 1 cm on the robot it does not hold (``benchmarks/bench_marker_bias.py``,
+all 330 windows of two recordings at the truth): ``d`` is 8-9 times the noise (RMS per window,
+median), and the bias it predicts, every K 2 % (seed 7) or 4 % (seed 8) low at 6-14 standard
+errors, is not where the marker fits of those recordings stop (every K within 0.6 and 1.2 %).  So
+the marker fit does not apply it; it measures how far from linear the windows are.
 """
 
 from __future__ import annotations

@@ -59,6 +59,7 @@ def main() -> None:
         else:
             steps(prob, theta, dx, acts, widths, args.homotopy, win, held)
 
+
 def roughness(prob, theta, dx, acts, widths) -> None:
     """The derivative along each window's Gauss-Newton step against central differences."""
     r, Jx, _ = prob.jacobians(theta, dx, params=False)

@@ -69,7 +69,7 @@ def test_substeps_one_is_the_windows_at_dt(robot):
     path, data, rec, truth, law = robot
     _, _, prob, dx, _ = window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=6, contact=law)
     _, _, one, _, _ = window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=6, contact=law, substeps=1)
-    np.testing.assert_array_equal(prob.grid, np.arange(int(prob.win.step[-1]) + 1))
+    np.testing.assert_array_equal(prob.grid, np.arange(prob.win.n_steps + 1))
     assert torch.equal(_residuals(prob, dx), _residuals(one, dx))
     assert float(_residuals(prob, dx).abs().max()) * 1e-3 < 1e-8  # the plant's own states, its law: rounding
 

@@ -6,7 +6,9 @@ reconstruct from the markers (:mod:`identified.fit.markers`).  Its estimate is c
 efficient: the splines spread every impact, gap and cable snap over several frames, and the
 equations near them are weighed out.  Here the markers themselves are the measurement:
 
-* the recording is cut into windows of ``frames`` consecutive frames (each frame in one window);
+* the recording is cut into windows of ``frames`` consecutive frames (each frame in one window), each
+  frame read at its own time, between the engine's steps where the camera's clock puts it
+  (:func:`frame_weights`);
 * in each window the rods are stepped by the identified engine (semi-implicit Euler at the fit's
   ``dt``, or at up to ``substeps`` of it: :func:`coarse_steps`; the encoders' rest lengths and the
   MuJoCo actuators' forces from the recorded commands as the inputs, the actuators' biases and
@@ -68,6 +70,7 @@ from identified.evaluate import actuator_forces
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
+from identified.recording.rates import DROPPED
 from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
 from identified.twin import params_from_model
 
@@ -81,7 +84,9 @@ class MarkerWindows:
     ``W`` windows, ``H`` engine steps each, ``L`` frames observed, ``N`` sites, ``R`` rods.
     ``x0`` (W, R, 13): each window's initial state from the reconstruction (pos, quat, vel, angvel);
     ``states`` (W, H + 1, R, 13): the reconstructed states over the window (the moves of the rods
-    that are not simulated); ``rest`` (W, H, S); ``step`` (L,) engine step of each observed frame;
+    that are not simulated); ``rest`` (W, H, S); ``at`` (W, L) float: the time of each observed
+    frame in engine steps from its window's initial state (whole where the frames fall on the
+    steps; a camera's clock need not: between two steps the sites are interpolated, :func:`frame_weights`);
     ``obs`` (W, L, N, 3) marker positions, ``seen`` (W, L, N) float (1 where seen and its rod is
     simulated); ``free`` (W, R) bool: the rods simulated in each window; ``site_rod`` (N,),
     ``site_offset`` (N, 3); ``window_time`` (W,) the recording's time of each window's start;
@@ -93,7 +98,7 @@ class MarkerWindows:
     x0: torch.Tensor
     states: torch.Tensor
     rest: torch.Tensor
-    step: torch.Tensor
+    at: torch.Tensor
     obs: torch.Tensor
     seen: torch.Tensor
     free: torch.Tensor
@@ -107,9 +112,14 @@ class MarkerWindows:
     def n_windows(self) -> int:
         return int(self.x0.shape[0])
 
+    @property
+    def n_steps(self) -> int:
+        """H: the engine steps every window is stepped through (to its latest frame)."""
+        return int(self.rest.shape[1])
+
     def subset(self, keep: np.ndarray) -> MarkerWindows:
         k = torch.as_tensor(keep)
-        return replace(self, x0=self.x0[k], states=self.states[k], rest=self.rest[k], obs=self.obs[k],
+        return replace(self, x0=self.x0[k], states=self.states[k], rest=self.rest[k], at=self.at[k], obs=self.obs[k],
                        seen=self.seen[k], free=self.free[k], window_time=self.window_time[keep],
                        force=None if self.force is None else self.force[k],
                        gained=None if self.gained is None else self.gained[k])
@@ -137,11 +147,14 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
                    forces: np.ndarray | None = None, gained: np.ndarray | None = None) -> MarkerWindows:
     """Cut a labelled recording into windows of ``frames`` frames over the reconstructed states
     ``data`` (take ``e``'s state ``n`` at the time ``starts[e] + n dt``).  A rod near the ground
-    within ``contact_frames`` frames of a window is not simulated in it.  Frames must fall on the
-    engine's steps (a rate that divides 1 / dt).  ``forces`` (E, T, S): the MuJoCo actuators' force
-    on each tendon at each step of ``data``, cut into the windows alike (``None``: no actuators);
-    ``gained`` (E, T, U): each actuator's ``g act`` where the gains are estimated (``forces`` then
-    the biases alone), cut alike."""
+    within ``contact_frames`` frames of a window is not simulated in it.  Each window starts at the
+    engine's step at or before its first frame; its frames may fall anywhere between the steps (a
+    camera's clock: 30 Hz frames 33.3 ms apart, or 33, 33 and 34 ms on a 1 ms grid), each at its
+    own time (``at``).  A window whose frames span more than :data:`DROPPED` times the take's usual
+    span (frames missing from the file) is skipped.  ``forces`` (E, T, S): the MuJoCo actuators'
+    force on each tendon at each step of ``data``, cut into the windows alike (``None``: no
+    actuators); ``gained`` (E, T, U): each actuator's ``g act`` where the gains are estimated
+    (``forces`` then the biases alone), cut alike."""
     dt = data.dt
     sites = [(i, k, s) for i, r in enumerate(topology.rods) for k, s in enumerate(r.sites) if s in rec.marker_names]
     col = [rec.marker_names.index(s) for _, _, s in sites]
@@ -150,45 +163,49 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     near = near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
-    x0, sts, rest, obs, seen, free, wt, force, gain_force = [], [], [], [], [], [], [], [], []
-    H = None
+    cut = []  # (take, first step, frames' steps from it, the frames' rows, the window's start time)
     for e, rows in enumerate(rec.episodes()):
         t = rec.time[rows]
         n = (t - starts[e]) / dt
         inside = (n > -1e-6) & (n < T + 1e-6)
-        rows, n = rows[inside], n[inside]
-        if np.any(np.abs(n - np.round(n)) > 1e-6):
-            raise ValueError("the recording's frames do not fall on the engine's steps (a rate that divides 1/dt)")
-        n = np.round(n).astype(int)
+        rows, n, t = rows[inside], n[inside], t[inside]
+        n = np.where(np.abs(n - np.round(n)) < 1e-6, np.round(n), n)  # on the steps: exactly
+        if n.size < frames:
+            continue
+        usual = (frames - 1) * float(np.median(np.diff(n)))
         for f in range(0, n.size - frames + 1, frames):
-            steps = n[f:f + frames] - n[f]
-            if H is None:
-                H = int(steps[-1])
-                step = steps
-            if steps[-1] != H or np.any(steps != step):
-                continue  # an irregular stretch of frames (a dropped frame): skipped
-            a, b = n[f], n[f] + H
-            lo, hi = max(0, a - contact_frames * (H // (frames - 1))), min(T, b + contact_frames * (H // (frames - 1)))
-            fr = np.ones(topology.n_rods, dtype=bool) if near is None else ~near[e, lo:hi + 1].any(0)
-            if not fr.any():
-                continue
-            m = rec.markers[rows[f:f + frames]][:, col]  # (L, N, 3)
-            ok = np.isfinite(m).all(-1)
-            x0.append(state[e, a])
-            sts.append(state[e, a:b + 1])
-            rest.append(data.rest_length[e, a:b])
-            if forces is not None:
-                force.append(forces[e, a:b])
-            if gained is not None:
-                gain_force.append(gained[e, a:b])
-            obs.append(np.nan_to_num(m))
-            seen.append(ok.astype(float))
-            free.append(fr)
-            wt.append(float(t[inside][f]))
+            a = int(np.floor(n[f]))
+            at = n[f:f + frames] - a
+            if at[-1] - at[0] > DROPPED * usual:
+                continue  # frames missing from the file within the window: skipped
+            cut.append((e, a, at, rows[f:f + frames], float(t[f])))
+    H = max((int(np.ceil(at[-1] - 1e-9)) for _, _, at, _, _ in cut), default=0)
+    x0, sts, rest, at_, obs, seen, free, wt, force, gain_force = [], [], [], [], [], [], [], [], [], []
+    pad = lambda x, a, n: x[np.minimum(np.arange(a, a + n), x.shape[0] - 1)]  # past the take's end: its last
+    for e, a, at, frows, t0 in cut:
+        span = int(np.ceil(at[-1] - 1e-9))
+        reach = contact_frames * (span // (frames - 1))
+        lo, hi = max(0, a - reach), min(T, a + span + reach)
+        fr = np.ones(topology.n_rods, dtype=bool) if near is None else ~near[e, lo:hi + 1].any(0)
+        if not fr.any():
+            continue
+        m = rec.markers[frows][:, col]  # (L, N, 3)
+        x0.append(state[e, a])
+        sts.append(pad(state[e], a, H + 1))
+        rest.append(pad(data.rest_length[e], a, H))
+        if forces is not None:
+            force.append(pad(forces[e], a, H))
+        if gained is not None:
+            gain_force.append(pad(gained[e], a, H))
+        at_.append(at)
+        obs.append(np.nan_to_num(m))
+        seen.append(np.isfinite(m).all(-1).astype(float))
+        free.append(fr)
+        wt.append(t0)
     if not x0:
         raise ValueError("no window of the recording has a rod off the ground to simulate")
     tt = lambda x, dtype=torch.float64: torch.as_tensor(np.array(x), dtype=dtype)
-    return MarkerWindows(tt(x0), tt(sts), tt(rest), torch.as_tensor(step), tt(obs), tt(seen), tt(free, torch.bool),
+    return MarkerWindows(tt(x0), tt(sts), tt(rest), tt(at_), tt(obs), tt(seen), tt(free, torch.bool),
                          site_rod, site_offset, np.array(wt), tt(force) if forces is not None else None,
                          tt(gain_force) if gained is not None else None)
 
@@ -270,6 +287,40 @@ def coarse_steps(step: np.ndarray, substeps: int) -> np.ndarray:
     return np.array(grid)
 
 
+def window_grid(at: np.ndarray, substeps: int, steps: int) -> np.ndarray:
+    """The windows' integration grid in the reconstruction's steps, from 0 to ``steps``, through
+    every frame that falls on the same whole step in every window (every frame, where the frames
+    keep one spacing on the steps), each step at most ``substeps`` long (:func:`coarse_steps`); a
+    frame between two of its steps is sampled between them (:func:`frame_weights`).  ``at`` (W, L):
+    the frames' times in steps from their window's start (:class:`MarkerWindows`)."""
+    at = np.asarray(at, dtype=float)
+    shared = (at == np.round(at)).all(0) & (at == at[:1]).all(0)
+    return coarse_steps(np.unique(np.r_[0, at[0, shared], steps]).astype(int), substeps)
+
+
+def frame_weights(at: np.ndarray, grid: np.ndarray) -> list[tuple[int, list[tuple[int, torch.Tensor]]]]:
+    """How each window's frames are read off the states at the grid's steps: linearly between the
+    two steps about the frame's time (the engine's semi-implicit Euler defines the states at its
+    steps; between them a motion smooth over one step is linear to ``a h² / 8``, 1 µm at 1 ms and
+    10 m/s²), on the step itself where the frame falls on one.  Returns, for every step ``j`` of the
+    grid that some frame reads, the frames ``l`` it serves and their weights (W, 1, 1) there (zero
+    for a window whose frame ``l`` lies elsewhere)."""
+    at = np.asarray(at, dtype=float)
+    grid = np.asarray(grid, dtype=float)
+    i = np.clip(np.searchsorted(grid, at, side="right") - 1, 0, grid.size - 1)
+    on = at == grid[i]
+    hi = np.where(on, i, np.minimum(i + 1, grid.size - 1))
+    f = np.where(on, 0.0, (at - grid[i]) / (grid[hi] - grid[i] + on))
+    out = []
+    for j in np.unique(np.r_[i.ravel(), hi.ravel()]):
+        w = (1.0 - f) * (i == j) + f * (hi == j)
+        frames = [(int(l), torch.as_tensor(w[:, l], dtype=torch.float64)[:, None, None])
+                  for l in range(at.shape[1]) if (w[:, l] != 0).any()]
+        if frames:
+            out.append((int(j), frames))
+    return out
+
+
 class _Problem:
     """The residuals of every window as a function of the parameters' logarithms and the windows'
     initial-state corrections."""
@@ -304,7 +355,8 @@ class _Problem:
         (:func:`identified.engine.actuators.tendon_force_parts`); ``None``: held in ``win.force``."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.substeps = substeps
-        self.grid = coarse_steps(win.step.numpy(), substeps)  # (n + 1,) the steps' bounds in dt
+        self.grid = window_grid(win.at.numpy(), substeps, win.n_steps)  # (n + 1,) the steps' bounds in dt
+        self.reads = dict(frame_weights(win.at.numpy(), self.grid))  # where each frame is read off them
         self.contact = contact
         self.order = 0 if contact is not None else wrench_order
         self.n_x = 12 + 6 * self.order  # unknowns per window and rod
@@ -381,7 +433,8 @@ class _Problem:
         if substeps == self.substeps:
             return self
         out = copy(self)
-        out.substeps, out.grid = substeps, coarse_steps(self.win.step.numpy(), substeps)
+        out.substeps, out.grid = substeps, window_grid(self.win.at.numpy(), substeps, self.win.n_steps)
+        out.reads = dict(frame_weights(self.win.at.numpy(), out.grid))
         return out
 
     def with_smoothing(self, width: float) -> _Problem:
@@ -446,7 +499,7 @@ class _Problem:
         velocity, angular velocity, world frame)."""
         win = self.win if win is None else win
         free = win.free.unsqueeze(-1)
-        H = int(win.step[-1])
+        H = win.n_steps
         wrench = None
         if self.order > 0:  # the ground's wrench on each rod near it: free, polynomial in time
             coef = dx[..., 12:].unflatten(-1, (self.order, 6)) * (~free).unsqueeze(-1) * WRENCH_UNIT
@@ -455,7 +508,8 @@ class _Problem:
         if self.contact is not None:  # the contact law: every rod simulated, through its contacts
             effects = [_Law(self.contact, self.law_theta(theta))]
         params = self.params(theta)
-        grid = self.grid if win is self.win else coarse_steps(win.step.numpy(), self.substeps)
+        grid = self.grid  # a subset of the windows is stepped as the whole: its frames on the same steps
+        reads = self.reads if win is self.win else dict(frame_weights(win.at.numpy(), grid))
         engines = {int(h): SpringRodEngine(self.model.topology, params, int(h) * self.dt, effects=effects)
                    for h in np.unique(np.diff(grid))}
         eng = engines[int(grid[1] - grid[0])]
@@ -466,8 +520,7 @@ class _Problem:
         q0 = quat_multiply(quat_exp(dx[..., 3:6]), x0[..., 3:7])
         q0 = q0 / q0.norm(dim=-1, keepdim=True)
         state = eng.state(x0[..., 0:3] + dx[..., 0:3], q0, x0[..., 7:10] + dx[..., 6:9], x0[..., 10:13] + dx[..., 9:12])
-        want = set(win.step.tolist())
-        out = {}
+        frames: list[torch.Tensor | None] = [None] * win.at.shape[1]
         for j, n in enumerate(grid.tolist()):
             if j > 0:
                 a = int(grid[j - 1])
@@ -480,10 +533,12 @@ class _Problem:
                                         torch.where(free, state.quat, rec[..., 3:7]),
                                         torch.where(free, state.vel, rec[..., 7:10]),
                                         torch.where(free, state.angvel, rec[..., 10:13]))
-            if n in want:
+            if j in reads:
                 rot = quat_to_matrix(state.quat)[:, win.site_rod]  # (W, N, 3, 3)
-                out[n] = state.pos[:, win.site_rod] + (rot @ win.site_offset.unsqueeze(-1)).squeeze(-1)
-        pred = torch.stack([out[int(n)] for n in win.step], dim=1)
+                sites = state.pos[:, win.site_rod] + (rot @ win.site_offset.unsqueeze(-1)).squeeze(-1)
+                for l, w in reads[j]:
+                    frames[l] = w * sites if frames[l] is None else frames[l] + w * sites
+        pred = torch.stack(frames, dim=1)
         seen = win.seen if self.order > 0 else win.seen * win.free[:, win.site_rod].unsqueeze(1)
         return (pred - win.obs) * seen.unsqueeze(-1) / self.sigma
 
@@ -735,7 +790,7 @@ def _result(model: IdentifiedModel, prob: _Problem, theta: torch.Tensor, cov: to
     out.metrics["output_error"] = {
         "regression": {k: np.asarray(getattr(model, k)).tolist() for k in ("stiffness", "damping", "mass")}
         | {f"{k}_stderr": np.asarray(old[k]).tolist() for k in ("stiffness", "damping", "mass") if k in old},
-        "windows": win.n_windows, "frames_per_window": int(win.step.numel()),
+        "windows": win.n_windows, "frames_per_window": int(win.at.shape[1]),
         "cost_before": history[0], "cost_after": history[-1], "iterations": len(history) - 1,
         "residual_rms_m": float(np.sqrt(s2) * sigma), "seconds": round(seconds, 3),
     }

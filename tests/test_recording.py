@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from identified.recording import (
+    Recording,
     RecordingError,
     check_recording,
     load_recording,
@@ -389,3 +390,17 @@ def test_cli_fit_and_summary_on_a_recording_too_short(tmp_path):
     f = run("fit", str(rec), "--model", str(model), "--total-mass", "21", "--out", str(out), "--quiet")
     assert f.returncode == 2 and f.stderr.count("\n") == 1 and str(rec) in f.stderr and "too short" in f.stderr
     assert not out.exists()
+
+
+def test_rate_is_the_mean_interval_without_the_gaps():
+    """Frames stamped on whole milliseconds lie 8, 8 and 9 ms apart at 120 Hz (33, 33 and 34 at
+    30 Hz): the rate is 120 Hz (30), where the median interval says 125 (30.3); a stretch of frames
+    missing from the file (a gap of 10 intervals) does not lower it; the encoders' alike."""
+    for hz in (120, 30):
+        t = np.round(np.arange(361) / hz, 3)
+        rec = Recording(time=t, episode=np.zeros(t.size, dtype=int), marker_names=("a",), markers=np.zeros((t.size, 1, 3)))
+        assert abs(rec.rate_hz() - hz) < 0.01 * hz / 120 and abs(1 / np.median(np.diff(t)) - hz) > 0.29
+    t = np.r_[np.arange(50), np.arange(60, 100)] / 100
+    rec = Recording(time=t, episode=np.zeros(t.size, dtype=int), marker_names=("a",), markers=np.zeros((t.size, 1, 3)))
+    assert rec.rate_hz() == pytest.approx(100.0, rel=1e-12) and rec.encoder_rate_hz() == pytest.approx(100.0, rel=1e-12)
+    assert np.isnan(dataclasses.replace(rec, time=t[:1], episode=np.zeros(1, dtype=int), markers=np.zeros((1, 1, 3))).rate_hz())

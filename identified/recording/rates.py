@@ -7,13 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from identified.recording.table import Encoders, Recording, RecordingError, with_encoders
+from identified.recording.table import DROPPED, Encoders, Recording, RecordingError, with_encoders
 
 __all__ = ["DROPPED", "split_rates"]
-
-#: camera frames further apart than this many of the take's median interval have frames missing
-#: between them (a multi-rate recording leaves out a frame where no marker was seen)
-DROPPED = 1.5
 
 
 def split_rates(rec: Recording) -> Recording:

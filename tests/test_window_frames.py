@@ -15,7 +15,7 @@ import torch
 
 from identified.effects.pyramid_contact import PyramidContact
 from identified.fit.output_error import frame_weights, window_grid, window_problem
-from identified.recording import site_world_positions
+from identified.recording import RecordingError, site_world_positions
 from tensegrity_gym.collect import CollectConfig, RecordConfig, collect, record_markers
 from tensegrity_gym.models import write_model
 
@@ -126,3 +126,11 @@ def test_ten_frames_at_30_hz_keep_every_window(plant):
     whole = coarse.window_residuals(prob.theta0, dx)
     one = coarse.window_residuals(prob.theta0, dx[1:2], torch.tensor([1]))
     assert torch.equal(one, whole[1:2])
+
+
+def test_windows_longer_than_the_takes_are_one_clear_line(plant):
+    """Windows of more frames than any take holds: the file, the window's frames and the longest
+    take's, not "no rod off the ground"."""
+    path, data, rec, truth, _, law = plant
+    with pytest.raises(RecordingError, match=r"windows of 100 frames do not fit in its takes \(the longest has 37 frames\)"):
+        window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=100, contact=law)

@@ -179,7 +179,11 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
             if at[-1] - at[0] > DROPPED * usual:
                 continue  # frames missing from the file within the window: skipped
             cut.append((e, a, at, rows[f:f + frames], float(t[f])))
-    H = max((int(np.ceil(at[-1] - 1e-9)) for _, _, at, _, _ in cut), default=0)
+    if not cut:
+        longest = max((int(r.size) for r in rec.episodes()), default=0)
+        raise RecordingError(f"'{rec.source}': windows of {frames} frames do not fit in its takes (the longest has "
+                             f"{longest} frames): fewer frames per window")
+    H = max(int(np.ceil(at[-1] - 1e-9)) for _, _, at, _, _ in cut)
     x0, sts, rest, at_, obs, seen, free, wt, force, gain_force = [], [], [], [], [], [], [], [], [], []
     pad = lambda x, a, n: x[np.minimum(np.arange(a, a + n), x.shape[0] - 1)]  # past the take's end: its last
     for e, a, at, frows, t0 in cut:

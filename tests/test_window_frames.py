@@ -132,5 +132,5 @@ def test_windows_longer_than_the_takes_are_one_clear_line(plant):
     """Windows of more frames than any take holds: the file, the window's frames and the longest
     take's, not "no rod off the ground"."""
     path, data, rec, truth, _, law = plant
-    with pytest.raises(RecordingError, match=r"windows of 100 frames do not fit in its takes \(the longest has 37 frames\)"):
+    with pytest.raises(RecordingError, match=r"windows of 100 frames do not fit in its takes \(the longest has 36 frames\)"):
         window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=100, contact=law)

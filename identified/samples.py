@@ -69,15 +69,19 @@ def run_steps(data: Dataset, chunk_steps: int = 4096, scheme: str = "forward") -
             for _ in range(*ep.indices(E))]
 
 
-def _spans(E: int, T: int, chunk_steps: int, scheme: str) -> list[tuple[slice, slice]]:
+def _spans(E: int, T: int, chunk_steps: int, scheme: str, min_steps: int = 1) -> list[tuple[slice, slice]]:
     """The (episodes, steps) of each of :func:`iter_chunks`' slabs: several whole episodes of at
-    most ``chunk_steps`` steps in all, or ``chunk_steps`` of one episode longer than that."""
+    most ``chunk_steps`` steps in all, or ``chunk_steps`` of one episode longer than that; the last
+    piece of such an episode, where it is shorter than ``min_steps``, joins the piece before it."""
     first = 1 if scheme == "central" else 0  # the central difference needs instant t - 1
     n = T - first
     per = max(1, chunk_steps // max(n, 1))
     if per > 1 or n <= chunk_steps:
         return [(slice(e, min(e + per, E)), slice(first, T)) for e in range(0, E, per)]
-    return [(slice(e, e + 1), slice(t, min(t + chunk_steps, T))) for e in range(E) for t in range(first, T, chunk_steps)]
+    cuts = list(range(first, T, chunk_steps)) + [T]
+    if len(cuts) > 2 and cuts[-1] - cuts[-2] < min_steps:
+        del cuts[-2]
+    return [(slice(e, e + 1), slice(a, b)) for e in range(E) for a, b in zip(cuts[:-1], cuts[1:])]
 
 
 def iter_chunks(
@@ -86,18 +90,22 @@ def iter_chunks(
     scheme: str = "forward",
     dtype: torch.dtype = torch.float64,
     device: str = "cpu",
+    min_steps: int = 1,
 ) -> Iterator[tuple[Chunk, int]]:
     """Slabs of at most ``chunk_steps`` steps, each a block of (episodes x consecutive steps).
 
     Yields ``(chunk, n_episodes)``: the chunk flattened over (episode, time) and how many
-    episodes it holds (for :func:`identified.fit.derivatives.weak_form`).
+    episodes it holds (for :func:`identified.fit.derivatives.weak_form`).  An episode longer than
+    ``chunk_steps`` is cut into pieces of ``chunk_steps``; a last piece shorter than ``min_steps``
+    (the weak form's window: it would hold none) joins the one before it, a slab of fewer than
+    ``chunk_steps + min_steps`` steps.
     """
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {', '.join(SCHEMES)}, got '{scheme}'")
     E, T = data.n_episodes, data.n_steps
     if T - (1 if scheme == "central" else 0) < 1:
         raise ValueError("the central scheme needs at least 2 steps per episode")
-    spans = _spans(E, T, chunk_steps, scheme)
+    spans = _spans(E, T, chunk_steps, scheme, min_steps)
 
     def cut(arr: np.ndarray, ep: slice, ts: slice, shift: int = 0) -> torch.Tensor:
         x = arr[ep, ts.start + shift : ts.stop + shift]

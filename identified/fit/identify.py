@@ -321,7 +321,7 @@ def identify(
     def fresh_runs(data: Dataset, primary: bool = True) -> Iterator[tuple[torch.Tensor, int]]:
         """:func:`runs` computed afresh."""
         base = cacheable and primary  # the rows without the iterative effects' columns, and the chunk
-        for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device):
+        for ch, n_ep in iter_chunks(data, chunk_steps, scheme, device=device, min_steps=weak):
             ch.rest = _with_estimate(ch.rest, passive, rest_estimate)
             if late:  # rods touched by a residual-stage effect are fitted in the second stage
                 hit = _affected(late, topology, ch)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 import torch
@@ -81,7 +82,7 @@ def _spans(E: int, T: int, chunk_steps: int, scheme: str, min_steps: int = 1) ->
     cuts = list(range(first, T, chunk_steps)) + [T]
     if len(cuts) > 2 and cuts[-1] - cuts[-2] < min_steps:
         del cuts[-2]
-    return [(slice(e, e + 1), slice(a, b)) for e in range(E) for a, b in zip(cuts[:-1], cuts[1:])]
+    return [(slice(e, e + 1), slice(a, b)) for e in range(E) for a, b in pairwise(cuts)]
 
 
 def iter_chunks(

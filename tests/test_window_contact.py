@@ -170,8 +170,8 @@ def test_smoothed_jacobians_step_the_exact_cost(resting):
     problem itself."""
     from identified.fit.marker_bound import nuisance_step
 
-    path, data, rec, truth, _ = resting
-    _, _, prob, dx, acts = window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=9, max_windows=2,
+    path, data, _, truth, fast = resting
+    _, _, prob, dx, acts = window_problem(truth, fast, data, [0.0], path, 1e-3, HELD, frames=6, max_windows=1,
                                           contact=_law(path, truth, TRUTH))
     assert prob.with_smoothing(0.0) is prob
     gen = torch.Generator().manual_seed(0)

@@ -138,3 +138,17 @@ def test_windows_longer_than_the_takes_are_one_clear_line(plant):
     path, data, rec, truth, _, law = plant
     with pytest.raises(RecordingError, match=r"windows of 100 frames do not fit in its takes \(the longest has 36 frames\)"):
         window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=100, contact=law)
+
+
+def test_times_counted_from_an_epoch_fall_on_the_same_steps(plant):
+    """A lab's clock counts from an epoch (1.7e9 s: its float64 times are rounded to 2.4e-7 s, a
+    fraction 2.4e-4 of a step): the frames on the steps stay on them, the windows and their
+    residuals those of the same recording counted from 0, bit for bit."""
+    path, data, rec, truth, _, law = plant
+    epoch = 1_732_900_000.0
+    late = replace(rec, time=rec.time + epoch)
+    assert not np.array_equal(late.time - epoch, rec.time)  # the rounding is there
+    a = window_problem(truth, rec, data, [0.0], path, 1e-3, HELD, frames=9, max_windows=2, contact=law)
+    b = window_problem(truth, late, data, [epoch], path, 1e-3, HELD, frames=9, max_windows=2, contact=law)
+    assert torch.equal(a[0].at, b[0].at) and torch.equal(a[0].x0, b[0].x0)
+    assert torch.equal(a[2].window_residuals(a[2].theta0, a[3]), b[2].window_residuals(b[2].theta0, b[3]))

@@ -142,6 +142,11 @@ def near_ground(mjcf: str, topology, data: Dataset, margin: float = CONTACT_MARG
     return eff.rows_affected(state, SimpleNamespace(rot=quat_to_matrix(quat)), margin).numpy()
 
 
+#: a frame within this share of a step of one is on it (1 µs at 1 ms: a clock's resolution, and the
+#: rounding of times counted from an epoch, 2.4e-7 s at 1.7e9 s)
+ON_STEP = 1e-3
+
+
 def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology, mjcf: str | None,
                    frames: int = 10, contact_frames: int = 3, margin: float = CONTACT_MARGIN,
                    forces: np.ndarray | None = None, gained: np.ndarray | None = None) -> MarkerWindows:
@@ -167,9 +172,9 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     for e, rows in enumerate(rec.episodes()):
         t = rec.time[rows]
         n = (t - starts[e]) / dt
-        inside = (n > -1e-6) & (n < T + 1e-6)
+        inside = (n > -ON_STEP) & (n < T + ON_STEP)
         rows, n, t = rows[inside], n[inside], t[inside]
-        n = np.where(np.abs(n - np.round(n)) < 1e-6, np.round(n), n)  # on the steps: exactly
+        n = np.where(np.abs(n - np.round(n)) < ON_STEP, np.round(n), n)  # on the steps: exactly
         if n.size < frames:
             continue
         usual = (frames - 1) * float(np.median(np.diff(n)))

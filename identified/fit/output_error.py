@@ -70,7 +70,7 @@ from identified.evaluate import actuator_forces
 from identified.fit.window_solve import window_schur
 from identified.model import IdentifiedModel
 from identified.recording import Recording, RecordingError
-from identified.recording.rates import DROPPED
+from identified.recording.table import DROPPED
 from identified.rotation import quat_exp, quat_multiply, quat_to_matrix
 from identified.twin import params_from_model
 
@@ -168,7 +168,7 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
     near = near_ground(mjcf, topology, data, margin) if mjcf else None
     state = np.concatenate([data.pos, data.quat, data.vel, data.angvel], axis=-1)  # (E, T+1, R, 13)
     T = data.n_steps
-    cut = []  # (take, first step, frames' steps from it, the frames' rows, the window's start time)
+    cut = []  # (take, first step, frames' steps from it, steps to the last, the frames' rows, the start time)
     for e, rows in enumerate(rec.episodes()):
         t = rec.time[rows]
         n = (t - starts[e]) / dt
@@ -183,16 +183,15 @@ def marker_windows(rec: Recording, data: Dataset, starts: list[float], topology,
             at = n[f:f + frames] - a
             if at[-1] - at[0] > DROPPED * usual:
                 continue  # frames missing from the file within the window: skipped
-            cut.append((e, a, at, rows[f:f + frames], float(t[f])))
+            cut.append((e, a, at, int(np.ceil(at[-1])), rows[f:f + frames], float(t[f])))
     if not cut:
         longest = max((int(r.size) for r in rec.episodes()), default=0)
         raise RecordingError(f"'{rec.source}': windows of {frames} frames do not fit in its takes (the longest has "
                              f"{longest} frames): fewer frames per window")
-    H = max(int(np.ceil(at[-1] - 1e-9)) for _, _, at, _, _ in cut)
+    H = max(span for _, _, _, span, _, _ in cut)
     x0, sts, rest, at_, obs, seen, free, wt, force, gain_force = [], [], [], [], [], [], [], [], [], []
     pad = lambda x, a, n: x[np.minimum(np.arange(a, a + n), x.shape[0] - 1)]  # past the take's end: its last
-    for e, a, at, frows, t0 in cut:
-        span = int(np.ceil(at[-1] - 1e-9))
+    for e, a, at, span, frows, t0 in cut:
         reach = contact_frames * (span // (frames - 1))
         lo, hi = max(0, a - reach), min(T, a + span + reach)
         fr = np.ones(topology.n_rods, dtype=bool) if near is None else ~near[e, lo:hi + 1].any(0)
@@ -307,26 +306,26 @@ def window_grid(at: np.ndarray, substeps: int, steps: int) -> np.ndarray:
     return coarse_steps(np.unique(np.r_[0, at[0, shared], steps]).astype(int), substeps)
 
 
-def frame_weights(at: np.ndarray, grid: np.ndarray) -> list[tuple[int, list[tuple[int, torch.Tensor]]]]:
+def frame_weights(at: np.ndarray, grid: np.ndarray) -> dict[int, list[tuple[int, torch.Tensor]]]:
     """How each window's frames are read off the states at the grid's steps: linearly between the
     two steps about the frame's time (the engine's semi-implicit Euler defines the states at its
     steps; between them a motion smooth over one step is linear to ``a h² / 8``, 1 µm at 1 ms and
-    10 m/s², 31 µm at the Jacobians' 5 ms), on the step itself where the frame falls on one.  Returns, for every step ``j`` of the
-    grid that some frame reads, the frames ``l`` it serves and their weights (W, 1, 1) there (zero
-    for a window whose frame ``l`` lies elsewhere)."""
+    10 m/s², 31 µm at the Jacobians' 5 ms), on the step itself where the frame falls on one.
+    Returns, for every step ``j`` of the grid that some frame reads, the frames ``l`` it serves and
+    their weights (W, 1, 1) there (zero for a window whose frame ``l`` lies elsewhere)."""
     at = np.asarray(at, dtype=float)
     grid = np.asarray(grid, dtype=float)
     i = np.clip(np.searchsorted(grid, at, side="right") - 1, 0, grid.size - 1)
     on = at == grid[i]
     hi = np.where(on, i, np.minimum(i + 1, grid.size - 1))
     f = np.where(on, 0.0, (at - grid[i]) / (grid[hi] - grid[i] + on))
-    out = []
+    out = {}
     for j in np.unique(np.r_[i.ravel(), hi.ravel()]):
         w = (1.0 - f) * (i == j) + f * (hi == j)
         frames = [(int(l), torch.as_tensor(w[:, l], dtype=torch.float64)[:, None, None])
                   for l in range(at.shape[1]) if (w[:, l] != 0).any()]
         if frames:
-            out.append((int(j), frames))
+            out[int(j)] = frames
     return out
 
 
@@ -364,8 +363,7 @@ class _Problem:
         (:func:`identified.engine.actuators.tendon_force_parts`); ``None``: held in ``win.force``."""
         self.model, self.win, self.dt, self.sigma = model, win, dt, sigma
         self.substeps = substeps
-        self.grid = window_grid(win.at.numpy(), substeps, win.n_steps)  # (n + 1,) the steps' bounds in dt
-        self.reads = dict(frame_weights(win.at.numpy(), self.grid))  # where each frame is read off them
+        self.grid, self.reads = self._sampling(substeps)
         self.contact = contact
         self.order = 0 if contact is not None else wrench_order
         self.n_x = 12 + 6 * self.order  # unknowns per window and rod
@@ -442,9 +440,15 @@ class _Problem:
         if substeps == self.substeps:
             return self
         out = copy(self)
-        out.substeps, out.grid = substeps, window_grid(self.win.at.numpy(), substeps, self.win.n_steps)
-        out.reads = dict(frame_weights(self.win.at.numpy(), out.grid))
+        out.substeps = substeps
+        out.grid, out.reads = self._sampling(substeps)
         return out
+
+    def _sampling(self, substeps: int) -> tuple[np.ndarray, dict[int, list[tuple[int, torch.Tensor]]]]:
+        """The windows' grid at up to ``substeps`` of ``dt`` ((n + 1,) the steps' bounds in ``dt``,
+        :func:`window_grid`) and where each frame is read off it (:func:`frame_weights`)."""
+        grid = window_grid(self.win.at.numpy(), substeps, self.win.n_steps)
+        return grid, frame_weights(self.win.at.numpy(), grid)
 
     def with_smoothing(self, width: float) -> _Problem:
         """The same problem through its contact law smoothed over ``width`` (m;
@@ -518,7 +522,7 @@ class _Problem:
             effects = [_Law(self.contact, self.law_theta(theta))]
         params = self.params(theta)
         grid = self.grid  # a subset of the windows is stepped as the whole: its frames on the same steps
-        reads = self.reads if win is self.win else dict(frame_weights(win.at.numpy(), grid))
+        reads = self.reads if win is self.win else frame_weights(win.at.numpy(), grid)
         engines = {int(h): SpringRodEngine(self.model.topology, params, int(h) * self.dt, effects=effects)
                    for h in np.unique(np.diff(grid))}
         eng = engines[int(grid[1] - grid[0])]

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from identified.engine.forces import endpoint_kinematics, spring_geometry
+from identified.fit import contact_damping
 from identified.fit.identify import ScaleSpec
 from identified.fit.markers import fit_recording, recording_states, states_from_recording
 from identified.fit.output_error import window_problem
@@ -81,6 +82,8 @@ def test_recordings_without_the_commands_are_refused(robot):
 
 @pytest.fixture(scope="module")
 def fitted(robot):
+    """The robot's 6 takes of 5 s at 100 Hz, fitted with ground_contact; the law's friction damping
+    taken as the regression's (one factor: the scan is test_recording_fit's, and takes 18 s here)."""
     path, _topo, _d = robot
     data = collect(path, CollectConfig(episodes=6, steps=5000, seed=2))
     rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02, encoder_rate=1000.0),
@@ -92,7 +95,9 @@ def fitted(robot):
     length = spring_geometry(ends).length.numpy()[:, [3]] + 0.002
     rec = dataclasses.replace(rec, length_names=("cable3",), length=length,
                               encoders=dataclasses.replace(rec.encoders, length=np.full((rec.encoders.time.size, 1), np.nan)))
-    model = fit_recording(rec, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(contact_damping, "FACTORS", (1.0,))
+        model = fit_recording(rec, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
     return path, rec, model
 
 
@@ -108,18 +113,26 @@ def test_gains_from_a_recording(fitted):
     assert np.abs(model.stiffness / K - 1).max() < 0.01
 
 
-def test_the_marker_fits_windows_step_the_actuators(robot):
+@pytest.fixture(scope="module")
+def exact(robot):
+    """Two takes of 2 s of the robot, the full-state fit (exact: its gains to 1e-6) and their clean
+    100 Hz markers with the commands at 1 kHz."""
+    path = robot[0]
+    data = collect(path, CollectConfig(episodes=2, steps=2000, seed=7))
+    model = fit_model(data, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
+    rec = record_markers(data, path, RecordConfig(rate=100, encoder_rate=1000.0), seed=1)
+    return path, data, model, rec
+
+
+def test_the_marker_fits_windows_step_the_actuators(exact):
     """The marker fit's windows (the output-error fit through the engine) apply the actuators'
     forces from the recorded commands: started from the plant's own states with the parameters a
     full-state fit recovers exactly, they put every simulated marker where the plant's was, to
     rounding; without the actuators' forces, centimetres off."""
-    path, _, _ = robot
-    data = collect(path, CollectConfig(episodes=2, steps=2000, seed=7))
-    exact = fit_model(data, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
-    assert [round(a["gain"], 6) for a in exact.actuators] == [GAINS["pull0"], GAINS["pull1"]]
-    rec = record_markers(data, path, RecordConfig(rate=100, encoder_rate=1000.0), seed=1)
+    path, data, full, rec = exact
+    assert [round(a["gain"], 6) for a in full.actuators] == [GAINS["pull0"], GAINS["pull1"]]
     off = {}
-    for name, model in (("with", exact), ("without", dataclasses.replace(exact, actuators=[]))):
+    for name, model in (("with", full), ("without", dataclasses.replace(full, actuators=[]))):
         # order 0: the rods near the ground move as recorded, the others are simulated
         win, _, prob, dx, _ = window_problem(model, rec, data, [0.0, 0.0], path, 0.001, [], 10, 64, order=0)
         assert win.n_windows == 40 and 0.3 < float(win.free.float().mean()) < 0.9
@@ -160,7 +173,7 @@ def test_the_marker_fit_writes_its_gains_and_holds_the_rest(robot):
     assert back.actuators == model.actuators and "(held: bias and time constant at the start's" in back.summary()
 
 
-def test_the_marker_fit_estimates_the_actuators_gains(robot):
+def test_the_marker_fit_estimates_the_actuators_gains(exact):
     """The marker fit's windows step the actuators at gains it estimates with K, c and M: from the
     plant's own states, clean markers and the exact K, c, M, gains started 10 % off come back to
     the plant's (within 1e-3 after three joint steps, the cost 1e4 times lower).  The output-error
@@ -168,19 +181,16 @@ def test_the_marker_fit_estimates_the_actuators_gains(robot):
     from identified.fit.marker_bound import _names
     from identified.fit.marker_fit import fit_markers
 
-    path = robot[0]
-    data = collect(path, CollectConfig(episodes=2, steps=2000, seed=7))
-    exact = fit_model(data, path, effects="ground_contact", scale=ScaleSpec(total_mass=21.0), jobs=1)
-    rec = record_markers(data, path, RecordConfig(rate=100, encoder_rate=1000.0), seed=1)
-    start = dataclasses.replace(exact, actuators=[{**a, "gain": a["gain"] * f} for a, f in zip(exact.actuators, (1.1, 0.9))])
+    path, data, full, rec = exact
+    start = dataclasses.replace(full, actuators=[{**a, "gain": a["gain"] * f} for a, f in zip(full.actuators, (1.1, 0.9))])
     # order 0: the rods near the ground move as recorded (the plant's states), the others simulated
-    fit = fit_markers(start, rec, data, [0.0, 0.0], path, 0.001, frames=10, max_windows=8, state_iters=0,
+    fit = fit_markers(start, rec, data, [0.0, 0.0], path, 0.001, frames=5, max_windows=8, state_iters=0,
                       joint_iters=3, wrench_order=0)
     got = dict(zip(fit.cov.names, fit.cov.values))
     assert got["gain[pull0]"] == pytest.approx(GAINS["pull0"], rel=1e-3)
     assert got["gain[pull1]"] == pytest.approx(GAINS["pull1"], rel=1e-3)
     assert fit.history[-1] < 1e-4 * fit.history[0]
-    _, _, prob, _, _ = window_problem(start, rec, data, [0.0, 0.0], path, 0.001, [], 10, 8, order=0)
+    _, _, prob, _, _ = window_problem(start, rec, data, [0.0, 0.0], path, 0.001, [], 5, 8, order=0)
     assert "gain[pull0]" not in _names(prob, start)  # held where not asked for (the 100 Hz refinement)
 
 
@@ -202,14 +212,17 @@ def test_predict_and_diagnose_read_the_commands(fitted):
     np.testing.assert_array_equal(data.ctrl, states_from_recording(rec, Topology.from_mjcf(fitted[0])).data.ctrl)
 
 
-def test_the_marker_fit_starts_from_a_contact_regression_where_it_must(fitted, tmp_path, monkeypatch, capsys):
+def test_the_marker_fit_starts_from_a_contact_regression_where_it_must(robot, tmp_path, monkeypatch, capsys):
     """``fit R.csv --refine`` without ``--start``: on this robot the regression without effects
-    cannot identify the cables (the rods near the ground leave too few rows), so the marker fit
-    starts from the regression with ground_contact, and says so."""
+    cannot identify the cables (the rods near the ground leave too few rows; two takes of 3 s), so
+    the marker fit starts from the regression with ground_contact, and says so."""
     from identified.fit import marker_model
     from tensegrity_gym import cli
 
-    path, rec, _ = fitted
+    path, _topo, _d = robot
+    data = collect(path, CollectConfig(episodes=2, steps=3000, seed=2))
+    rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02, encoder_rate=1000.0),
+                         seed=2)
     csv = tmp_path / "r.csv"
     save_recording(csv, rec)
     seen = {}
@@ -219,6 +232,7 @@ def test_the_marker_fit_starts_from_a_contact_regression_where_it_must(fitted, t
         return start
 
     monkeypatch.setattr(marker_model, "refine_recording", refine)
+    monkeypatch.setattr(contact_damping, "FACTORS", (1.0,))  # the law's friction scan: not what this tests
     rc = cli.main(["fit", str(csv), "--model", path, "--total-mass", "21", "--refine", "--quiet",
                    "--out", str(tmp_path / "f.json")])
     assert rc == 0

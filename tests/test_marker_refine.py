@@ -251,7 +251,7 @@ def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, caps
     start = dataclasses.replace(truth, stiffness=truth.stiffness * 1.03)
 
     def run(joint: int, checkpoint: str | None = None, sigma: float = 1e-3):
-        return fit_markers(start, rec, ms.data, ms.starts, None, sigma, ms.unobservable, frames=6, max_windows=2,
+        return fit_markers(start, rec, ms.data, ms.starts, None, sigma, ms.unobservable, frames=6, max_windows=1,
                            state_iters=1, joint_iters=joint, substeps=5, checkpoint=checkpoint, progress=True)
 
     whole = run(2)
@@ -274,13 +274,13 @@ def test_an_interrupted_fit_resumes_to_the_same_result(floorless, tmp_path, caps
     np.testing.assert_array_equal(resumed.cov.cov, whole.cov.cov)
     np.testing.assert_array_equal(resumed.to_minimum, whole.to_minimum)
     with pytest.warns(UserWarning, match="not of this fit"):
-        other = run(2, ck, sigma=2e-3)
-    assert len(other.history) == 4
+        other = run(1, ck, sigma=2e-3)
+    assert len(other.history) == 3  # from the start, not from the checkpoint's step
     with open(ck, "wb") as fh:
         fh.write(b"trunc")
     with pytest.warns(UserWarning, match="not of this fit"):
-        again = run(2, ck)
-    assert again.history == whole.history
+        again = run(1, ck)
+    assert again.history == part.history
 
 
 def test_a_model_with_some_error_bars_withheld_reads_back_with_the_others(robot, tmp_path):

@@ -83,7 +83,7 @@ def test_recordings_without_the_commands_are_refused(robot):
 @pytest.fixture(scope="module")
 def fitted(robot):
     """The robot's 6 takes of 5 s at 100 Hz, fitted with ground_contact; the law's friction damping
-    taken as the regression's (one factor: the scan is test_recording_fit's, and takes 18 s here)."""
+    taken as the regression's (one factor: the scan is test_contact_damping's, and takes 18 s here)."""
     path, _topo, _d = robot
     data = collect(path, CollectConfig(episodes=6, steps=5000, seed=2))
     rec = record_markers(data, path, RecordConfig(rate=100, noise_pos=0.001, dropout=0.02, encoder_rate=1000.0),

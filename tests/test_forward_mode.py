@@ -55,7 +55,11 @@ def _kernels() -> str:
 def test_torchs_kernels_are_back_on_leaving():
     before = _kernels()
     with shape_only_meta():
-        assert "forward_mode.py" in _kernels()
+        inside = _kernels()
+        assert "forward_mode.py" in inside
+        with shape_only_meta():  # nested: the same registration, kept until the outer one leaves
+            assert _kernels() == inside
+        assert _kernels() == inside
     assert _kernels() == before
     with pytest.raises(RuntimeError, match="inside"), shape_only_meta():
         raise RuntimeError("inside")

@@ -31,7 +31,7 @@ __all__ = ["shape_only_meta"]
 OPS = ("mul.Tensor", "add.Tensor", "sub.Tensor", "div.Tensor")
 
 _lock = threading.Lock()
-
+_active: list = []  # the registration while any use is inside: [library, number of uses]
 
 def _shape(x) -> tuple[int, ...]:
     return tuple(x.shape) if isinstance(x, torch.Tensor) else ()
@@ -64,15 +64,22 @@ def _div(a, b):
 @contextlib.contextmanager
 def shape_only_meta() -> Iterator[None]:
     """Within it, :data:`OPS` on the ``Meta`` device compute shape and dtype only (the module
-    docstring); torch's own kernels are back on leaving, also on an exception.  Not re-entrant
-    across threads (a lock: one registration at a time)."""
+    docstring); torch's own kernels are back when the last use leaves, also on an exception.
+    Nested or concurrent uses share one registration."""
     with _lock:
-        lib = torch.library.Library("aten", "IMPL")
-        try:
+        if not _active:
+            lib = torch.library.Library("aten", "IMPL")
             with warnings.catch_warnings():  # "overriding a previously registered kernel": meant, and undone
                 warnings.simplefilter("ignore")
                 for op in OPS:
                     lib.impl(op, _div if op.startswith("div") else _binary, "Meta")
-            yield
-        finally:
-            lib._destroy()
+            _active[:] = [lib, 0]
+        _active[1] += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _active[1] -= 1
+            if _active[1] == 0:
+                _active.pop(0)._destroy()
+                _active.clear()

@@ -31,7 +31,9 @@ __all__ = ["shape_only_meta"]
 OPS = ("mul.Tensor", "add.Tensor", "sub.Tensor", "div.Tensor")
 
 _lock = threading.Lock()
-_active: list = []  # the registration while any use is inside: [library, number of uses]
+_library: torch.library.Library | None = None  # the registration while any use is inside
+_uses = 0
+
 
 def _shape(x) -> tuple[int, ...]:
     return tuple(x.shape) if isinstance(x, torch.Tensor) else ()
@@ -66,20 +68,20 @@ def shape_only_meta() -> Iterator[None]:
     """Within it, :data:`OPS` on the ``Meta`` device compute shape and dtype only (the module
     docstring); torch's own kernels are back when the last use leaves, also on an exception.
     Nested or concurrent uses share one registration."""
+    global _library, _uses
     with _lock:
-        if not _active:
-            lib = torch.library.Library("aten", "IMPL")
+        if _library is None:
+            _library = torch.library.Library("aten", "IMPL")
             with warnings.catch_warnings():  # "overriding a previously registered kernel": meant, and undone
                 warnings.simplefilter("ignore")
                 for op in OPS:
-                    lib.impl(op, _div if op.startswith("div") else _binary, "Meta")
-            _active[:] = [lib, 0]
-        _active[1] += 1
+                    _library.impl(op, _div if op.startswith("div") else _binary, "Meta")
+        _uses += 1
     try:
         yield
     finally:
         with _lock:
-            _active[1] -= 1
-            if _active[1] == 0:
-                _active.pop(0)._destroy()
-                _active.clear()
+            _uses -= 1
+            if _uses == 0:
+                _library._destroy()
+                _library = None
